@@ -1,0 +1,8 @@
+"""stage: music and dance performance with multi-sensor body tracking.
+
+Sensors (Kinect-style skeleton clients) send OSC to the engine, which
+calibrates them into one stage space, fuses each person across sensors,
+smooths with a Kalman filter and hands the fused bodies to views.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,192 @@
+"""The ``stage`` command: one entry point, one-line errors, tracebacks with --debug."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import socket
+import sys
+import threading
+from enum import IntEnum
+from typing import Sequence
+
+from pythonosc.osc_message import OscMessage
+
+from . import __version__
+from .errors import StageError
+from .protocol import encode_message
+from .rig import DEFAULT_PORT, Rig, load_rig, parse_hostport
+
+log = logging.getLogger("stage")
+
+
+class Exit(IntEnum):
+    OK = 0
+    FAILURE = 1      # something went wrong at run time (a port in use, a peer that did not answer)
+    BAD_INPUT = 2    # the user's command line or files are wrong
+    INTERRUPTED = 130
+
+
+def _hostport(text: str) -> tuple[str, int]:
+    try:
+        return parse_hostport(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"'{text}' must be greater than 0")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="stage", description="Music and dance performance with multi-sensor body tracking.")
+    parser.add_argument("--version", action="version", version=f"stage {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser.add_argument("--quiet", action="store_true", help="warnings and errors only")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    serve = sub.add_parser("serve", help="run the engine: sensors in, fused bodies out (Kuatro server)")
+    serve.add_argument("--host", help="address to listen on (default: rig's, else 0.0.0.0)")
+    serve.add_argument("--port", type=int, help=f"UDP port (default: rig's, else {DEFAULT_PORT})")
+    serve.add_argument("--rig", help="rig file (sensors, calibration, views, settings)")
+    serve.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                       help="send fused bodies to this view too (repeatable)")
+    serve.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    serve.add_argument("--status", action="store_true", help="print a status line every second")
+
+    demo = sub.add_parser("demo", help="the engine fed by three virtual Kinects over real OSC")
+    demo.add_argument("--port", type=int, default=0, help="UDP port (default: any free port)")
+    demo.add_argument("--sensors", type=int, default=3, choices=range(1, 7), metavar="N",
+                      help="virtual sensors around the stage (1-6, default 3)")
+    demo.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                      help="also send fused bodies to this view")
+    demo.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    demo.add_argument("--seed", type=int, default=1)
+
+    stats = sub.add_parser("stats", help="ask a running server for its counters (JSON)")
+    stats.add_argument("--host", default="127.0.0.1")
+    stats.add_argument("--port", type=int, default=DEFAULT_PORT)
+    stats.add_argument("--timeout", type=_positive, default=2.0, metavar="S")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S", stream=sys.stderr)
+    if args.command is None:
+        parser.print_help()
+        return Exit.BAD_INPUT
+    try:
+        return int(_COMMANDS[args.command](args))
+    except StageError as exc:
+        if args.debug:
+            raise
+        print(f"stage: {exc}", file=sys.stderr)
+        return Exit.BAD_INPUT if exc.__class__.__name__ == "ConfigError" else Exit.FAILURE
+    except KeyboardInterrupt:
+        return Exit.INTERRUPTED
+
+
+def _wait_for_stop(duration: float | None) -> None:
+    """Block until Ctrl-C, SIGTERM or the end of ``duration``."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop.wait(duration)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def cmd_serve(args: argparse.Namespace) -> Exit:
+    from .console import attach
+    from .server import Server
+    rig = load_rig(args.rig) if args.rig else Rig()
+    for view in args.view:
+        if view not in rig.views:
+            rig.views.append(view)
+    server = Server(rig, host=args.host, port=args.port)
+    if args.status:
+        attach(server.engine)
+    server.start()
+    try:
+        _wait_for_stop(args.duration)
+    finally:
+        server.stop()
+        log.info("stopped; %s", _summary(server.engine.stats()))
+    return Exit.OK
+
+
+def cmd_demo(args: argparse.Namespace) -> Exit:
+    from .console import attach
+    from .demo import DemoSource, demo_rig
+    from .server import Server
+    rig, sensors = demo_rig(args.sensors, args.port)
+    rig.views.extend(args.view)
+    server = Server(rig, host="127.0.0.1")
+    attach(server.engine)
+    server.start()
+    print(f"stage demo: {len(sensors)} virtual Kinects -> engine on udp {server.address[0]}:"
+          f"{server.address[1]}; one dancer walking a circle, arms rising in turn. "
+          f"Ctrl-C stops.", flush=True)
+    source = DemoSource(server.address, sensors, seed=args.seed).start()
+    try:
+        _wait_for_stop(args.duration)
+    finally:
+        source.stop()
+        server.stop()
+        print(f"stage demo: done; {_summary(server.engine.stats())}", flush=True)
+    return Exit.OK
+
+
+def _summary(stats: dict) -> str:
+    c = stats["counts"]
+    lat = stats["latency_ms"]
+    text = (f"{c['frames']} sensor frames in, {c['fused_frames']} fused, "
+            f"{c['datagrams_out']} datagrams out, {stats['drops_total']} dropped")
+    if lat.get("n"):
+        text += f", latency p50 {lat['p50']:.2f} ms p99 {lat['p99']:.2f} ms"
+    return text
+
+
+def cmd_stats(args: argparse.Namespace) -> Exit:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.settimeout(args.timeout)
+    try:
+        sock.bind(("0.0.0.0", 0))
+        sock.sendto(encode_message("/stage/stats"), (args.host, args.port))
+        while True:
+            data, _ = sock.recvfrom(1 << 20)
+            try:
+                reply = OscMessage(data)
+            except Exception:  # not OSC: keep waiting for the real answer
+                continue
+            if reply.address == "/stage/stats" and reply.params:
+                print(json.dumps(json.loads(reply.params[0]), indent=2))
+                return Exit.OK
+    except socket.timeout:
+        print(f"stage: no answer from {args.host}:{args.port} within {args.timeout:g} s "
+              "(is `stage serve` running there?)", file=sys.stderr)
+        return Exit.FAILURE
+    finally:
+        sock.close()
+
+
+_COMMANDS = {"serve": cmd_serve, "demo": cmd_demo, "stats": cmd_stats}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,259 @@
+"""The rig file: the installer's description of sensors, calibration and ports.
+
+A rig never mentions music. Example (every key optional)::
+
+    server: {host: 0.0.0.0, port: 7770}
+    reference: kinect-a            # its space is stage space unless stage_frame is set
+    stage_frame: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]
+    sensors:
+      kinect-a: {type: kinect2}
+      kinect-b:
+        type: kinect2
+        calibration: {matrix: [[...4x4...]], method: rigid, fitness: 0.97, rms_m: 0.021,
+                      date: 2026-11-21T10:00:00}
+    allow_unknown_sensors: true    # false: only the sensors listed here are accepted
+    views: ["127.0.0.1:9001"]
+    clients: {timeout_s: 1.0, max_messages_per_s: 3000}
+    fusion: {associate_m: 0.5, ...}
+    smoothing: {enabled: true, process_noise: 4.0, measurement_noise: 1e-4}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .errors import ConfigError
+from .kalman import KalmanSettings
+from .yamlio import MarkedDict, Where, load_marked, write_atomic
+
+DEFAULT_PORT = 7770
+
+
+@dataclass
+class Calibration:
+    """A sensor's transform into the reference sensor's space."""
+
+    matrix: np.ndarray            # (4, 4)
+    method: str = "manual"
+    fitness: float | None = None  # (0, 1], 1 = perfect
+    rms_m: float | None = None
+    date: str | None = None
+
+
+@dataclass
+class SensorConfig:
+    id: str
+    type: str = "kinect2"
+    calibration: Calibration | None = None
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    associate_m: float = 0.5     # an unbound view joins a person whose torso is this close
+    release_m: float = 0.8       # a bound view leaves its person beyond this distance...
+    release_frames: int = 3      # ...for this many frames in a row (hysteresis)
+    merge_m: float = 0.3         # two persons this close...
+    merge_s: float = 0.5         # ...for this long, never seen together by one sensor, are one
+    outlier_m: float = 0.10      # joint outlier margin beyond the median spread
+    stale_s: float = 0.15        # a view older than this is not averaged in
+    lost_grace_s: float = 0.5    # a person with no views is kept this long before /lostUser
+    hand_vote: str = "plain"     # or "confidence": votes weighted by hand-joint confidence
+
+    def __post_init__(self) -> None:
+        if self.hand_vote not in ("plain", "confidence"):
+            raise ConfigError(f"'hand_vote' must be 'plain' or 'confidence', got '{self.hand_vote}'")
+        if self.release_m < self.associate_m:
+            raise ConfigError("'release_m' must be at least 'associate_m' (hysteresis)")
+
+
+@dataclass(frozen=True)
+class ClientSettings:
+    timeout_s: float = 1.0            # silence after which a client loses its users
+    max_messages_per_s: float = 3000  # per-source budget; beyond it datagrams count as flood
+
+
+@dataclass
+class Rig:
+    host: str = "0.0.0.0"
+    port: int = DEFAULT_PORT
+    reference: str | None = None
+    stage_frame: np.ndarray = field(default_factory=lambda: np.eye(4))
+    sensors: dict[str, SensorConfig] = field(default_factory=dict)
+    allow_unknown_sensors: bool = True
+    views: list[tuple[str, int]] = field(default_factory=list)
+    clients: ClientSettings = field(default_factory=ClientSettings)
+    fusion: FusionSettings = field(default_factory=FusionSettings)
+    smoothing: KalmanSettings = field(default_factory=KalmanSettings)
+    smoothing_enabled: bool = True
+    path: str | None = None
+
+    def transform_for(self, sensor: str) -> np.ndarray | None:
+        """Sensor space -> stage space (4x4), or None when the sensor is not calibrated."""
+        if sensor == self.reference:
+            return self.stage_frame.copy()
+        config = self.sensors.get(sensor)
+        if config is None or config.calibration is None:
+            return None
+        return self.stage_frame @ config.calibration.matrix
+
+    def save(self, path: str | None = None) -> None:
+        """Write the rig atomically (the previous file survives a crash mid-write)."""
+        target = path or self.path
+        if target is None:
+            raise ConfigError("rig has no path to save to")
+        write_atomic(target, yaml.safe_dump(self.to_dict(), sort_keys=False))
+        self.path = str(target)
+
+    def to_dict(self) -> dict[str, Any]:
+        sensors: dict[str, Any] = {}
+        for sid, cfg in self.sensors.items():
+            entry: dict[str, Any] = {"type": cfg.type}
+            if cfg.calibration is not None:
+                c = cfg.calibration
+                entry["calibration"] = {
+                    "matrix": [[float(v) for v in row] for row in c.matrix],
+                    "method": c.method, "fitness": c.fitness, "rms_m": c.rms_m, "date": c.date}
+            sensors[sid] = entry
+        out: dict[str, Any] = {"server": {"host": self.host, "port": self.port}}
+        if self.reference is not None:
+            out["reference"] = self.reference
+        if not np.allclose(self.stage_frame, np.eye(4)):
+            out["stage_frame"] = [[float(v) for v in row] for row in self.stage_frame]
+        out["sensors"] = sensors
+        out["allow_unknown_sensors"] = self.allow_unknown_sensors
+        out["views"] = [f"{h}:{p}" for h, p in self.views]
+        out["clients"] = dataclasses.asdict(self.clients)
+        out["fusion"] = dataclasses.asdict(self.fusion)
+        out["smoothing"] = {"enabled": self.smoothing_enabled, **dataclasses.asdict(self.smoothing)}
+        return out
+
+
+def set_calibration(rig: Rig, sensor: str, matrix: np.ndarray, method: str,
+                    fitness: float | None = None, rms_m: float | None = None) -> None:
+    now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+    config = rig.sensors.setdefault(sensor, SensorConfig(sensor))
+    config.calibration = Calibration(np.asarray(matrix, dtype=float), method, fitness, rms_m, now)
+
+
+def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+    """'host:port' or 'port' -> (host, port); ValueError with a readable message."""
+    host, _, port = str(text).rpartition(":")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ValueError(f"'{text}' is not HOST:PORT with a port from 1 to 65535")
+    return host or default_host, int(port)
+
+
+def load_rig(path: str) -> Rig:
+    """Read and validate a rig file; errors name file:line:column."""
+    where = Where(path)
+    data = where.mapping(load_marked(path), "the rig")
+    where.check_keys(data, ("server", "reference", "stage_frame", "sensors",
+                            "allow_unknown_sensors", "views", "clients", "fusion", "smoothing"),
+                     "the rig")
+    rig = Rig(path=path)
+    server = where.mapping(data.get("server"), "'server'")
+    where.check_keys(server, ("host", "port"), "'server'")
+    rig.host = str(server.get("host", rig.host))
+    port = server.get("port", rig.port)
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise where.at_key(server, "port", f"'port' must be a whole number 1-65535, got {port!r}")
+    rig.port = port
+    if "reference" in data:
+        rig.reference = str(data["reference"])
+    if "stage_frame" in data:
+        rig.stage_frame = _matrix(where, data, "stage_frame")
+    sensors = where.mapping(data.get("sensors"), "'sensors'")
+    for sid, entry in sensors.items():
+        entry = where.mapping(entry, f"sensor '{sid}'", sensors.value_marks.get(sid))
+        where.check_keys(entry, ("type", "calibration"), f"sensor '{sid}'")
+        config = SensorConfig(str(sid), str(entry.get("type", "kinect2")))
+        if entry.get("calibration") is not None:
+            cal = where.mapping(entry["calibration"], f"calibration of '{sid}'")
+            where.check_keys(cal, ("matrix", "method", "fitness", "rms_m", "date"),
+                             f"calibration of '{sid}'")
+            if "matrix" not in cal:
+                raise where.error(f"calibration of '{sid}' needs a 'matrix' (4x4)", cal.mark)
+            config.calibration = Calibration(
+                _matrix(where, cal, "matrix"), str(cal.get("method", "manual")),
+                _optional_number(where, cal, "fitness"), _optional_number(where, cal, "rms_m"),
+                None if cal.get("date") is None else str(cal["date"]))
+        rig.sensors[str(sid)] = config
+    if rig.reference is not None and rig.sensors and rig.reference not in rig.sensors:
+        raise where.at_key(data, "reference",
+                           f"reference '{rig.reference}' is not one of the sensors: "
+                           f"{', '.join(rig.sensors)}")
+    allow = data.get("allow_unknown_sensors", True)
+    if not isinstance(allow, bool):
+        raise where.at_key(data, "allow_unknown_sensors", "'allow_unknown_sensors' must be true or false")
+    rig.allow_unknown_sensors = allow
+    views = data.get("views") or []
+    if not isinstance(views, list):
+        raise where.at_key(data, "views", "'views' must be a list of HOST:PORT")
+    for k, text in enumerate(views):
+        try:
+            rig.views.append(parse_hostport(str(text)))
+        except ValueError as exc:
+            raise where.error(str(exc), getattr(views, "marks", [None] * len(views))[k]) from None
+    rig.clients = _settings(where, data, "clients", ClientSettings)
+    rig.fusion = _settings(where, data, "fusion", FusionSettings)
+    smoothing = where.mapping(data.get("smoothing"), "'smoothing'")
+    enabled = smoothing.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise where.at_key(smoothing, "enabled", "'enabled' must be true or false")
+    rig.smoothing_enabled = enabled
+    rest = MarkedDict({k: v for k, v in smoothing.items() if k != "enabled"})
+    rest.mark = getattr(smoothing, "mark", (0, 0))
+    rest.marks = getattr(smoothing, "marks", {})
+    rest.value_marks = getattr(smoothing, "value_marks", {})
+    rig.smoothing = _settings(where, {"smoothing": rest}, "smoothing", KalmanSettings)
+    return rig
+
+
+def _optional_number(where: Where, mapping: dict, key: str) -> float | None:
+    if mapping.get(key) is None:
+        return None
+    return where.number(mapping, key, 0.0)
+
+
+def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
+    value = mapping[key]
+    try:
+        matrix = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise where.at_key(mapping, key, f"'{key}' must be a 4x4 list of numbers") from None
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise where.at_key(mapping, key, f"'{key}' must be a 4x4 list of finite numbers")
+    if not np.allclose(matrix[3], (0, 0, 0, 1)):
+        raise where.at_key(mapping, key, f"'{key}' last row must be 0 0 0 1")
+    return matrix
+
+
+def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
+    section = where.mapping(data.get(key), f"'{key}'")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    where.check_keys(section, fields, f"'{key}'")
+    values: dict[str, Any] = {}
+    for name, value in section.items():
+        default = fields[name].default
+        if isinstance(default, str):
+            if not isinstance(value, str):
+                raise where.at_key(section, name, f"'{name}' must be text")
+            values[name] = value
+        elif isinstance(default, int) and not isinstance(default, bool):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise where.at_key(section, name, f"'{name}' must be a whole number >= 1")
+            values[name] = value
+        else:
+            values[name] = where.number(section, name, default, exclusive_minimum=0.0)
+    try:
+        return cls(**values)
+    except ConfigError as exc:
+        raise where.error(exc.bare_message, getattr(section, "mark", None)) from None
+
+

@@ -1,0 +1,71 @@
+"""Counters that cross threads: drops per client and reason, latency samples."""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+
+import numpy as np
+
+
+class DropCounter:
+    """Counts dropped messages per client (or source address) and reason.
+
+    Written by the receiver and engine threads, read by the stats query and
+    the once-a-minute log line; a lock keeps the counts exact.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+        self._reported: dict[tuple[str, str], int] = {}
+
+    def add(self, client: str, reason: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[client][reason] += n
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        with self._lock:
+            return {c: dict(r) for c, r in self._counts.items()}
+
+    def total(self, reason: str | None = None) -> int:
+        with self._lock:
+            return sum(n for r in self._counts.values() for k, n in r.items()
+                       if reason is None or k == reason)
+
+    def since_last_report(self) -> dict[str, dict[str, int]]:
+        """The counts added since the previous call (for the per-minute log line)."""
+        out: dict[str, dict[str, int]] = {}
+        with self._lock:
+            for client, reasons in self._counts.items():
+                for reason, n in reasons.items():
+                    before = self._reported.get((client, reason), 0)
+                    if n > before:
+                        out.setdefault(client, {})[reason] = n - before
+                        self._reported[(client, reason)] = n
+        return out
+
+
+def format_drops(drops: dict[str, dict[str, int]]) -> str:
+    return "; ".join(f"{client}: " + ", ".join(f"{r} {n}" for r, n in sorted(reasons.items()))
+                     for client, reasons in sorted(drops.items()))
+
+
+class LatencyWindow:
+    """The last ``size`` latency samples (seconds), for p50/p99 on demand."""
+
+    def __init__(self, size: int = 4096) -> None:
+        self._buf = np.zeros(size)
+        self._n = 0
+
+    def add(self, seconds: float) -> None:
+        self._buf[self._n % len(self._buf)] = seconds
+        self._n += 1
+
+    def summary_ms(self) -> dict[str, float]:
+        n = min(self._n, len(self._buf))
+        if n == 0:
+            return {"n": 0}
+        v = self._buf[:n] * 1e3
+        return {"n": self._n, "p50": float(np.percentile(v, 50)),
+                "p99": float(np.percentile(v, 99)), "max": float(v.max())}

@@ -1,0 +1,92 @@
+"""Per-sensor tracks, fused persons, and the clock-offset estimate of a client.
+
+State only: the engine thread owns every object here.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .joints import N_JOINTS, HandState
+from .kalman import JointKalman, KalmanSettings
+
+
+class OffsetEstimator:
+    """Estimates ``engine_time - client_time`` from (arrival, timetag) pairs.
+
+    Network delay only ever adds to ``arrival - timetag``, so the minimum
+    over a sliding window is the offset plus the smallest delay seen — the
+    usual one-way estimate when clocks cannot be asked. The window lets a
+    client whose clock was reset be followed within ``window_s``.
+    """
+
+    def __init__(self, window_s: float = 10.0) -> None:
+        self.window_s = window_s
+        self._mins: deque[tuple[float, float]] = deque()  # increasing values: monotonic min-queue
+
+    def update(self, arrival: float, timetag: float) -> float:
+        value = arrival - timetag
+        while self._mins and self._mins[-1][1] >= value:
+            self._mins.pop()
+        self._mins.append((arrival, value))
+        while self._mins[0][0] < arrival - self.window_s:
+            self._mins.popleft()
+        return self._mins[0][1]
+
+    @property
+    def offset(self) -> float | None:
+        return self._mins[0][1] if self._mins else None
+
+
+@dataclass(eq=False)
+class Track:
+    """One sensor's view of one user (client id, user id 0-5), in stage space."""
+
+    client: str
+    user: int
+    joints: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
+    conf: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
+    t: float = float("-inf")            # capture time of the latest frame (engine clock)
+    hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
+    person: int | None = None
+    far_frames: int = 0                 # consecutive frames beyond release distance
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return self.client, self.user
+
+
+@dataclass(eq=False)
+class Person:
+    """A fused person: the views bound to it and its smoothed skeleton."""
+
+    id: int
+    kalman: JointKalman
+    created: float
+    tracks: set = field(default_factory=set)   # of Track
+    joints: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
+    conf: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
+    centre: np.ndarray | None = None
+    centre_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    t: float = float("-inf")
+    hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
+    announced: bool = False
+    orphan_since: float | None = None       # when its last view went away
+    sent_hands: list[HandState | None] = field(default_factory=lambda: [None, None])
+
+    @classmethod
+    def new(cls, pid: int, t: float, settings: KalmanSettings) -> "Person":
+        return cls(pid, JointKalman(N_JOINTS, settings), t)
+
+    def predicted_centre(self, t: float) -> np.ndarray | None:
+        if self.centre is None:
+            return None
+        dt = min(max(t - self.t, 0.0), 0.5)
+        return self.centre + self.centre_velocity * dt
+
+    def sensors(self) -> tuple[str, ...]:
+        return tuple(sorted({tr.client for tr in self.tracks}))
