@@ -430,8 +430,8 @@ class Engine:
             if client.active and now - client.last_seen > timeout:
                 client.active = False
                 n = len(client.tracks)
-                log.warning("sensor %s silent for %.1f s: lost its %d user(s)", client.id,
-                            now - client.last_seen, n)
+                log.warning("sensor %s silent for %.1f s%s", client.id, now - client.last_seen,
+                            f": lost its {n} user(s)" if n else "")
                 for track in client.tracks.values():
                     self._drop_track(track, now)
                 client.tracks.clear()

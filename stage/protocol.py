@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Union
 
 import numpy as np
-from pythonosc import osc_bundle, osc_message
+from pythonosc import osc_message
 from pythonosc.parsing import ntp
 
 from .joints import HANDS, JOINT_INDEX, JOINTS, N_JOINTS, HandState, parse_hand, parse_hand_state
@@ -130,8 +130,8 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
     """
     out = Decoded()
     try:
-        if osc_bundle.OscBundle.dgram_is_bundle(data):
-            _walk_bundle(osc_bundle.OscBundle(data), out, source)
+        if data.startswith(b"#bundle\0"):
+            _walk_bundle(data, out, source)
         elif osc_message.OscMessage.dgram_is_message(data):
             _decode_message(osc_message.OscMessage(data), None, out, source)
         else:
@@ -142,16 +142,33 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
     return out
 
 
-def _walk_bundle(bundle: osc_bundle.OscBundle, out: Decoded, source: str) -> None:
-    stamp = bundle.timestamp
-    timetag = None if stamp == 0 else float(stamp)
-    if len(bundle.dgram) > 16 and bundle.num_contents == 0:
-        raise ValueError("bundle with unreadable contents")
-    for item in bundle:
-        if isinstance(item, osc_bundle.OscBundle):
-            _walk_bundle(item, out, source)
+def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None:
+    """Walk a bundle strictly: every element's size must fit, or the whole datagram is malformed.
+
+    python-osc's OscBundle slices past the end of a truncated element and
+    skips unknown content with a log line; on a stage a truncated datagram
+    must count as one drop instead.
+    """
+    if len(data) < 16 or depth > 8:
+        raise ValueError("truncated or too deeply nested bundle")
+    (stamp,) = struct.unpack_from(">Q", data, 8)
+    timetag = None if stamp == 1 else ntp.ntp_to_system_time(data[8:16])
+    index = 16
+    while index < len(data):
+        if index + 4 > len(data):
+            raise ValueError("truncated bundle element size")
+        (size,) = struct.unpack_from(">i", data, index)
+        index += 4
+        if size <= 0 or size % 4 or index + size > len(data):
+            raise ValueError("bundle element size out of bounds")
+        element = data[index:index + size]
+        index += size
+        if element.startswith(b"#bundle\0"):
+            _walk_bundle(element, out, source, depth + 1)
+        elif element.startswith(b"/"):
+            _decode_message(osc_message.OscMessage(element), timetag, out, source)
         else:
-            _decode_message(item, timetag, out, source)
+            raise ValueError("bundle element is neither a message nor a bundle")
 
 
 def _decode_message(msg: osc_message.OscMessage, timetag: float | None, out: Decoded,

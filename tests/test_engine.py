@@ -1,0 +1,413 @@
+"""The engine in-process: injected clock, no sockets, real OSC bytes in and out."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from pythonosc.osc_message import OscMessage
+
+from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors
+from stage.clock import ManualClock
+from stage.engine import Engine
+from stage.joints import JOINTS, HandState
+from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.rig import ClientSettings, FusionSettings, Rig, set_calibration
+
+FPS = 30.0
+
+
+class RecordingTransport:
+    """A fake view network: records every datagram as a decoded OSC message."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple[tuple[str, int], OscMessage]] = []
+
+    def send(self, data: bytes, address: tuple[str, int]) -> None:
+        self.sent.append((address, OscMessage(data)))
+
+    def of(self, address: str) -> list[list]:
+        return [m.params for _, m in self.sent if m.address == address]
+
+    def clear(self) -> None:
+        self.sent.clear()
+
+
+VIEW = ("127.0.0.1", 9001)
+
+
+def make_engine(poses: list[SensorPose] | None = None, **fusion) -> tuple[Engine, ManualClock,
+                                                                          RecordingTransport]:
+    """An engine whose rig knows the exact transform of each sensor pose."""
+    poses = poses or []
+    rig = Rig(reference=None, views=[VIEW], fusion=FusionSettings(**fusion),
+              clients=ClientSettings(timeout_s=1.0))
+    if poses:
+        rig.reference = "s0"
+        rig.stage_frame = poses[0].to_stage
+        inv = np.linalg.inv(poses[0].to_stage)
+        for k, p in enumerate(poses):
+            set_calibration(rig, f"s{k}", inv @ p.to_stage, "test")
+    clock = ManualClock(100.0)
+    transport = RecordingTransport()
+    return Engine(rig, clock, transport), clock, transport
+
+
+def send(engine: Engine, data: bytes, source=("10.0.0.1", 5000)) -> None:
+    engine.handle_datagram(data, source)
+
+
+def frame(sensor: str, user: int, joints: np.ndarray, conf: np.ndarray | None = None,
+          hands: tuple[str, str] | None = None, timetag: float | None = None) -> bytes:
+    conf = np.ones(25) if conf is None else conf
+    msgs = [encode_client_joints(sensor, user, joints, conf)]
+    if hands:
+        msgs += [encode_message("/handState", sensor, user, "left", hands[0]),
+                 encode_message("/handState", sensor, user, "right", hands[1])]
+    return encode_bundle(msgs, timetag)
+
+
+def fused_ids(transport: RecordingTransport) -> set[int]:
+    return {p[0] for p in transport.of("/jointCoordinates")}
+
+
+def test_one_sensor_skeleton_goes_out_as_paper_messages():
+    engine, clock, out = make_engine()
+    body = pose((0.0, 2.5), np.pi)
+    send(engine, encode_message("/registerDevice", "kin", "kinect2"))
+    send(engine, encode_message("/newUser", "kin", 4, 0.0, 1.0, 2.5))
+    send(engine, frame("kin", 4, body, hands=("open", "lasso")))
+    (new,) = out.of("/newUser")
+    assert new[0] >= 0 and len(new) == 4
+    (joints,) = out.of("/jointCoordinates")
+    assert joints[0] == new[0]
+    assert joints[1::5] == list(JOINTS)
+    xyz = np.array([joints[2 + 5 * k: 5 + 5 * k] for k in range(25)])
+    np.testing.assert_allclose(xyz, body, atol=1e-5)  # first Kalman update = the measurement
+    hands = {tuple(p[1:]) for p in out.of("/handState")}
+    assert hands == {("left", "open"), ("right", "lasso")}
+
+
+def test_fused_ids_are_not_client_ids_and_are_stable_per_person():
+    engine, clock, out = make_engine()
+    for k in range(10):
+        clock.advance(1 / FPS)
+        send(engine, frame("kin", 0, pose((0.5 + 0.01 * k, 2.0), 0.0)))
+        send(engine, frame("kin", 1, pose((-1.0, 3.0), 0.0)))
+    ids = [p[0] for p in out.of("/jointCoordinates")]
+    assert len(set(ids)) == 2
+    assert ids[0::2] == [ids[0]] * 10 and ids[1::2] == [ids[1]] * 10
+
+
+def run_three_sensors(seed: int, occlude_p: float, frames: int = 150):
+    """Three sensors around a performer who walks and waves; returns errors per source."""
+    rng = np.random.default_rng(seed)
+    poses = ring_of_sensors(3)
+    engine, clock, out = make_engine(poses)
+    errors = {"fused": [], **{f"s{k}": [] for k in range(3)}}
+    truths = []
+    for f in range(frames):
+        t = f / FPS
+        truth = pose((0.5 * np.sin(t), 0.3 * np.cos(t)), 0.6 * t, 1.2 + np.sin(2 * t), 0.4,
+                     0.3 * np.sin(5 * t))
+        truths.append(truth)
+        for k, p in enumerate(poses):
+            clock.advance(0.004)
+            joints, conf = observe_with_errors(p, truth, rng)
+            hidden = rng.random(25) < occlude_p
+            conf = np.where(hidden, 0.0, conf)
+            send(engine, frame(f"s{k}", k, joints, conf, hands=("open" if k < 2 else "closed",
+                                                                 "closed" if k else "open")))
+            if f >= 30:
+                seen = conf > 0
+                stage = joints @ p.to_stage[:3, :3].T + p.to_stage[:3, 3]
+                errors[f"s{k}"].append(np.linalg.norm(stage[seen] - truth[seen], axis=1).mean())
+        clock.advance(1 / FPS - 0.012)
+        if f >= 30:
+            last = out.of("/jointCoordinates")[-1]
+            names = last[1::5]
+            xyz = np.array([last[2 + 5 * k: 5 + 5 * k] for k in range(len(names))])
+            idx = [JOINTS.index(n) for n in names]
+            errors["fused"].append(np.linalg.norm(xyz - truth[idx], axis=1).mean())
+    return engine, out, {k: float(np.mean(v)) for k, v in errors.items()}
+
+
+def test_three_noisy_partly_occluded_sensors_fuse_closer_to_truth_than_any_one():
+    engine, out, err = run_three_sensors(seed=11, occlude_p=0.2)
+    best_single = min(err["s0"], err["s1"], err["s2"])
+    assert err["fused"] < best_single, err
+    assert err["fused"] < 0.8 * best_single, err  # a real gain, not a rounding win
+    assert fused_ids(out) == {1}
+    assert len(out.of("/newUser")) == 1
+    # two sensors see the left hand open, one closed: the vote says open
+    left = [p[2] for p in out.of("/handState") if p[1] == "left"]
+    right = [p[2] for p in out.of("/handState") if p[1] == "right"]
+    assert left[-1] == "open"
+    assert right[-1] == "closed"  # s0 open, s1 and s2 closed
+
+
+def test_every_joint_seen_by_at_least_one_sensor_is_reported():
+    poses = ring_of_sensors(2)
+    engine, clock, out = make_engine(poses)
+    truth = pose((0.0, 0.0), 0.0)
+    conf_a = np.ones(25)
+    conf_a[7] = 0.0           # sensor a cannot see HandLeft
+    conf_b = np.zeros(25)
+    conf_b[[0, 1, 7]] = 1.0   # sensor b sees only the spine and HandLeft
+    conf_a[24] = 0.0
+    send(engine, frame("s0", 0, poses[0].observe(truth), conf_a))
+    clock.advance(0.005)
+    send(engine, frame("s1", 0, poses[1].observe(truth), conf_b))
+    last = out.of("/jointCoordinates")[-1]
+    names = set(last[1::5])
+    assert "HandLeft" in names and "ThumbRight" not in names
+    assert len(names) == 24
+
+
+def test_ids_do_not_swap_when_two_people_pass_close():
+    poses = ring_of_sensors(3)
+    engine, clock, out = make_engine(poses)
+    rng = np.random.default_rng(5)
+    track_of: dict[int, list[float]] = {}
+    for f in range(120):
+        x = -1.5 + 3.0 * f / 119          # A walks +x, B walks -x, 0.25 m apart in z at the cross
+        people = [pose((x, 0.125), 0.0), pose((-x, -0.125), np.pi)]
+        for k, p in enumerate(poses):
+            clock.advance(0.003)
+            for user, truth in enumerate(people):
+                joints, conf = observe_with_errors(p, truth, rng)
+                send(engine, frame(f"s{k}", user, joints, conf))
+        clock.advance(1 / FPS - 0.009)
+        engine.tick()
+    for params in out.of("/jointCoordinates"):
+        track_of.setdefault(params[0], []).append(params[2 + 5 * JOINTS.index("SpineBase")])
+    assert len(track_of) == 2, track_of.keys()
+    xs = {pid: np.array(v) for pid, v in track_of.items()}
+    (a, xa), (b, xb) = sorted(xs.items())
+    assert np.all(np.diff(xa[5:]) > -0.05) and xa[-1] > 1.0   # id a kept walking +x
+    assert np.all(np.diff(xb[5:]) < 0.05) and xb[-1] < -1.0   # id b kept walking -x
+
+
+def test_person_handed_over_between_sensors_keeps_the_same_id():
+    poses = ring_of_sensors(3)
+    engine, clock, out = make_engine(poses)
+    rng = np.random.default_rng(2)
+    truth = pose((0.0, 0.0), 0.0)
+    schedule = [("s0",)] * 20 + [("s0", "s1")] * 10 + [("s1",)] * 20 + [()] * 6 + [("s2",)] * 20
+    for f, visible in enumerate(schedule):
+        for name in visible:
+            k = int(name[1])
+            if f and name not in schedule[f - 1]:  # a sensor acquiring someone says so
+                send(engine, encode_message("/newUser", name, 0, 0.0, 1.0, 2.0))
+            joints, conf = observe_with_errors(poses[k], truth, rng)
+            send(engine, frame(name, 0, joints, conf))
+            clock.advance(0.002)
+        for name in ("s0", "s1", "s2"):
+            if f and name in schedule[f - 1] and name not in visible:
+                send(engine, encode_message("/lostUser", name, 0))
+        clock.advance(1 / FPS)
+        engine.tick()
+    # the 6-frame gap (0.2 s) is inside the 0.5 s grace: still one person
+    assert fused_ids(out) == {1}
+    assert out.of("/lostUser") == []
+    clock.advance(1.0)
+    send(engine, encode_message("/lostUser", "s2", 0))
+    engine.tick()
+    assert out.of("/lostUser") == []      # grace: another sensor may still pick them up
+    clock.advance(0.5)
+    engine.tick()
+    assert out.of("/lostUser") == [[1]]
+
+
+def test_silent_client_loses_its_users_and_is_picked_up_when_it_returns(caplog):
+    caplog.set_level(logging.INFO, logger="stage.engine")
+    engine, clock, out = make_engine()
+    body = pose((0.0, 2.5), np.pi)
+    for _ in range(5):
+        send(engine, frame("kin", 0, body))
+        clock.advance(1 / FPS)
+        engine.tick()
+    clock.advance(1.05)           # past the 1 s client timeout
+    engine.tick()
+    assert not engine.clients["kin"].active
+    assert out.of("/lostUser") == []         # still in the grace period
+    clock.advance(0.5)
+    engine.tick()
+    assert out.of("/lostUser") == [[1]]
+    assert "silent" in caplog.text
+    send(engine, frame("kin", 0, body))       # no /registerDevice, no restart
+    assert engine.clients["kin"].active
+    assert [p[0] for p in out.of("/newUser")] == [1, 2]
+    assert "is back" in caplog.text
+
+
+def test_clock_offset_is_estimated_and_frames_fused_in_capture_order():
+    engine, clock, out = make_engine()
+    offset = 5000.0  # the client's clock is far ahead of ours
+    rng = np.random.default_rng(0)
+    batch_times = []
+    for k in range(30):
+        capture = 100.0 + k / FPS
+        delay = 0.002 + rng.exponential(0.003)
+        batch_times.append((capture + delay, capture))
+    # deliver every two frames swapped: the second frame arrives first
+    for k in range(0, 30, 2):
+        (arr_a, cap_a), (arr_b, cap_b) = batch_times[k], batch_times[k + 1]
+        body_a = pose((0.01 * k, 2.5), 0.0)
+        body_b = pose((0.01 * (k + 1), 2.5), 0.0)
+        clock.set(max(arr_a, arr_b))
+        from stage.engine import Inbound
+        from stage.protocol import decode_datagram
+        items = []
+        for body, cap in ((body_b, cap_b), (body_a, cap_a)):
+            for msg, tt in decode_datagram(frame("kin", 0, body, timetag=cap + offset)).messages:
+                items.append(Inbound(msg, clock.now(), ("10.0.0.1", 1), tt))
+        engine.process(items)
+    est = engine.clients["kin"].offset.offset
+    assert est == pytest.approx(-offset, abs=0.02)  # engine - client = -offset + min delay
+    xs = [p[2] for p in out.of("/jointCoordinates")]
+    assert engine.drops.total("late") == 0
+    assert len(xs) == 15  # one emission per batch
+    assert np.all(np.diff(xs) > 0)  # positions move forward: frames applied in order
+    assert engine.persons[1].t == pytest.approx(100.0 + 29 / FPS, abs=0.02)
+
+
+def test_a_frame_older_than_the_last_fused_one_is_dropped_as_late():
+    engine, clock, out = make_engine()
+    body = pose((0.0, 2.5), 0.0)
+    send(engine, frame("kin", 0, body, timetag=1_700_000_010.0))
+    clock.advance(0.03)
+    send(engine, frame("kin", 0, body, timetag=1_700_000_009.9))
+    assert engine.drops.snapshot() == {"kin": {"late": 1}}
+
+
+def test_bad_input_never_reaches_a_view_and_is_counted_per_client_and_reason():
+    engine, clock, out = make_engine()
+    body = pose((0.0, 2.5), 0.0)
+    bad = body.copy()
+    bad[3, 0] = np.nan
+    send(engine, encode_client_joints("kin", 0, bad, np.ones(25)))
+    far = body.copy()
+    far[0, 2] = 30.0
+    send(engine, encode_client_joints("kin", 0, far, np.ones(25)))
+    send(engine, encode_message("/jointCoordinates", "kin", 9, "Head", 0.0, 1.0, 2.0, 1.0))
+    send(engine, b"\x00garbage", source=("10.9.9.9", 77))
+    assert out.sent == []
+    assert engine.drops.snapshot() == {"kin": {"non_finite": 1, "out_of_range": 1,
+                                               "bad_user_id": 1},
+                                       "10.9.9.9:77": {"malformed": 1}}
+    send(engine, frame("kin", 0, body))
+    assert len(out.of("/jointCoordinates")) == 1
+
+
+def test_uncalibrated_sensor_is_not_fused(caplog):
+    poses = ring_of_sensors(2)
+    engine, clock, out = make_engine(poses)
+    body = pose((0.0, 0.0), 0.0)
+    send(engine, frame("stranger", 0, body))
+    assert out.sent == [] and "no calibration" in caplog.text
+    assert engine.clients["stranger"].frames == 1
+
+
+def test_allow_list_drops_unknown_sensors():
+    engine, clock, out = make_engine(ring_of_sensors(2))
+    engine.rig.allow_unknown_sensors = False
+    send(engine, frame("intruder", 0, pose((0.0, 0.0), 0.0)))
+    assert engine.drops.snapshot() == {"intruder": {"not_allowed": 1}}
+    assert "intruder" not in engine.clients
+
+
+def test_register_view_gets_current_people_and_unregister_stops_output():
+    engine, clock, out = make_engine()
+    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    out.clear()
+    send(engine, encode_message("/registerView", "127.0.0.1", 9100))
+    assert {a for a, m in out.sent} == {("127.0.0.1", 9100)}
+    assert [m.address for _, m in out.sent] == ["/newUser", "/handState", "/handState"]
+    out.clear()
+    clock.advance(0.03)
+    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    assert {a for a, _ in out.sent} == {VIEW, ("127.0.0.1", 9100)}
+    send(engine, encode_message("/unregisterView", "127.0.0.1", 9100))
+    out.clear()
+    clock.advance(0.03)
+    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    assert {a for a, _ in out.sent} == {VIEW}
+
+
+def test_stats_query_answers_the_sender_with_json():
+    import json
+    engine, clock, out = make_engine()
+    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    send(engine, encode_message("/stage/stats"), source=("127.0.0.1", 4444))
+    (addr, msg), = [(a, m) for a, m in out.sent if m.address == "/stage/stats"]
+    assert addr == ("127.0.0.1", 4444)
+    stats = json.loads(msg.params[0])
+    assert stats["clients"]["kin"]["frames"] == 1
+    assert stats["counts"]["fused_frames"] == 1
+
+
+def test_minute_drop_report_is_logged(caplog):
+    caplog.set_level(logging.WARNING, logger="stage.engine")
+    engine, clock, out = make_engine()
+    send(engine, encode_message("/jointCoordinates", "kin", 0, "Hed", 0.0, 1.0, 2.0, 1.0))
+    clock.advance(61)
+    engine.tick()
+    assert "dropped in the last minute: kin: unknown_joint 1" in caplog.text
+    caplog.clear()
+    clock.advance(61)
+    engine.tick()
+    assert "dropped" not in caplog.text  # nothing new, no line
+
+
+def test_listener_that_raises_is_disabled_and_the_show_goes_on(caplog):
+    engine, clock, out = make_engine()
+    frames = []
+
+    def broken(frame):
+        raise RuntimeError("boom")
+
+    engine.listeners += [broken, frames.append]
+    for _ in range(3):
+        send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+        clock.advance(0.03)
+    assert broken not in engine.listeners
+    assert len(frames) == 3 and frames[0].new == (1,)
+    assert len(out.of("/jointCoordinates")) == 3
+
+
+def test_two_persons_created_apart_then_seen_as_one_are_merged():
+    poses = ring_of_sensors(2)
+    engine, clock, out = make_engine(poses, merge_s=0.3)
+    truth = pose((0.0, 0.0), 0.0)
+    # sensor s1 is briefly miscalibrated by 0.7 m, so it creates a second person...
+    shifted = truth + np.array([0.7, 0.0, 0.0])
+    send(engine, frame("s0", 0, poses[0].observe(truth)))
+    send(engine, frame("s1", 0, poses[1].observe(shifted)))
+    assert fused_ids(out) == {1, 2}
+    # ...then both agree; after merge_s the younger id is folded into the older
+    for _ in range(20):
+        clock.advance(1 / FPS)
+        send(engine, frame("s0", 0, poses[0].observe(truth)))
+        send(engine, frame("s1", 0, poses[1].observe(truth)))
+        engine.tick()
+    assert out.of("/lostUser") == [[2]]
+    out.clear()
+    clock.advance(1 / FPS)
+    send(engine, frame("s0", 0, poses[0].observe(truth)))
+    assert fused_ids(out) == {1}
+    assert {t.client for t in engine.persons[1].tracks} == {"s0", "s1"}
+
+
+def test_hand_votes_can_be_weighted_by_hand_confidence():
+    poses = ring_of_sensors(3)
+    engine, clock, out = make_engine(poses, hand_vote="confidence")
+    truth = pose((0.0, 0.0), 0.0)
+    for k, state in enumerate(("open", "open", "closed")):
+        conf = np.ones(25)
+        conf[7] = 0.2 if state == "open" else 1.0
+        send(engine, frame(f"s{k}", 0, poses[k].observe(truth), conf, hands=(state, "open")))
+    left = [p[2] for p in out.of("/handState") if p[1] == "left"]
+    assert left[-1] == "closed"
+    assert engine.persons[1].hands[0] == HandState.CLOSED

@@ -1,0 +1,116 @@
+"""The rig file: loading, one-line errors with file:line:column, atomic saving."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from stage.errors import ConfigError
+from stage.rig import Rig, load_rig, set_calibration
+
+GOOD = """\
+server: {host: 127.0.0.1, port: 7771}
+reference: a
+sensors:
+  a: {type: kinect2}
+  b:
+    type: kinect2
+    calibration:
+      matrix: [[0, 0, 1, 2], [0, 1, 0, 0], [-1, 0, 0, 3], [0, 0, 0, 1]]
+      method: rigid
+      fitness: 0.97
+      rms_m: 0.02
+views: ["127.0.0.1:9001", "9002"]
+clients: {timeout_s: 2.0}
+fusion: {outlier_m: 0.2, hand_vote: confidence}
+smoothing: {enabled: false, process_noise: 9.0}
+"""
+
+
+def write(tmp_path, text: str, name: str = "rig.yaml") -> str:
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_a_full_rig_loads(tmp_path):
+    rig = load_rig(write(tmp_path, GOOD))
+    assert (rig.host, rig.port, rig.reference) == ("127.0.0.1", 7771, "a")
+    assert rig.views == [("127.0.0.1", 9001), ("127.0.0.1", 9002)]
+    assert rig.clients.timeout_s == 2.0 and rig.fusion.outlier_m == 0.2
+    assert rig.fusion.hand_vote == "confidence"
+    assert not rig.smoothing_enabled and rig.smoothing.process_noise == 9.0
+    np.testing.assert_allclose(rig.transform_for("a"), np.eye(4))
+    assert rig.transform_for("b")[0, 3] == 2.0
+    assert rig.transform_for("nobody") is None
+    assert rig.sensors["b"].calibration.fitness == 0.97
+
+
+def test_save_round_trips_and_is_atomic(tmp_path):
+    path = write(tmp_path, GOOD)
+    rig = load_rig(path)
+    m = np.eye(4)
+    m[:3, 3] = [1.5, 0.0, -2.0]
+    set_calibration(rig, "c", m, "ga", fitness=0.9, rms_m=0.03)
+    rig.save()
+    again = load_rig(path)
+    np.testing.assert_allclose(again.transform_for("c"), m)
+    assert again.sensors["c"].calibration.method == "ga"
+    assert again.sensors["c"].calibration.date is not None
+    assert again.views == rig.views and again.fusion == rig.fusion
+    assert [f for f in os.listdir(tmp_path) if f.endswith(".tmp")] == []
+
+
+def test_save_failure_leaves_the_old_file(tmp_path, monkeypatch):
+    path = write(tmp_path, GOOD)
+    rig = load_rig(path)
+
+    def boom(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "replace", boom)
+    with pytest.raises(OSError):
+        rig.save()
+    assert open(path).read() == GOOD
+    assert [f for f in os.listdir(tmp_path) if f.endswith(".tmp")] == []
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("refrence: a\n", "rig.yaml:1:1: unknown key 'refrence' in the rig; did you mean 'reference'?"),
+    ("server: {port: 99999}\n", "rig.yaml:1:16: 'port' must be a whole number 1-65535, got 99999"),
+    ("sensors:\n  a: {type: k, calib: {}}\n", "rig.yaml:2:16: unknown key 'calib' in sensor 'a'; "
+                                              "did you mean 'calibration'?"),
+    ("sensors:\n  a:\n    calibration: {matrix: [[1, 0], [0, 1]]}\n",
+     "rig.yaml:3:27: 'matrix' must be a 4x4 list of finite numbers"),
+    ("sensors:\n  a:\n    calibration: {method: ga}\n",
+     "rig.yaml:3:18: calibration of 'a' needs a 'matrix' (4x4)"),
+    ("reference: z\nsensors: {a: {}}\n", "rig.yaml:1:12: reference 'z' is not one of the sensors: a"),
+    ("views: [localhost]\n", "rig.yaml:1:9: 'localhost' is not HOST:PORT with a port from 1 to 65535"),
+    ("fusion: {outlier_m: -1}\n", "rig.yaml:1:21: 'outlier_m' must be greater than 0.0, got -1"),
+    ("fusion: {hand_vote: loud}\n", "rig.yaml:1:9: 'hand_vote' must be 'plain' or 'confidence', got 'loud'"),
+    ("smoothing: {process_noise: fast}\n", "rig.yaml:1:28: 'process_noise' must be a number, got 'fast'"),
+    ("server: [1, 2]\n", "rig.yaml:1:9: 'server' must be a mapping (key: value lines)"),
+    ("server:\n  port: 1\n  port: 2\n", "rig.yaml:3:3: duplicate key 'port'"),
+    ("server: {port: 1\n", "rig.yaml:2:1: YAML syntax: …"),  # wording differs between libyaml and PyYAML
+])
+def test_mistakes_get_one_line_errors_with_position(tmp_path, text, expected):
+    with pytest.raises(ConfigError) as info:
+        load_rig(write(tmp_path, text))
+    message = str(info.value).replace(str(tmp_path) + os.sep, "")
+    if expected.endswith("…"):
+        assert message.startswith(expected[:-1])
+    else:
+        assert message == expected
+    assert "\n" not in message
+
+
+def test_missing_rig_file_is_a_clear_error(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        load_rig(str(tmp_path / "nope.yaml"))
+
+
+def test_empty_rig_file_gives_defaults(tmp_path):
+    rig = load_rig(write(tmp_path, ""))
+    assert rig.port == Rig().port and rig.sensors == {}
