@@ -53,6 +53,7 @@ DROP_REASONS: tuple[str, ...] = (
     "queue_full",       # the engine queue is full (engine far behind)
     "not_allowed",      # client not in the rig's allow-list
     "late",             # older than the frame already fused for that user
+    "internal_error",   # the engine failed on this message (a bug; logged with a traceback)
 )
 
 

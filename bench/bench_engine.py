@@ -1,0 +1,614 @@
+"""Benchmark of the running server: engine-added latency, throughput and CPU over loopback.
+
+For each configuration S sensors x P people, ``stage serve`` runs as its own
+process (so its CPU can be read from /proc on its own) with a rig that
+calibrates every sensor exactly and lists this script's view socket. A load
+generator here plays S Kinect clients at 30 Hz real time: one socket per
+sensor, one OSC bundle per frame (capture-time timetag) holding
+``/jointCoordinates`` for each of the P people plus ``/handState`` for each
+hand. People stand on a grid 1.5 m apart and sway slowly; the sensors stand on
+a ring around them. Sensors are staggered across the frame period, as
+free-running Kinects are (``--aligned`` sends them all at the same instant).
+
+Figures, over a steady window after a warm-up:
+  * engine-added latency: the server's own ``latency_ms`` (datagram read by the
+    receiver thread -> fused datagram sent by the engine thread) from
+    ``/stage/stats``; the target applies to its p99;
+  * external latency, with one sensor: send -> fused ``/jointCoordinates``
+    received by the view here (two loopback hops and two wake-ups included);
+  * input bundles/s and skeletons/s sent, fused ``/jointCoordinates``/s received,
+    drops (from the server's counters), server CPU as % of one core, and how
+    late the generator sent against its deadlines.
+
+Run ``python bench/bench_engine.py`` (all 9 configurations, 10 s each),
+``--quick`` (3 s each), ``--configs 6x6,1x1``, ``--json``; ``--profile DIR``
+runs the server with one cProfile per thread and prints its hot spots.
+PASS/FAIL is printed against the targets; the exit status does not depend on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pythonosc.osc_message import OscMessage  # noqa: E402
+from pythonosc.parsing import ntp  # noqa: E402
+
+from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors  # noqa: E402
+from stage.joints import HAND_STATE_NAMES, HandState  # noqa: E402
+from stage.protocol import (JointCoordinates, decode_datagram, encode_bundle,  # noqa: E402
+                            encode_client_joints, encode_message)
+from stage.rig import Rig, set_calibration  # noqa: E402
+
+FPS = 30.0
+LATENCY_P99_TARGET_MS = 2.0
+CPU_TARGET = 0.25            # fraction of one core...
+CPU_TARGET_CONFIG = (6, 6)   # ...for 6 sensors x 6 people
+ALL_CONFIGS = [(s, p) for s in (1, 3, 6) for p in (1, 3, 6)]
+GRID_M = 1.5                 # people stand this far apart
+RING_M = 4.5                 # sensor ring radius around the grid
+SWAY_M, SWAY_S = 0.15, 8.0   # each person walks a small circle: radius, period
+NOISE_M = 0.005              # per-axis joint noise, from a pre-drawn table
+NOISE_FRAMES = 64
+HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
+HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+# ------------------------------------------------------------------ scene and rig
+def grid_positions(people: int) -> np.ndarray:
+    """(P, 2) floor positions (x, z), on a grid GRID_M apart, centred on the origin."""
+    cols = min(people, 3)
+    rows = -(-people // cols)
+    out = [((c - (cols - 1) / 2) * GRID_M, (r - (rows - 1) / 2) * GRID_M)
+           for r in range(rows) for c in range(cols)][:people]
+    return np.array(out, dtype=float)
+
+
+def sensor_poses(sensors: int) -> list[SensorPose]:
+    return ring_of_sensors(sensors, radius=RING_M)
+
+
+def sensor_ids(sensors: int) -> list[str]:
+    return [f"bench-{chr(ord('a') + k)}" for k in range(sensors)]
+
+
+def build_rig(sensors: int, port: int, view: tuple[str, int]) -> Rig:
+    """Sensor 0 is the reference and stage space is the floor at the grid centre (as demo_rig)."""
+    poses, ids = sensor_poses(sensors), sensor_ids(sensors)
+    rig = Rig(host="127.0.0.1", port=port, reference=ids[0])
+    rig.stage_frame = poses[0].to_stage
+    inverse_reference = np.linalg.inv(poses[0].to_stage)
+    set_calibration(rig, ids[0], np.eye(4), "bench", 1.0, 0.0)
+    for sid, p in zip(ids[1:], poses[1:]):
+        set_calibration(rig, sid, inverse_reference @ p.to_stage, "bench", 1.0, 0.0)
+    rig.views = [view]
+    return rig
+
+
+class SensorLoad:
+    """One virtual Kinect: a pre-encoded bundle patched in place every frame.
+
+    The bundle is built once with the project's own encoders; each frame only
+    the joint floats (one fancy-indexed numpy write for all people), the
+    timetag and, every 2 s, the 8-byte hand-state names are rewritten.
+    """
+
+    def __init__(self, sid: str, sensor: SensorPose, floor: np.ndarray, seed: int) -> None:
+        self.id = sid
+        rng = np.random.default_rng(seed)
+        people = len(floor)
+        headings = rng.uniform(0, 2 * np.pi, people)
+        truth = [pose(floor[u], headings[u], 0.4, 0.2, 0.0) for u in range(people)]
+        base, conf = zip(*(observe_with_errors(sensor, t, rng, noise_m=0.0) for t in truth))
+        self.base = np.array(base)                      # (P, 25, 3) sensor space
+        self.conf = np.array(conf)                      # (P, 25) 1 tracked, 0.5 inferred
+        self.R = sensor.observe(np.eye(3)) - sensor.observe(np.zeros(3))  # stage dir -> sensor dir
+        self.phase = rng.uniform(0, 2 * np.pi, people)
+        self.noise = rng.normal(0.0, NOISE_M, (NOISE_FRAMES, people, 25, 3))
+        self.hello = [encode_message("/registerDevice", sid, "kinect2-bench")] + [
+            encode_message("/newUser", sid, u, *map(float, self.base[u, 0])) for u in range(people)]
+        messages, joint_at, hand_at = [], [], []
+        for u in range(people):
+            messages.append(encode_client_joints(sid, u, self.base[u], self.conf[u]))
+            for hand in ("left", "right"):
+                messages.append(encode_message("/handState", sid, u, hand, "open"))
+        offset = 16  # "#bundle\0" + timetag
+        for k, m in enumerate(messages):
+            offset += 4
+            if k % 3 == 0:
+                # /jointCoordinates: address, type tags, client id, user (int), then
+                # (name, x, y, z, conf) for each of the 25 joints
+                at = 0
+                for _ in range(3):
+                    at += _padded_len_at(m, at)
+                at += 4
+                starts = []
+                for _ in range(25):
+                    at += _padded_len_at(m, at)
+                    starts.append(offset + at)
+                    at += 16
+                joint_at.append(starts)
+            else:
+                hand_at.append(offset + len(m) - 8)     # the state string is the last 8 bytes
+            offset += len(m)
+        self.buf = bytearray(encode_bundle(messages, time.time()))
+        self.u8 = np.frombuffer(self.buf, dtype=np.uint8)
+        starts = np.array(joint_at).reshape(people, 25)
+        self.float_index = (starts[..., None] + np.arange(12)).ravel()   # x y z of each joint
+        self.hand_at = np.array(hand_at).reshape(people, 2)
+        self.hand_names = [HAND_STATE_NAMES[s].encode().ljust(8, b"\0") for s in HAND_CYCLE]
+        self._hands_frame = -1
+        self._check()
+
+    def positions(self, k: int) -> np.ndarray:
+        """(P, 25, 3) sensor-space joints of frame ``k``: each person sways on a small circle."""
+        a = 2 * np.pi * (k / FPS) / SWAY_S + self.phase
+        stage_delta = np.stack([SWAY_M * np.sin(a), np.zeros_like(a), SWAY_M * np.cos(a)], axis=1)
+        return self.base + (stage_delta @ self.R)[:, None, :] + self.noise[k % NOISE_FRAMES]
+
+    def prepare(self, k: int) -> None:
+        """Write frame ``k`` (positions and hand states) into the bundle; timetag is set at send."""
+        self.u8[self.float_index] = self.positions(k).astype(">f4").view(np.uint8).ravel()
+        step = k // HAND_PERIOD_FRAMES
+        if step != self._hands_frame:
+            self._hands_frame = step
+            for u, (left, right) in enumerate(self.hand_at):
+                for hand, at in enumerate((left, right)):
+                    self.buf[at:at + 8] = self.hand_names[(step + u + hand) % 3]
+
+    def stamp(self, wall: float) -> bytearray:
+        self.buf[8:16] = ntp.system_time_to_ntp(wall)
+        return self.buf
+
+    def _check(self) -> None:
+        """The patched bytes must decode, through the server's own decoder, to what we meant."""
+        self.prepare(7)
+        decoded = decode_datagram(bytes(self.stamp(time.time())), "bench")
+        joints = [m for m, _ in decoded.messages if isinstance(m, JointCoordinates)]
+        expected = self.positions(7)
+        if (decoded.drops or len(joints) != len(self.base)
+                or not np.allclose([m.joints for m in joints], expected, atol=1e-5)
+                or not np.allclose([m.conf for m in joints], self.conf)):
+            raise RuntimeError(f"bench bundle for {self.id} does not decode as intended: "
+                               f"drops {decoded.drops}")
+        self._hands_frame = -1
+
+
+def _padded_len_at(message: bytes, at: int) -> int:
+    """Length of the 4-byte-padded OSC string starting at ``at``."""
+    end = message.index(b"\0", at)
+    return (end - at) // 4 * 4 + 4
+
+
+# ------------------------------------------------------------------ measurement helpers
+def proc_cpu_s(pid: int | str = "self") -> float:
+    """utime + stime of a process, seconds."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def query_stats(sock: socket.socket, target: tuple[str, int], timeout: float = 2.0) -> dict | None:
+    sock.settimeout(timeout)
+    sock.sendto(encode_message("/stage/stats"), target)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            data, _ = sock.recvfrom(1 << 20)
+        except socket.timeout:
+            return None
+        try:
+            reply = OscMessage(data)
+        except Exception:
+            continue
+        if reply.address == "/stage/stats" and reply.params:
+            return json.loads(reply.params[0])
+    return None
+
+
+def pct(values: np.ndarray, q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+class ViewSink(threading.Thread):
+    """The benchmark's view: timestamps every fused /jointCoordinates datagram."""
+
+    def __init__(self) -> None:
+        super().__init__(name="bench-view", daemon=True)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.address = self.sock.getsockname()[:2]
+        self.joint_times: list[float] = []
+        self.other = 0
+        self._stop = threading.Event()
+
+    def run(self) -> None:
+        recv, mono, times = self.sock.recv, time.monotonic, self.joint_times
+        while not self._stop.is_set():
+            try:
+                data = recv(65536)
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            if data.startswith(b"/jointCoordinates"):
+                times.append(mono())
+            else:
+                self.other += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.join(timeout=2.0)
+        self.sock.close()
+
+
+class Generator(threading.Thread):
+    """Sends every sensor's bundle at its absolute deadline until ``stop_at`` (monotonic)."""
+
+    def __init__(self, loads: list[SensorLoad], target: tuple[str, int], start: float,
+                 stop_at: float, aligned: bool) -> None:
+        super().__init__(name="bench-generator", daemon=True)
+        self.loads, self.target, self.start_at, self.stop_at = loads, target, start, stop_at
+        self.aligned = aligned
+        self.socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in loads]
+        for sock in self.socks:
+            sock.bind(("127.0.0.1", 0))
+        n_max = int((stop_at - start) * FPS * len(loads)) + 8
+        self.sent_at = np.zeros(n_max)       # monotonic time of each send
+        self.late = np.zeros(n_max)          # send time - deadline, s
+        self.n = 0
+        self.errors = 0
+
+    def run(self) -> None:
+        for sock, load in zip(self.socks, self.loads):
+            for m in load.hello:
+                sock.sendto(m, self.target)
+        S = len(self.loads)
+        mono, wall, sleep = time.monotonic, time.time, time.sleep
+        n = 0
+        while True:
+            k, s = divmod(n, S)
+            deadline = self.start_at + k / FPS + (0.0 if self.aligned else s / (FPS * S))
+            if deadline >= self.stop_at or n >= len(self.sent_at):
+                break
+            load = self.loads[s]
+            load.prepare(k)                   # encode before the deadline, send on it
+            delay = deadline - mono()
+            if delay > 0:
+                sleep(delay)
+            data = load.stamp(wall())
+            now = mono()
+            try:
+                self.socks[s].sendto(data, self.target)
+            except OSError:
+                self.errors += 1
+            self.sent_at[n] = now
+            self.late[n] = now - deadline
+            n += 1
+            self.n = n
+
+    def close(self) -> None:
+        for sock in self.socks:
+            sock.close()
+
+
+# ------------------------------------------------------------------ one configuration
+@dataclass
+class Options:
+    warmup: float
+    duration: float
+    aligned: bool
+    profile: str | None
+
+
+def run_config(sensors: int, people: int, opt: Options) -> dict:
+    floor = grid_positions(people)
+    loads = [SensorLoad(sid, p, floor, seed=1000 * sensors + 10 * people + k)
+             for k, (sid, p) in enumerate(zip(sensor_ids(sensors), sensor_poses(sensors)))]
+    view = ViewSink()
+    port = free_udp_port()
+    target = ("127.0.0.1", port)
+    tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
+    rig_path = os.path.join(tmp.name, "rig.yaml")
+    build_rig(sensors, port, view.address).save(rig_path)
+    log_path = os.path.join(tmp.name, "server.log")
+    if opt.profile:
+        prof_prefix = os.path.join(opt.profile, f"{sensors}x{people}")
+        cmd = [sys.executable, os.path.abspath(__file__), "_profiled-serve", prof_prefix,
+               "--port", str(port), "--rig", rig_path]
+    else:
+        cmd = [sys.executable, "-m", "stage.cli", "--quiet", "serve", "--port", str(port),
+               "--rig", rig_path]
+    log = open(log_path, "w")
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                            cwd=str(Path(__file__).resolve().parents[1]))
+    ctl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ctl.bind(("127.0.0.1", 0))
+    gen = None
+    try:
+        ready_by = time.monotonic() + 15.0
+        while query_stats(ctl, target, timeout=0.2) is None:
+            if proc.poll() is not None or time.monotonic() > ready_by:
+                raise RuntimeError(f"server did not start: {Path(log_path).read_text()[-2000:]}")
+        view.start()
+        start = time.monotonic() + 0.05
+        window_start, window_end = start + opt.warmup, start + opt.warmup + opt.duration
+        gen = Generator(loads, target, start, window_end + 0.3, opt.aligned)
+        gen.start()
+
+        time.sleep(max(0.0, window_start - time.monotonic()))
+        t0, cpu0, me0 = time.monotonic(), proc_cpu_s(proc.pid), proc_cpu_s()
+        stats0 = query_stats(ctl, target)
+        time.sleep(max(0.0, window_end - time.monotonic()))
+        t1, cpu1, me1 = time.monotonic(), proc_cpu_s(proc.pid), proc_cpu_s()
+        stats1 = query_stats(ctl, target)
+        gen.join()
+        time.sleep(0.1)
+        if stats0 is None or stats1 is None:
+            raise RuntimeError("no answer to /stage/stats during the run")
+    finally:
+        view.stop()
+        if gen is not None:
+            gen.close()
+        ctl.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=20 if opt.profile else 10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        log.close()
+    server_log = Path(log_path).read_text()
+    tmp.cleanup()
+
+    span = t1 - t0
+    sent_at, late = gen.sent_at[:gen.n], gen.late[:gen.n]
+    in_window = (sent_at >= t0) & (sent_at < t1)
+    joints_rx = np.array(view.joint_times)
+    rx_window = joints_rx[(joints_rx >= t0) & (joints_rx < t1)]
+    ext = None
+    if sensors == 1 and len(sent_at):
+        # one sensor: every fused datagram answers the latest bundle sent (33 ms apart)
+        k = np.searchsorted(sent_at, rx_window, side="right") - 1
+        ok = k >= 0
+        ext = (rx_window[ok] - sent_at[k[ok]]) * 1e3
+    c0, c1 = stats0["counts"], stats1["counts"]
+    lat = stats1["latency_ms"]
+    window_samples = lat.get("n", 0) - stats0["latency_ms"].get("n", 0)
+    cpu = (cpu1 - cpu0) / span
+    result = {
+        "config": f"{sensors}x{people}", "sensors": sensors, "people": people,
+        "window_s": round(span, 3),
+        "in_bundles_per_s": in_window.sum() / span,
+        "in_skeletons_per_s": in_window.sum() * people / span,
+        "out_joint_msgs_per_s": len(rx_window) / span,
+        "server_counts_per_s": {key: (c1[key] - c0[key]) / span for key in c1},
+        "drops_window": stats1["drops_total"] - stats0["drops_total"],
+        "drops_total": stats1["drops_total"],
+        "drops": stats1["drops"],
+        "engine_latency_ms": lat,
+        "engine_latency_samples_in_window": window_samples,
+        "engine_latency_window_is_steady": window_samples >= 4096,
+        "external_latency_ms": None if ext is None or not len(ext) else {
+            "n": int(len(ext)), "p50": pct(ext, 50), "p99": pct(ext, 99), "max": float(ext.max())},
+        "server_cpu_core_fraction": cpu,
+        "generator_cpu_core_fraction": (me1 - me0) / span,
+        "send_late_ms": {"p50": pct(late[in_window] * 1e3, 50), "p99": pct(late[in_window] * 1e3, 99),
+                         "max": float(late[in_window].max() * 1e3) if in_window.any() else None},
+        "send_errors": gen.errors,
+        "server_exit": proc.returncode,
+    }
+    if server_log.strip():
+        result["server_log_tail"] = server_log[-1500:]
+    lat_ok = bool(lat.get("n")) and lat["p99"] < LATENCY_P99_TARGET_MS
+    cpu_ok = cpu < CPU_TARGET if (sensors, people) == CPU_TARGET_CONFIG else None
+    result["latency_pass"] = lat_ok
+    result["cpu_pass"] = cpu_ok
+    result["verdict"] = "PASS" if lat_ok and cpu_ok is not False else "FAIL"
+    return result
+
+
+# ------------------------------------------------------------------ profiled server
+def profiled_serve(argv: list[str]) -> int:
+    """``bench_engine.py _profiled-serve PREFIX --port P --rig R``: stage serve with one
+    cProfile per server thread (``python -m cProfile`` only sees the main thread, which
+    just waits). Writes PREFIX.engine.prof, PREFIX.receiver.prof and PREFIX.threads.json."""
+    import cProfile
+
+    from stage.cli import _wait_for_stop
+    from stage.rig import load_rig
+    from stage.server import Server
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("prefix")
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--rig", required=True)
+    args = parser.parse_args(argv)
+    server = Server(load_rig(args.rig), port=args.port)
+    thread_cpu: dict[str, float] = {}
+
+    def wrap(name, fn):
+        def run(*a):
+            prof = cProfile.Profile()
+            prof.enable()
+            try:
+                fn(*a)
+            finally:
+                prof.disable()
+                thread_cpu[name] = time.thread_time()
+                prof.dump_stats(f"{args.prefix}.{name}.prof")
+        return run
+
+    server._receive = wrap("receiver", server._receive)          # instance attributes shadow
+    server.engine.run = wrap("engine", server.engine.run)        # the methods start() uses
+    server.start()
+    try:
+        _wait_for_stop(None)
+    finally:
+        server.stop()
+        Path(f"{args.prefix}.threads.json").write_text(json.dumps(thread_cpu))
+    return 0
+
+
+def print_profile(prefix: str, top: int = 25) -> None:
+    import pstats
+    threads = Path(f"{prefix}.threads.json")
+    if threads.exists():
+        print(f"thread CPU (s, under the profiler): {threads.read_text()}")
+    for name in ("engine", "receiver"):
+        path = f"{prefix}.{name}.prof"
+        if not os.path.exists(path):
+            print(f"(no profile for the {name} thread at {path})")
+            continue
+        for key in ("cumulative", "tottime"):
+            print(f"\n===== {os.path.basename(prefix)} {name} thread: top {top} by {key} =====")
+            pstats.Stats(path, stream=sys.stdout).strip_dirs().sort_stats(key).print_stats(top)
+
+
+# ------------------------------------------------------------------ output
+def fmt(v: float | None, spec: str = ".2f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def print_table(results: list[dict], opt: Options) -> None:
+    mode = "aligned (all sensors at once)" if opt.aligned else "staggered across the frame"
+    print(f"stage engine bench: {FPS:.0f} Hz per sensor, sensors {mode}, warm-up {opt.warmup:g} s, "
+          f"window {opt.duration:g} s, {os.cpu_count()} cores, python {sys.version.split()[0]}")
+    print(f"targets: engine-added p99 < {LATENCY_P99_TARGET_MS:g} ms (every config); "
+          f"server CPU < {100 * CPU_TARGET:.0f} % of a core at "
+          f"{CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
+    head = (f"{'config':>6} | {'in fr/s':>7} {'skel/s':>6} | {'out fr/s':>8} | {'drops':>5} | "
+            f"{'engine p50/p99/max ms':>21} {'(n)':>6} | {'ext p50/p99 ms':>14} | "
+            f"{'CPU %core':>9} | {'gen late p99':>12} | verdict")
+    print(head)
+    print("-" * len(head))
+    for r in results:
+        lat = r["engine_latency_ms"]
+        eng = (f"{fmt(lat.get('p50'))}/{fmt(lat.get('p99'))}/{fmt(lat.get('max'))}"
+               if lat.get("n") else "-")
+        n = f"({min(lat.get('n', 0), 4096)})"
+        ext = r["external_latency_ms"]
+        ext_s = f"{fmt(ext['p50'])}/{fmt(ext['p99'])}" if ext else "-"
+        cpu = f"{100 * r['server_cpu_core_fraction']:.1f}"
+        if r["cpu_pass"] is not None:
+            cpu += "*"
+        notes = []
+        if not r["latency_pass"]:
+            notes.append("p99")
+        if r["cpu_pass"] is False:
+            notes.append("CPU")
+        if (r["send_late_ms"]["p99"] or 0) > 2.0:
+            notes.append("generator late")
+        verdict = r["verdict"] + (f" ({', '.join(notes)})" if notes else "")
+        print(f"{r['config']:>6} | {r['in_bundles_per_s']:7.1f} {r['in_skeletons_per_s']:6.0f} | "
+              f"{r['out_joint_msgs_per_s']:8.1f} | {r['drops_window']:5d} | {eng:>21} {n:>6} | "
+              f"{ext_s:>14} | {cpu:>9} | {fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | {verdict}")
+    print("in fr/s: bundles sent per s (all sensors); skel/s: /jointCoordinates sent per s; "
+          "out fr/s: fused /jointCoordinates received per s at the view;\n"
+          "drops: server drops during the window; engine: the server's latency_ms (its last <= 4096 "
+          "samples, n shown); ext: send -> view receive, one-sensor configs only;\n"
+          "CPU: server process utime+stime over the window (* = the config the CPU target applies to); "
+          "gen late: p99 of send time - deadline.")
+    gen = max((r["generator_cpu_core_fraction"] for r in results), default=0.0)
+    print(f"bench process CPU (generator + view) at most {100 * gen:.1f} % of a core.")
+    total = sum(r["drops_total"] for r in results)
+    if total:
+        print("drops by client and reason (whole runs):")
+        for r in results:
+            if r["drops_total"]:
+                print(f"  {r['config']}: {r['drops']}")
+    for r in results:
+        if r.get("server_log_tail"):
+            print(f"server log ({r['config']}):\n{r['server_log_tail']}")
+    print("overall:", "PASS" if all(r["verdict"] == "PASS" for r in results) else "FAIL")
+
+
+def parse_configs(text: str) -> list[tuple[int, int]]:
+    out = []
+    for item in text.split(","):
+        s, _, p = item.strip().lower().partition("x")
+        if not (s.isdigit() and p.isdigit()) or not 1 <= int(s) <= 26 or not 1 <= int(p) <= 6:
+            raise argparse.ArgumentTypeError(f"'{item}' is not SxP (sensors 1-26, people 1-6)")
+        out.append((int(s), int(p)))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "_profiled-serve":
+        return profiled_serve(argv[1:])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configs", type=parse_configs, default=ALL_CONFIGS,
+                        help="comma-separated SxP, e.g. 6x6,1x1 (default: 1,3,6 x 1,3,6)")
+    parser.add_argument("--duration", type=float, default=10.0, help="steady window per config, s")
+    parser.add_argument("--warmup", type=float, default=2.0, help="warm-up per config, s")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 1 s warm-up, 2 s window")
+    parser.add_argument("--aligned", action="store_true",
+                        help="all sensors send at the same instant (worst case) instead of staggered")
+    parser.add_argument("--profile", metavar="DIR",
+                        help="run the server with one cProfile per thread; write and print the "
+                             "hot spots (figures are then inflated by the profiler)")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.warmup, args.duration = 1.0, 2.0
+    if args.profile:
+        os.makedirs(args.profile, exist_ok=True)
+        args.profile = os.path.abspath(args.profile)
+    opt = Options(args.warmup, args.duration, args.aligned, args.profile)
+    results = []
+    for sensors, people in args.configs:
+        if not args.json:
+            print(f"running {sensors}x{people} ...", file=sys.stderr, flush=True)
+        results.append(run_config(sensors, people, opt))
+    if args.json:
+        print(json.dumps({"fps": FPS, "warmup_s": opt.warmup, "duration_s": opt.duration,
+                          "aligned": opt.aligned, "cores": os.cpu_count(),
+                          "targets": {"engine_p99_ms": LATENCY_P99_TARGET_MS,
+                                      "cpu_core_fraction": CPU_TARGET,
+                                      "cpu_config": "%dx%d" % CPU_TARGET_CONFIG},
+                          "results": results}, indent=2, default=_json_default))
+    else:
+        print_table(results, opt)
+    if args.profile:
+        for sensors, people in args.configs:
+            print_profile(os.path.join(args.profile, f"{sensors}x{people}"))
+    return 0
+
+
+def _json_default(v):
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return float(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    raise TypeError(type(v).__name__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
