@@ -74,13 +74,14 @@ class FusedFrame:
 
 
 class ClientState:
-    def __init__(self, client: str, sensor_type: str, source: tuple[str, int], now: float) -> None:
+    def __init__(self, client: str, sensor_type: str, source: tuple[str, int], now: float,
+                 offset: OffsetEstimator) -> None:
         self.id, self.type, self.source = client, sensor_type, source
         self.registered = now
         self.last_seen = now
         self.frames = 0
         self.tracks: dict[int, Track] = {}
-        self.offset = OffsetEstimator()
+        self.offset = offset
         self.transform: np.ndarray | None = None
         self.warned_uncalibrated = False
         self.active = True
@@ -104,6 +105,7 @@ class Engine:
         self.counts = {"messages": 0, "frames": 0, "fused_frames": 0, "datagrams_out": 0,
                        "send_errors": 0}
         self._next_id = 1
+        self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._dirty: dict[int, float] = {}           # person id -> newest arrival fused in
         self._lost: list[int] = []
         self._close_since: dict[tuple[int, int], float] = {}
@@ -149,10 +151,10 @@ class Engine:
         client = getattr(msg, "client", None)
         if item.timetag is None or client is None:
             return item.arrival
-        state = self.clients.get(client)
-        if state is None:
-            return item.arrival
-        offset = state.offset.update(item.arrival, item.timetag)
+        estimator = self._offsets.get(client)
+        if estimator is None:
+            estimator = self._offsets[client] = OffsetEstimator()
+        offset = estimator.update(item.arrival, item.timetag)
         return min(item.timetag + offset, item.arrival)
 
     def _apply(self, item: Inbound, t: float) -> None:
@@ -168,11 +170,9 @@ class Engine:
         client = self._client(msg, item)
         if client is None:
             return
-        if item.timetag is not None and client.offset.offset is None:
-            client.offset.update(item.arrival, item.timetag)
-            t = min(item.timetag + (client.offset.offset or 0.0), item.arrival)
         if isinstance(msg, JointCoordinates):
-            self._on_frame(client, msg, t, item.arrival)
+            stamp = item.arrival if item.timetag is None else item.timetag
+            self._on_frame(client, msg, t, item.arrival, stamp)
         elif isinstance(msg, HandStateMsg):
             track = client.tracks.get(msg.user)
             if track is None:
@@ -204,7 +204,8 @@ class Engine:
             else:
                 log.info("sensor %s re-registered from %s:%d", cid, *item.source)
         if state is None:
-            state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now)
+            state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now,
+                                self._offsets.setdefault(cid, OffsetEstimator()))
             self.clients[cid] = state
             if not isinstance(msg, RegisterDevice):
                 log.info("sensor %s sending from %s:%d without /registerDevice; accepted",
@@ -233,7 +234,7 @@ class Engine:
 
     # ------------------------------------------------------------ fusion
     def _on_frame(self, client: ClientState, msg: JointCoordinates, t: float,
-                  arrival: float) -> None:
+                  arrival: float, stamp: float) -> None:
         client.frames += 1
         self.counts["frames"] += 1
         if client.transform is None:
@@ -245,43 +246,43 @@ class Engine:
         track = client.tracks.get(msg.user)
         if track is None:
             track = client.tracks[msg.user] = Track(client.id, msg.user)
-        if t <= track.t:
+        # "late" is judged on the client's own clock: the offset estimate only
+        # improves (decreases) over time, so engine-clock capture times of two
+        # frames can cross even though the client sent them in order
+        if stamp <= track.stamp:
             self.drops.add(client.id, "late")
             return
+        track.stamp = stamp
+        t = max(t, track.t)
         track.joints = apply_transform(client.transform, msg.joints)
         track.conf = msg.conf
         track.t = t
-        centre = torso_centre(track.joints, track.conf)
-        if centre is None:
+        if not (track.conf > 0).any():
             return  # nothing tracked in this frame: no position to associate or fuse
-        person = self._associate(track, centre, t)
+        person = self._associate(track, t)
         self._fuse(person, t)
         self._dirty.setdefault(person.id, arrival)
 
-    def _associate(self, track: Track, centre: np.ndarray, t: float) -> Person:
+    def _associate(self, track: Track, t: float) -> Person:
         fs = self.rig.fusion
         if track.person is not None:
             person = self.persons[track.person]
-            predicted = person.predicted_centre(t)
-            if predicted is None or np.linalg.norm(centre - predicted) <= fs.release_m \
-                    or len(person.tracks) == 1:
+            d = person.distance(track.joints, track.conf, t)
+            if d is None or d <= fs.release_m or len(person.tracks) == 1:
                 track.far_frames = 0
                 return person
             track.far_frames += 1
             if track.far_frames < fs.release_frames:
                 return person
             log.info("sensor %s user %d left person %d (%.2f m away)", track.client, track.user,
-                     person.id, float(np.linalg.norm(centre - predicted)))
+                     person.id, d)
             self._unbind(track, t)
         best, best_d = None, fs.associate_m
         for person in self.persons.values():
             if any(other.client == track.client for other in person.tracks):
                 continue  # one sensor never sees one person twice
-            predicted = person.predicted_centre(t)
-            if predicted is None:
-                continue
-            d = float(np.linalg.norm(centre - predicted))
-            if d <= best_d:
+            d = person.distance(track.joints, track.conf, t)
+            if d is not None and d <= best_d:
                 best, best_d = person, d
         if best is None:
             best = Person.new(self._next_id, t, self.rig.smoothing)
@@ -326,12 +327,10 @@ class Engine:
             smoothed = fused
         person.joints = np.where(seen[:, None], smoothed, person.joints)
         person.conf = np.minimum(np.where(used, conf, 0.0).max(axis=0), 1.0)
-        centre = torso_centre(person.joints, person.conf)
-        if centre is not None:
-            if person.centre is not None and t > person.t:
-                v = (centre - person.centre) / (t - person.t)
-                person.centre_velocity = 0.7 * person.centre_velocity + 0.3 * v
-            person.centre = centre
+        person.known |= seen
+        # the centre uses every torso joint ever seen, not just this frame's, so it
+        # does not jump when occlusion changes which joints a view reports
+        person.centre = torso_centre(person.joints, person.known.astype(float))
         person.t = max(person.t, t)
         self.counts["fused_frames"] += 1
 

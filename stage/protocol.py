@@ -134,7 +134,7 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
         if data.startswith(b"#bundle\0"):
             _walk_bundle(data, out, source)
         elif osc_message.OscMessage.dgram_is_message(data):
-            _decode_message(osc_message.OscMessage(data), None, out, source)
+            _decode_message(_parse_message(data), None, out, source)
         else:
             out.drops.append((source, "malformed"))
     except Exception:  # python-osc raises several types on garbage; all mean the same here
@@ -167,9 +167,40 @@ def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None
         if element.startswith(b"#bundle\0"):
             _walk_bundle(element, out, source, depth + 1)
         elif element.startswith(b"/"):
-            _decode_message(osc_message.OscMessage(element), timetag, out, source)
+            _decode_message(_parse_message(element), timetag, out, source)
         else:
             raise ValueError("bundle element is neither a message nor a bundle")
+
+
+_FIXED_SIZES = {"i": 4, "f": 4, "c": 4, "r": 4, "m": 4, "d": 8, "h": 8, "t": 8,
+                "T": 0, "F": 0, "N": 0, "I": 0}
+
+
+def _parse_message(data: bytes) -> osc_message.OscMessage:
+    """python-osc's parser, made strict about length.
+
+    It zero-pads a float cut short at the end of a datagram (a courtesy to
+    one synth), so a truncated skeleton would decode with a wrong last value;
+    here the arguments must fill the datagram exactly.
+    """
+    msg = osc_message.OscMessage(data)
+    tags = msg.dgram[len(_pad(msg.address.encode())):].split(b"\0", 1)[0].decode("ascii")
+    size = len(_pad(msg.address.encode())) + len(_pad(tags.encode()))
+    params = iter(msg.params)
+    for tag in tags[1:]:
+        if tag in _FIXED_SIZES:
+            next(params)  # python-osc yields a value for every tag, T/F/N/I included
+            size += _FIXED_SIZES[tag]
+        elif tag == "s":
+            size += len(_pad(next(params).encode()))
+        elif tag == "b":
+            n = len(next(params))
+            size += 4 + n + (-n % 4)
+        else:  # arrays and exotic tags are not part of this API
+            raise ValueError(f"unsupported OSC type tag {tag!r}")
+    if size != len(data):
+        raise ValueError("arguments do not fill the datagram exactly")
+    return msg
 
 
 def _decode_message(msg: osc_message.OscMessage, timetag: float | None, out: Decoded,

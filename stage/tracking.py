@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .joints import N_JOINTS, HandState
+from .joints import N_JOINTS, TORSO, HandState
 from .kalman import JointKalman, KalmanSettings
 
 
@@ -50,6 +50,7 @@ class Track:
     joints: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
     conf: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
     t: float = float("-inf")            # capture time of the latest frame (engine clock)
+    stamp: float = float("-inf")        # the same on the client's clock (timetag or arrival)
     hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
     person: int | None = None
     far_frames: int = 0                 # consecutive frames beyond release distance
@@ -71,7 +72,7 @@ class Person:
     conf: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
     velocity: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
     centre: np.ndarray | None = None
-    centre_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    known: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
     t: float = float("-inf")
     hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
     announced: bool = False
@@ -82,11 +83,22 @@ class Person:
     def new(cls, pid: int, t: float, settings: KalmanSettings) -> "Person":
         return cls(pid, JointKalman(N_JOINTS, settings), t)
 
-    def predicted_centre(self, t: float) -> np.ndarray | None:
-        if self.centre is None:
+    def distance(self, joints: np.ndarray, conf: np.ndarray, t: float) -> float | None:
+        """Mean distance (m) from a view's joints to this person predicted at ``t``.
+
+        Compared on the torso joints both have (all shared joints if no torso),
+        so a view that sees only part of the body is not judged by a centre
+        that jumps with what happens to be occluded.
+        """
+        shared = (conf > 0) & self.known
+        torso = np.zeros(N_JOINTS, dtype=bool)
+        torso[list(TORSO)] = True
+        mask = shared & torso if (shared & torso).any() else shared
+        if not mask.any():
             return None
         dt = min(max(t - self.t, 0.0), 0.5)
-        return self.centre + self.centre_velocity * dt
+        predicted = self.joints[mask] + self.velocity[mask] * dt
+        return float(np.linalg.norm(joints[mask] - predicted, axis=1).mean())
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
