@@ -99,16 +99,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Exit.INTERRUPTED
 
 
-def _wait_for_stop(duration: float | None) -> None:
-    """Block until Ctrl-C, SIGTERM or the end of ``duration``."""
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        stop.wait(duration)
-    finally:
-        for sig, handler in previous.items():
+class StopSignals:
+    """Turns Ctrl-C and SIGTERM into an event, from before anything starts.
+
+    Installed before the server starts, so a signal that arrives while it is
+    starting still ends in a clean stop (exit 0), not a KeyboardInterrupt.
+    """
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._previous: dict = {}
+
+    def __enter__(self) -> "StopSignals":
+        self._previous = {sig: signal.signal(sig, lambda *_: self.event.set())
+                          for sig in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._previous.items():
             signal.signal(sig, handler)
+
+    def wait(self, duration: float | None) -> None:
+        """Block until a signal or the end of ``duration`` seconds."""
+        self.event.wait(duration)
 
 
 def cmd_serve(args: argparse.Namespace) -> Exit:
@@ -121,12 +134,13 @@ def cmd_serve(args: argparse.Namespace) -> Exit:
     server = Server(rig, host=args.host, port=args.port)
     if args.status:
         attach(server.engine)
-    server.start()
-    try:
-        _wait_for_stop(args.duration)
-    finally:
-        server.stop()
-        log.info("stopped; %s", _summary(server.engine.stats()))
+    with StopSignals() as stop:
+        server.start()
+        try:
+            stop.wait(args.duration)
+        finally:
+            server.stop()
+            log.info("stopped; %s", _summary(server.engine.stats()))
     return Exit.OK
 
 
@@ -138,17 +152,18 @@ def cmd_demo(args: argparse.Namespace) -> Exit:
     rig.views.extend(args.view)
     server = Server(rig, host="127.0.0.1")
     attach(server.engine)
-    server.start()
-    print(f"stage demo: {len(sensors)} virtual Kinects -> engine on udp {server.address[0]}:"
-          f"{server.address[1]}; one dancer walking a circle, arms rising in turn. "
-          f"Ctrl-C stops.", flush=True)
-    source = DemoSource(server.address, sensors, seed=args.seed).start()
-    try:
-        _wait_for_stop(args.duration)
-    finally:
-        source.stop()
-        server.stop()
-        print(f"stage demo: done; {_summary(server.engine.stats())}", flush=True)
+    with StopSignals() as stop:
+        server.start()
+        print(f"stage demo: {len(sensors)} virtual Kinects -> engine on udp {server.address[0]}:"
+              f"{server.address[1]}; one dancer walking a circle, arms rising in turn. "
+              f"Ctrl-C stops.", flush=True)
+        source = DemoSource(server.address, sensors, seed=args.seed).start()
+        try:
+            stop.wait(args.duration)
+        finally:
+            source.stop()
+            server.stop()
+            print(f"stage demo: done; {_summary(server.engine.stats())}", flush=True)
     return Exit.OK
 
 

@@ -17,6 +17,7 @@ import json
 import logging
 import queue
 import threading
+import time
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -106,6 +107,9 @@ class Engine:
                        "send_errors": 0}
         self._next_id = 1
         self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
+        self._stats_replies: list[tuple[str, int]] = []
+        # engine clock -> wall clock, to report client clocks against ours in seconds
+        self._wall_minus_clock = time.time() - self.clock.now()
         self._dirty: dict[int, float] = {}           # person id -> newest arrival fused in
         self._lost: list[int] = []
         self._close_since: dict[tuple[int, int], float] = {}
@@ -145,6 +149,11 @@ class Engine:
                 log.exception("error while handling %s; item dropped", type(item.message).__name__)
                 self.drops.add(_client_key(item), "internal_error")
         self._emit()
+        if self._stats_replies:
+            reply = encode_message("/stage/stats", json.dumps(self.stats()))
+            for address in self._stats_replies:
+                self._send(reply, address)
+            self._stats_replies.clear()
 
     def _capture_time(self, item: Inbound) -> float:
         msg = item.message
@@ -163,9 +172,9 @@ class Engine:
             self._register_view(msg)
             return
         if isinstance(msg, StatsQuery):
-            port = msg.reply_port or item.source[1]
-            self._send(encode_message("/stage/stats", json.dumps(self.stats())),
-                       (item.source[0], port))
+            # answered after this batch's emission, so a reply never overtakes
+            # the fused output of frames that arrived before the query
+            self._stats_replies.append((item.source[0], msg.reply_port or item.source[1]))
             return
         client = self._client(msg, item)
         if client is None:
@@ -507,7 +516,8 @@ class Engine:
                               "active": c.active, "silent_s": round(now - c.last_seen, 3),
                               "frames": c.frames, "users": sorted(c.tracks),
                               "calibrated": c.transform is not None,
-                              "clock_offset_s": c.offset.offset,
+                              "clock_ahead_s": None if c.offset.offset is None else
+                              round(-c.offset.offset - self._wall_minus_clock, 4),
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": {pid: {"sensors": list(p.sensors()),

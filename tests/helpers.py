@@ -8,7 +8,8 @@ Nothing here sleeps to "let things happen": a ``Peer`` waits for the message
 it needs with a deadline, and ``sync`` uses the server's own ``/stage/stats``
 reply as a barrier (the engine handles its queue in order, so once the reply
 to a query sent after some datagrams is back, those datagrams are handled and
-everything the engine sent because of them is already in our socket buffers).
+everything the engine sent because of them is already in our socket buffers;
+see ``sync`` for why that takes two queries).
 """
 
 from __future__ import annotations
@@ -201,7 +202,13 @@ def sync(server: tuple[str, int], *views: Peer) -> dict:
     """Barrier: every datagram sent to ``server`` before this call has been handled.
 
     Returns the stats; the views' buffers are drained into ``.received``.
+
+    Two queries, because the engine answers a query while it applies its batch
+    but sends view output at the end of the batch: the first reply can overtake
+    the view datagrams of the frames batched with it. The second query is sent
+    only after the first reply, so it lands in a later batch, after that emit.
     """
+    query_stats(server)
     stats = query_stats(server)
     for view in views:
         view.drain()

@@ -1,0 +1,130 @@
+"""The ``stage`` command as a user runs it: exit codes, one-line errors, clean shutdown.
+
+Every CLI runs as ``python -m stage.cli`` in a subprocess, so PATH does not matter.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+import stage
+from helpers import LOCALHOST, free_udp_port, query_stats
+
+pytestmark = pytest.mark.integration
+
+CLI = [sys.executable, "-m", "stage.cli"]
+
+
+def run(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def one_line_error(stderr: str) -> str:
+    """The whole stderr, asserted to be exactly one line and no traceback."""
+    assert "Traceback" not in stderr, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def test_version():
+    done = run("--version")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"stage {stage.__version__}"
+
+
+def test_no_command_is_bad_input():
+    done = run()
+    assert done.returncode == 2
+    assert "usage: stage" in done.stdout
+    assert "Traceback" not in done.stderr
+
+
+def test_missing_rig_file(tmp_path):
+    missing = tmp_path / "missing.yaml"
+    done = run("serve", "--rig", str(missing), "--duration", "5")
+    assert done.returncode == 2
+    line = one_line_error(done.stderr)
+    assert line == f"stage: {missing}: no such file"
+
+
+def test_rig_file_with_yaml_syntax_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("server:\n  host: 127.0.0.1\n  port: [7770\nsensors: {}\n")
+    done = run("serve", "--rig", str(bad), "--duration", "5")
+    assert done.returncode == 2
+    line = one_line_error(done.stderr)
+    assert re.fullmatch(rf"stage: {re.escape(str(bad))}:\d+:\d+: YAML syntax: .+", line), line
+
+
+def test_port_in_use():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind((LOCALHOST, 0))
+        port = taken.getsockname()[1]
+        done = run("serve", "--host", LOCALHOST, "--port", str(port), "--duration", "5")
+    assert done.returncode == 1
+    line = one_line_error(done.stderr)
+    assert line.startswith(f"stage: cannot listen for OSC on udp {LOCALHOST}:{port}"), line
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_serve_answers_stats_and_stops_cleanly_on_signal(sig):
+    port = free_udp_port()
+    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20.0
+        while True:  # up when it answers; each try waits for a reply, no fixed sleep
+            assert proc.poll() is None, f"stage serve exited early: {proc.communicate()}"
+            try:
+                query_stats((LOCALHOST, port), timeout=0.2)
+                break
+            except AssertionError:
+                assert time.monotonic() < deadline, "stage serve never answered /stage/stats"
+
+        done = run("stats", "--port", str(port), "--timeout", "5")
+        assert done.returncode == 0, done.stderr
+        stats = json.loads(done.stdout)
+        assert stats["clients"] == {} and "drops" in stats and "uptime_s" in stats
+
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err
+    assert "stopped;" in err  # the shutdown summary: it went through server.stop()
+
+
+def test_stats_without_server_fails_with_one_line():
+    port = free_udp_port()
+    done = run("stats", "--port", str(port), "--timeout", "0.5")
+    assert done.returncode == 1
+    line = one_line_error(done.stderr)
+    assert line.startswith(f"stage: no answer from 127.0.0.1:{port} within 0.5 s")
+
+
+def test_demo_runs_and_reports():
+    done = run("demo", "--duration", "3", timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    lines = done.stdout.strip().splitlines()
+    assert lines[0].startswith("stage demo: 3 virtual Kinects -> engine on udp 127.0.0.1:")
+    status = [line for line in lines if "person 1 at" in line]
+    assert status, done.stdout
+    assert any("seen by 3" in line for line in status), done.stdout
+    summary = lines[-1]
+    assert re.fullmatch(r"stage demo: done; (\d+) sensor frames in, (\d+) fused, (\d+) datagrams "
+                        r"out, 0 dropped, latency p50 .+ ms p99 .+ ms", summary), summary
+    frames_in = int(re.search(r"(\d+) sensor frames in", summary).group(1))
+    assert frames_in > 0
