@@ -51,9 +51,9 @@ def _median_outliers(positions: np.ndarray, used: np.ndarray, n: np.ndarray,
                      outlier_m: float) -> np.ndarray:
     masked = np.where(used[..., None], positions, np.nan)
     median = _nan_median(masked, n)                         # (J, 3)
-    dist = np.linalg.norm(positions - median[None], axis=2)  # (S, J)
+    dist = np.sqrt(((positions - median[None]) ** 2).sum(axis=2))  # (S, J)
     dist_masked = np.where(used, dist, np.nan)
-    spread = _nan_median(dist_masked[..., None], n)[:, 0]   # (J,)
+    spread = _nan_median(dist_masked, n)                    # (J,)
     return used & (n >= 3)[None] & (dist > spread[None] + outlier_m)
 
 
@@ -63,24 +63,26 @@ def _nan_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
     np.nanmedian is an order of magnitude slower on these small arrays.
     """
     ordered = np.sort(values, axis=0)  # NaN sort last
-    lo = np.clip((n - 1) // 2, 0, None)
-    hi = np.clip(n // 2, 0, None)
-    take_lo = np.take_along_axis(ordered, lo[None, :, None].repeat(values.shape[2], 2), 0)[0]
-    take_hi = np.take_along_axis(ordered, hi[None, :, None].repeat(values.shape[2], 2), 0)[0]
-    return 0.5 * (take_lo + take_hi)
+    cols = np.arange(values.shape[1])
+    lo = np.maximum((n - 1) // 2, 0)
+    hi = np.maximum(n // 2, 0)
+    return 0.5 * (ordered[lo, cols] + ordered[hi, cols])
 
 
 def _pair_outliers(positions: np.ndarray, conf: np.ndarray, used: np.ndarray, two: np.ndarray,
                    outlier_m: float) -> np.ndarray:
+    """For joints seen by exactly two views that disagree, drop the less confident view."""
+    cols = np.flatnonzero(two)
+    first = np.argmax(used[:, cols], axis=0)
+    last = used.shape[0] - 1 - np.argmax(used[::-1, cols], axis=0)
+    gap = np.sqrt(((positions[first, cols] - positions[last, cols]) ** 2).sum(axis=1))
+    cf, cl = conf[first, cols], conf[last, cols]
+    disagree = gap > 2 * outlier_m
     drop = np.zeros_like(used)
-    for j in np.flatnonzero(two):
-        s = np.flatnonzero(used[:, j])
-        a, b = s[0], s[1]
-        if np.linalg.norm(positions[a, j] - positions[b, j]) > 2 * outlier_m:
-            if conf[a, j] < conf[b, j]:
-                drop[a, j] = True
-            elif conf[b, j] < conf[a, j]:
-                drop[b, j] = True
+    lose_first = disagree & (cf < cl)
+    lose_last = disagree & (cl < cf)
+    drop[first[lose_first], cols[lose_first]] = True
+    drop[last[lose_last], cols[lose_last]] = True
     return drop
 
 
