@@ -34,6 +34,7 @@ import json
 import os
 import queue
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -46,7 +47,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+REPO = Path(__file__).resolve().parents[1]
+# the server subprocesses import the snapshot of stage/ taken when the run started
+sys.path.insert(0, os.environ.get("STAGE_BENCH_SRC") or str(REPO))
 
 from pythonosc.osc_message import OscMessage  # noqa: E402
 from pythonosc.parsing import ntp  # noqa: E402
@@ -206,6 +209,17 @@ def proc_cpu_s(pid: int | str = "self") -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+def thread_cpu_s(pid: int) -> dict[int, float]:
+    """utime + stime of each thread of a process, seconds, by thread id."""
+    out = {}
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out[int(task)] = proc_cpu_s(f"{pid}/task/{task}")
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+    return out
+
+
 def machine_busy_s() -> float:
     """CPU seconds all cores spent not idle since boot (from /proc/stat)."""
     with open("/proc/stat") as f:
@@ -213,12 +227,32 @@ def machine_busy_s() -> float:
     return (sum(values[:8]) - values[3] - values[4]) / CLK_TCK  # minus idle and iowait
 
 
-def source_fingerprint() -> str:
-    """Short hash of stage/*.py: other people edit the engine while benches run."""
+def source_fingerprint(root: Path) -> str:
+    """Short hash of root/stage/*.py."""
     h = hashlib.sha1()
-    for path in sorted((Path(__file__).resolve().parents[1] / "stage").glob("*.py")):
+    for path in sorted((root / "stage").glob("*.py")):
         h.update(path.name.encode() + b"\0" + path.read_bytes())
     return h.hexdigest()[:10]
+
+
+def snapshot_sources(into: str) -> Path:
+    """Copy stage/ so that every configuration of a run measures the same code even while
+    it is being edited; the servers run from the copy (cwd and PYTHONPATH)."""
+    root = Path(into) / "src"
+    shutil.copytree(REPO / "stage", root / "stage", ignore=shutil.ignore_patterns("__pycache__"))
+    return root
+
+
+def wait_idle(max_wait: float, threshold: float = 0.05, sample: float = 2.0) -> float:
+    """Wait (at most ``max_wait`` s) until the machine's busy CPU over ``sample`` s is below
+    ``threshold`` of one core; returns the last busy fraction seen."""
+    deadline = time.monotonic() + max_wait
+    while True:
+        a = machine_busy_s()
+        time.sleep(sample)
+        busy = (machine_busy_s() - a) / sample
+        if busy < threshold or time.monotonic() >= deadline:
+            return busy
 
 
 def free_udp_port() -> int:
@@ -343,6 +377,8 @@ class Options:
     profile: str | None
     floor: bool = False        # run against the null server instead of stage serve
     server_cmd: list[str] | None = None  # another server command; gets --port P --rig R
+    src: Path = REPO                     # where the servers import stage from
+    wait_idle: float = 0.0               # max s to wait for an idle machine before each config
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
@@ -356,7 +392,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     rig_path = os.path.join(tmp.name, "rig.yaml")
     build_rig(sensors, port, view.address).save(rig_path)
     log_path = os.path.join(tmp.name, "server.log")
-    fingerprint = source_fingerprint()
+    fingerprint = source_fingerprint(opt.src)
     if opt.server_cmd:
         cmd = opt.server_cmd + ["--port", str(port), "--rig", rig_path]
     elif opt.floor:
@@ -369,9 +405,10 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     else:
         cmd = [sys.executable, "-m", "stage.cli", "--quiet", "serve", "--port", str(port),
                "--rig", rig_path]
+    idle_before = wait_idle(opt.wait_idle) if opt.wait_idle > 0 else None
     log = open(log_path, "w")
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                            cwd=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(opt.src), STAGE_BENCH_SRC=str(opt.src))
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=str(opt.src), env=env)
     ctl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     ctl.bind(("127.0.0.1", 0))
     gen = None
@@ -388,9 +425,11 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
 
         time.sleep(max(0.0, window_start - time.monotonic()))
         t0, cpu0, me0, all0 = time.monotonic(), proc_cpu_s(proc.pid), proc_cpu_s(), machine_busy_s()
+        threads0 = thread_cpu_s(proc.pid)
         stats0 = query_stats(ctl, target)
         time.sleep(max(0.0, window_end - time.monotonic()))
         t1, cpu1, me1, all1 = time.monotonic(), proc_cpu_s(proc.pid), proc_cpu_s(), machine_busy_s()
+        threads1 = thread_cpu_s(proc.pid)
         stats1 = query_stats(ctl, target)
         gen.join()
         time.sleep(0.1)
@@ -428,9 +467,15 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     lat = stats1["latency_ms"]
     window_samples = lat.get("n", 0) - stats0["latency_ms"].get("n", 0)
     cpu = (cpu1 - cpu0) / span
+    # stage serve's threads in creation order: main (waits), receiver, engine
+    tids = sorted(set(threads0) & set(threads1))
+    names = ["main", "receiver", "engine"] if len(tids) == 3 and not opt.server_cmd else [
+        str(t) for t in tids]
+    threads = {name: (threads1[t] - threads0[t]) / span for name, t in zip(names, tids)}
     result = {
         "config": ("floor " if opt.floor else "") + f"{sensors}x{people}",
         "sensors": sensors, "people": people, "stage_source": fingerprint,
+        "machine_busy_before": idle_before,
         "window_s": round(span, 3),
         "in_bundles_per_s": in_window.sum() / span,
         "in_skeletons_per_s": in_window.sum() * people / span,
@@ -445,6 +490,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
         "external_latency_ms": None if ext is None or not len(ext) else {
             "n": int(len(ext)), "p50": pct(ext, 50), "p99": pct(ext, 99), "max": float(ext.max())},
         "server_cpu_core_fraction": cpu,
+        "server_thread_cpu_core_fraction": threads,
         "generator_cpu_core_fraction": (me1 - me0) / span,
         # everything else the machine did meanwhile: other processes skew every figure
         "other_cpu_core_fraction": max(0.0, (all1 - all0) - (cpu1 - cpu0) - (me1 - me0)) / span,
@@ -535,7 +581,6 @@ def profiled_serve(argv: list[str]) -> int:
     just waits). Writes PREFIX.engine.prof, PREFIX.receiver.prof and PREFIX.threads.json."""
     import cProfile
 
-    from stage.cli import _wait_for_stop
     from stage.rig import load_rig
     from stage.server import Server
 
@@ -561,9 +606,12 @@ def profiled_serve(argv: list[str]) -> int:
 
     server._receive = wrap("receiver", server._receive)          # instance attributes shadow
     server.engine.run = wrap("engine", server.engine.run)        # the methods start() uses
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     server.start()
     try:
-        _wait_for_stop(None)
+        while not stop.wait(0.5):
+            pass
     finally:
         server.stop()
         Path(f"{args.prefix}.threads.json").write_text(json.dumps(thread_cpu))
@@ -599,7 +647,7 @@ def print_table(results: list[dict], opt: Options) -> None:
           f"{CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
     head = (f"{'config':>9} | {'in fr/s':>7} {'skel/s':>6} | {'out fr/s':>8} | {'drops':>5} | "
             f"{'engine p50/p99/max ms':>21} {'(n)':>6} | {'ext p50/p99 ms':>14} | "
-            f"{'CPU %core':>9} | {'gen late p99':>12} | {'other %':>7} | verdict")
+            f"{'CPU %core (rx+eng)':>18} | {'gen late p99':>12} | {'other %':>7} | verdict")
     print(head)
     print("-" * len(head))
     for r in results:
@@ -609,9 +657,10 @@ def print_table(results: list[dict], opt: Options) -> None:
         n = f"({min(lat.get('n', 0), 4096)})"
         ext = r["external_latency_ms"]
         ext_s = f"{fmt(ext['p50'])}/{fmt(ext['p99'])}" if ext else "-"
-        cpu = f"{100 * r['server_cpu_core_fraction']:.1f}"
-        if r["cpu_pass"] is not None:
-            cpu += "*"
+        cpu = f"{100 * r['server_cpu_core_fraction']:.1f}" + ("*" if r["cpu_pass"] is not None else "")
+        th = r["server_thread_cpu_core_fraction"]
+        if "receiver" in th:
+            cpu += f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f})"
         notes = []
         if not r["latency_pass"]:
             notes.append("p99")
@@ -624,13 +673,14 @@ def print_table(results: list[dict], opt: Options) -> None:
         verdict = r["verdict"] + (f" ({', '.join(notes)})" if notes else "")
         print(f"{r['config']:>9} | {r['in_bundles_per_s']:7.1f} {r['in_skeletons_per_s']:6.0f} | "
               f"{r['out_joint_msgs_per_s']:8.1f} | {r['drops_window']:5d} | {eng:>21} {n:>6} | "
-              f"{ext_s:>14} | {cpu:>9} | {fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | "
+              f"{ext_s:>14} | {cpu:>18} | {fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | "
               f"{100 * r['other_cpu_core_fraction']:7.1f} | {verdict}")
     print("in fr/s: bundles sent per s (all sensors); skel/s: /jointCoordinates sent per s; "
           "out fr/s: fused /jointCoordinates received per s at the view;\n"
           "drops: server drops during the window; engine: the server's latency_ms (its last <= 4096 "
           "samples, n shown); ext: send -> view receive, one-sensor configs only;\n"
-          "CPU: server process utime+stime over the window (* = the config the CPU target applies to); "
+          "CPU: server process utime+stime over the window (* = the config the CPU target applies to;\n"
+          "  rx+eng: its receiver and engine threads); "
           "gen late: p99 of send time - deadline;\n"
           "other %: CPU used by other processes on the machine during the window, "
           "in % of one core (> 10: figures are skewed by other load).")
@@ -650,7 +700,8 @@ def print_table(results: list[dict], opt: Options) -> None:
         print(f"WARNING: stage/*.py changed during the run (source hashes {', '.join(sources)}): "
               "rows measured different code.")
     else:
-        print(f"stage/*.py source hash: {sources[0] if sources else '-'}")
+        print(f"stage/*.py source hash: {sources[0] if sources else '-'}"
+              f" ({'working tree' if opt.src == REPO else 'snapshot taken at the start'})")
     if any(r["config"].startswith("floor") for r in results):
         print("floor rows: a null server with the same receiver thread -> queue.Queue -> sender "
               "thread hand-off and no work; its verdict is informational.")
@@ -692,6 +743,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="benchmark this command instead of stage serve (e.g. an instrumented "
                              "or patched copy, for A/B runs); '--port P --rig R' is appended, and "
                              "it must stop on SIGTERM")
+    parser.add_argument("--wait-idle", type=float, default=0.0, metavar="S",
+                        help="before each config wait up to S s for the machine to be idle "
+                             "(other processes under 5 %% of a core over 2 s)")
+    parser.add_argument("--live", action="store_true",
+                        help="run the servers from the working tree instead of a snapshot of "
+                             "stage/ taken at the start")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = parser.parse_args(argv)
     if args.quick:
@@ -699,11 +756,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         os.makedirs(args.profile, exist_ok=True)
         args.profile = os.path.abspath(args.profile)
+    snapshot_dir = None if args.live else tempfile.TemporaryDirectory(prefix="stage-bench-src-")
+    src = REPO if snapshot_dir is None else snapshot_sources(snapshot_dir.name)
     opt = Options(args.warmup, args.duration, args.aligned, args.profile,
-                  server_cmd=shlex.split(args.server_cmd) if args.server_cmd else None)
+                  server_cmd=shlex.split(args.server_cmd) if args.server_cmd else None,
+                  src=src, wait_idle=args.wait_idle)
     results = []
     if args.floor:
-        floor_opt = Options(args.warmup, args.duration, args.aligned, None, floor=True)
+        floor_opt = Options(args.warmup, args.duration, args.aligned, None, floor=True, src=src,
+                            wait_idle=args.wait_idle)
         for sensors, people in ((1, 1), (6, 6)):
             print(f"running floor {sensors}x{people} ...", file=sys.stderr, flush=True)
             results.append(run_config(sensors, people, floor_opt))
@@ -722,6 +783,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         for sensors, people in args.configs:
             print_profile(os.path.join(args.profile, f"{sensors}x{people}"))
+    if snapshot_dir is not None:
+        snapshot_dir.cleanup()
     return 0
 
 

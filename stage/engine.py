@@ -53,6 +53,25 @@ class Inbound:
 
 
 @dataclass(slots=True)
+class SensorFrame:
+    """One sensor's skeleton as it arrived, before fusion (for calibration and monitors)."""
+
+    sensor: str
+    user: int
+    t: float                        # capture time, engine clock
+    joints: np.ndarray              # (25, 3) metres, the SENSOR's own space
+    conf: np.ndarray                # (25,)
+    transform: np.ndarray | None    # (4, 4) sensor -> stage in use now; None = not fused
+
+
+@dataclass(slots=True)
+class Call:
+    """A function to run on the engine thread (see ``Engine.call_soon``)."""
+
+    fn: Callable[["Engine"], None]
+
+
+@dataclass(slots=True)
 class Body:
     """One fused person in one frame. Arrays are stage space, metres."""
 
@@ -102,6 +121,8 @@ class Engine:
         self.persons: dict[int, Person] = {}
         self.views: list[tuple[str, int]] = list(dict.fromkeys(self.rig.views))
         self.listeners: list[Callable[[FusedFrame], None]] = []
+        #: called on the engine thread with every valid sensor frame, calibrated or not
+        self.frame_observers: list[Callable[[SensorFrame], None]] = []
         self.latency = LatencyWindow()
         self.counts = {"messages": 0, "frames": 0, "fused_frames": 0, "datagrams_out": 0,
                        "send_errors": 0}
@@ -127,6 +148,25 @@ class Engine:
         except queue.Full:
             self.drops.add(_client_key(item), "queue_full")
             return False
+
+    def call_soon(self, fn: Callable[["Engine"], None]) -> None:
+        """Run ``fn(engine)`` on the engine thread, in order with the data (thread-safe).
+
+        The only way another thread (a calibration worker, a UI) may change
+        engine state. In-process users call ``drain()`` to run what is queued.
+        """
+        self.queue.put(Inbound(Call(fn), self.clock.now(), ("engine", 0)), timeout=1.0)  # type: ignore[arg-type]
+
+    def drain(self) -> None:
+        """Process everything queued so far, on the calling thread (tests, offline replay)."""
+        batch: list[Inbound] = []
+        while True:
+            try:
+                batch.append(self.queue.get_nowait())
+            except queue.Empty:
+                break
+        if batch:
+            self.process(batch)
 
     def handle_datagram(self, data: bytes, source: tuple[str, int] = ("127.0.0.1", 0),
                         arrival: float | None = None) -> None:
@@ -168,6 +208,9 @@ class Engine:
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message
+        if isinstance(msg, Call):
+            msg.fn(self)
+            return
         if isinstance(msg, RegisterView):
             self._register_view(msg)
             return
@@ -238,14 +281,23 @@ class Engine:
     def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
         """Use a new sensor->stage transform from now on (None: leave the sensor out)."""
         state = self.clients.get(client)
-        if state is not None:
-            state.transform = None if matrix is None else np.asarray(matrix, dtype=float)
+        if state is None:
+            return
+        state.transform = None if matrix is None else np.asarray(matrix, dtype=float)
+        now = self.clock.now()
+        for track in state.tracks.values():  # views in the old space must not linger in fusion
+            if track.person is not None:
+                self._drop_track(track, now)
+            track.t = track.stamp = float("-inf")
 
     # ------------------------------------------------------------ fusion
     def _on_frame(self, client: ClientState, msg: JointCoordinates, t: float,
                   arrival: float, stamp: float) -> None:
         client.frames += 1
         self.counts["frames"] += 1
+        if self.frame_observers:
+            self._observe(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
+                                      client.transform))
         if client.transform is None:
             if not client.warned_uncalibrated:
                 log.warning("sensor %s has no calibration in the rig: its frames are not fused",
@@ -398,6 +450,14 @@ class Engine:
             except Exception:
                 log.exception("listener %r raised; it is disabled", listener)
                 self.listeners.remove(listener)
+
+    def _observe(self, frame: SensorFrame) -> None:
+        for observer in list(self.frame_observers):
+            try:
+                observer(frame)
+            except Exception:
+                log.exception("frame observer %r raised; it is disabled", observer)
+                self.frame_observers.remove(observer)
 
     def _broadcast(self, data: bytes) -> None:
         for view in self.views:

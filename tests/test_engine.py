@@ -411,3 +411,22 @@ def test_hand_votes_can_be_weighted_by_hand_confidence():
     left = [p[2] for p in out.of("/handState") if p[1] == "left"]
     assert left[-1] == "closed"
     assert engine.persons[1].hands[0] == HandState.CLOSED
+
+
+def test_call_soon_runs_on_the_engine_in_order_with_data():
+    poses = ring_of_sensors(2)
+    engine, clock, out = make_engine(poses)
+    seen = []
+    engine.frame_observers.append(seen.append)
+    truth = pose((0.0, 0.0), 0.0)
+    send(engine, frame("s1", 0, poses[1].observe(truth)))
+    assert len(seen) == 1 and seen[0].sensor == "s1" and seen[0].transform is not None
+    np.testing.assert_allclose(seen[0].joints, poses[1].observe(truth), atol=1e-6)  # sensor space
+    engine.call_soon(lambda e: e.set_calibration("s1", None))  # e.g. a suspect sensor
+    assert engine.clients["s1"].transform is not None         # not yet: queued
+    engine.drain()
+    assert engine.clients["s1"].transform is None
+    out.clear()
+    clock.advance(0.03)
+    send(engine, frame("s1", 0, poses[1].observe(truth)))
+    assert out.sent == [] and len(seen) == 2 and seen[1].transform is None
