@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
 import signal
@@ -10,7 +11,7 @@ import socket
 import sys
 import threading
 from enum import IntEnum
-from typing import Sequence
+from typing import Callable, Sequence
 
 from pythonosc.osc_message import OscMessage
 
@@ -76,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     stats.add_argument("--host", default="127.0.0.1")
     stats.add_argument("--port", type=int, default=DEFAULT_PORT)
     stats.add_argument("--timeout", type=_positive, default=2.0, metavar="S")
+    for name in COMMAND_MODULES:
+        _COMMANDS.update(importlib.import_module(name).register(sub))
     return parser
 
 
@@ -200,7 +203,13 @@ def cmd_stats(args: argparse.Namespace) -> Exit:
         sock.close()
 
 
-_COMMANDS = {"serve": cmd_serve, "demo": cmd_demo, "stats": cmd_stats}
+_COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "serve": cmd_serve, "demo": cmd_demo, "stats": cmd_stats}
+
+#: Modules that add subcommands: each has ``register(subparsers) -> {name: function}``,
+#: the function taking the parsed arguments and returning an exit status.
+COMMAND_MODULES: list[str] = [
+]
 
 
 if __name__ == "__main__":

@@ -1,0 +1,111 @@
+"""What a piece asks the outputs to do: the contract between the piece runtime and views.
+
+The piece runtime (engine thread) turns fused bodies into these events; views
+(MIDI, OSC, monitor, ...) turn them into sound and pictures. Every event has
+``t``, the engine-clock time (seconds) at which it should take effect: "now"
+for most, later for the notes of a phrase, so a view can schedule precisely
+instead of on the next frame. ``output`` names an output declared in the
+piece (``outputs:``); views are bound to output names, never the reverse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Protocol, Union
+
+
+@dataclass(frozen=True, slots=True)
+class Note:
+    """A note with its own note-off: on at ``t``, off at ``t + duration``."""
+
+    t: float
+    output: str
+    channel: int      # 0-15 (MIDI channel 1-16 in the piece file)
+    note: int         # 0-127
+    velocity: int     # 1-127
+    duration: float   # seconds, > 0
+
+
+@dataclass(frozen=True, slots=True)
+class ControlChange:
+    t: float
+    output: str
+    channel: int
+    control: int      # 0-127
+    value: int        # 0-127
+
+
+@dataclass(frozen=True, slots=True)
+class ProgramChange:
+    t: float
+    output: str
+    channel: int
+    program: int      # 0-127
+
+
+@dataclass(frozen=True, slots=True)
+class AllNotesOff:
+    """Silence an output (one channel, or all when ``channel`` is None); pending notes are cancelled."""
+
+    t: float
+    output: str | None = None   # None: every output
+    channel: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class OscOut:
+    """An OSC message the piece sends to a named OSC output."""
+
+    t: float
+    output: str
+    address: str
+    args: tuple[Any, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class SectionChange:
+    t: float
+    section: str
+    previous: str | None
+    index: int        # position of ``section`` in the piece, 0-based
+    cause: str = ""   # the trigger that moved on, or "operator" / "start"
+
+
+@dataclass(frozen=True, slots=True)
+class TriggerFired:
+    """A trigger fired (for logs, ``--events`` files and the monitor)."""
+
+    t: float
+    section: str
+    trigger: str
+    person: int | None = None
+    joint: str | None = None
+    value: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MappingValue:
+    """A continuous mapping's current output value (sent on change)."""
+
+    t: float
+    mapping: str
+    value: float
+
+
+Event = Union[Note, ControlChange, ProgramChange, AllNotesOff, OscOut, SectionChange,
+              TriggerFired, MappingValue]
+
+
+def to_json(event: Event) -> dict[str, Any]:
+    """A JSON-ready dict: {"type": "Note", "t": ..., ...} (one line per event in --events files)."""
+    out: dict[str, Any] = {"type": type(event).__name__}
+    for f in dataclasses.fields(event):
+        value = getattr(event, f.name)
+        out[f.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+class EventSink(Protocol):
+    def emit(self, events: list[Event]) -> None:
+        """Take events from the engine thread; must not block (queue and return)."""
