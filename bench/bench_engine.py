@@ -467,10 +467,11 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     lat = stats1["latency_ms"]
     window_samples = lat.get("n", 0) - stats0["latency_ms"].get("n", 0)
     cpu = (cpu1 - cpu0) / span
-    # stage serve's threads in creation order: main (waits), receiver, engine
+    # stage serve starts its receiver and engine threads last (after numpy's BLAS threads)
     tids = sorted(set(threads0) & set(threads1))
-    names = ["main", "receiver", "engine"] if len(tids) == 3 and not opt.server_cmd else [
-        str(t) for t in tids]
+    names = [str(t) for t in tids]
+    if len(tids) >= 3 and not (opt.server_cmd or opt.floor):
+        names[-2:] = ["receiver", "engine"]
     threads = {name: (threads1[t] - threads0[t]) / span for name, t in zip(names, tids)}
     result = {
         "config": ("floor " if opt.floor else "") + f"{sensors}x{people}",

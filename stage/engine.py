@@ -26,7 +26,7 @@ import numpy as np
 from .clock import Clock, MonotonicClock
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from .joints import HandState
-from .protocol import (HandStateMsg, JointCoordinates, LostUser, Message, NewUser,
+from .protocol import (FloorPlane, HandStateMsg, JointCoordinates, LostUser, Message, NewUser,
                        RegisterDevice, RegisterView, StatsQuery, decode_datagram,
                        encode_message, encode_view_hand_state, encode_view_joints,
                        encode_view_lost_user, encode_view_new_user)
@@ -62,6 +62,7 @@ class SensorFrame:
     joints: np.ndarray              # (25, 3) metres, the SENSOR's own space
     conf: np.ndarray                # (25,)
     transform: np.ndarray | None    # (4, 4) sensor -> stage in use now; None = not fused
+    floor: np.ndarray | None = None  # (4,) the sensor's last /floorPlane (a, b, c, d), if any
 
 
 @dataclass(slots=True)
@@ -104,6 +105,7 @@ class ClientState:
         self.offset = offset
         self.transform: np.ndarray | None = None
         self.warned_uncalibrated = False
+        self.floor: np.ndarray | None = None
         self.active = True
 
 
@@ -232,6 +234,8 @@ class Engine:
             track.hands[msg.hand] = msg.state
             if track.person is not None:
                 self._dirty.setdefault(track.person, item.arrival)
+        elif isinstance(msg, FloorPlane):
+            client.floor = msg.plane
         elif isinstance(msg, NewUser):
             old = client.tracks.pop(msg.user, None)
             if old is not None:
@@ -297,7 +301,7 @@ class Engine:
         self.counts["frames"] += 1
         if self.frame_observers:
             self._observe(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
-                                      client.transform))
+                                      client.transform, client.floor))
         if client.transform is None:
             if not client.warned_uncalibrated:
                 log.warning("sensor %s has no calibration in the rig: its frames are not fused",

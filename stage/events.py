@@ -106,6 +106,20 @@ def to_json(event: Event) -> dict[str, Any]:
     return out
 
 
+@dataclass(frozen=True, slots=True)
+class OutputDecl:
+    """An output a piece declares: where its events go, bound to a view at play time.
+
+    kind "midi": ``target`` is a MIDI port name, or None for the command line's
+    choice (--midi PORT / --midi-file OUT.mid / a new virtual port). kind "osc":
+    ``target`` is "host:port", or None for the command line's --osc.
+    """
+
+    name: str
+    kind: str                 # "midi" or "osc"
+    target: str | None = None
+
+
 class EventSink(Protocol):
     def emit(self, events: list[Event]) -> None:
         """Take events from the engine thread; must not block (queue and return)."""

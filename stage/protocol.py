@@ -15,8 +15,8 @@ Client-to-Server (4.1.1)::
 
 View-to-Server (4.1.2): ``/registerView ip port``. Server-to-View (4.1.3):
 the same addresses without the clientID. Our additions are new addresses
-only (``/unregisterView ip port``, ``/stage/stats [port]``), so a Kuatro
-client works unchanged. See docs/osc-api.md.
+only (``/floorPlane clientID a b c d``, ``/unregisterView ip port``,
+``/stage/stats [port]``), so a Kuatro client works unchanged. See docs/osc-api.md.
 """
 
 from __future__ import annotations
@@ -93,6 +93,14 @@ class HandStateMsg:
 
 
 @dataclass(slots=True)
+class FloorPlane:
+    """stage extension: the floor plane a sensor reports, ax + by + cz + d = 0 in its space."""
+
+    client: str
+    plane: np.ndarray   # (4,) a, b, c, d; (a, b, c) normalised to unit length
+
+
+@dataclass(slots=True)
 class RegisterView:
     host: str
     port: int
@@ -104,7 +112,7 @@ class StatsQuery:
     reply_port: int | None  # None: reply to the sender's port
 
 
-ClientMessage = Union[RegisterDevice, NewUser, LostUser, JointCoordinates, HandStateMsg]
+ClientMessage = Union[RegisterDevice, NewUser, LostUser, JointCoordinates, HandStateMsg, FloorPlane]
 Message = Union[ClientMessage, RegisterView, StatsQuery]
 
 
@@ -328,6 +336,15 @@ def _h_hand_state(params: list, source: str) -> HandStateMsg:
     return HandStateMsg(client, user, hand, state)
 
 
+def _h_floor_plane(params: list, source: str) -> FloorPlane:
+    _arity(params, 5)
+    plane = np.array([_number(v) for v in params[1:5]])
+    norm = float(np.linalg.norm(plane[:3]))
+    if norm < 1e-6 or abs(plane[3]) / norm > MAX_COORD_M:
+        raise _Drop("out_of_range")
+    return FloorPlane(_client(params[0]), plane / norm)
+
+
 def _port(v: object) -> int:
     if isinstance(v, str) and v.strip().isdigit():
         v = int(v)
@@ -363,6 +380,7 @@ _HANDLERS = {
     "/lostUser": _h_lost_user,
     "/jointCoordinates": _h_joint_coordinates,
     "/handState": _h_hand_state,
+    "/floorPlane": _h_floor_plane,
     "/registerView": _h_register_view,
     "/unregisterView": _h_unregister_view,
     "/stage/stats": _h_stats,

@@ -201,3 +201,12 @@ def test_message_encoder_types_match_python_osc():
     with pytest.raises(TypeError):
         encode_message("/x", True)
     assert math.isclose(OscMessage(encode_message("/x", -2.25)).params[0], -2.25)
+
+
+def test_floor_plane_extension_is_normalised_and_validated():
+    from stage.protocol import FloorPlane
+    msg, _ = only_message(build("/floorPlane", "k", 0.0, 2.0, 0.0, 1.6))
+    assert isinstance(msg, FloorPlane)
+    np.testing.assert_allclose(msg.plane, [0, 1, 0, 0.8])
+    assert only_drop(build("/floorPlane", "k", 0.0, 0.0, 0.0, 1.0))[1] == "out_of_range"
+    assert only_drop(build("/floorPlane", "k", 0.0, 1.0, 0.0))[1] == "bad_arity"
