@@ -131,6 +131,9 @@ class Engine:
         self._next_id = 1
         self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._stats_replies: list[tuple[str, int]] = []
+        #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
+        #: written on the engine thread (via call_soon), shown in stats and monitors
+        self.sensor_notes: dict[str, dict] = {}
         # engine clock -> wall clock, to report client clocks against ours in seconds
         self._wall_minus_clock = time.time() - self.clock.now()
         self._dirty: dict[int, float] = {}           # person id -> newest arrival fused in
@@ -582,6 +585,7 @@ class Engine:
                               "calibrated": c.transform is not None,
                               "clock_ahead_s": None if c.offset.offset is None else
                               round(-c.offset.offset - self._wall_minus_clock, 4),
+                              "calibration": self.sensor_notes.get(cid, {}),
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": {pid: {"sensors": list(p.sensors()),

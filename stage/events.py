@@ -93,8 +93,18 @@ class MappingValue:
     value: float
 
 
+@dataclass(frozen=True, slots=True)
+class ZoneState:
+    """A zone became occupied or empty (sent on change, for monitors and logs)."""
+
+    t: float
+    zone: str
+    occupied: bool
+    persons: tuple[int, ...] = ()
+
+
 Event = Union[Note, ControlChange, ProgramChange, AllNotesOff, OscOut, SectionChange,
-              TriggerFired, MappingValue]
+              TriggerFired, MappingValue, ZoneState]
 
 
 def to_json(event: Event) -> dict[str, Any]:
