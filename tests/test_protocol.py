@@ -210,3 +210,41 @@ def test_floor_plane_extension_is_normalised_and_validated():
     np.testing.assert_allclose(msg.plane, [0, 1, 0, 0.8])
     assert only_drop(build("/floorPlane", "k", 0.0, 0.0, 0.0, 1.0))[1] == "out_of_range"
     assert only_drop(build("/floorPlane", "k", 0.0, 1.0, 0.0))[1] == "bad_arity"
+
+
+def test_fast_path_agrees_with_the_general_decoder():
+    """The hot-path decoder accepts exactly what the general one accepts, with equal values."""
+    from stage.protocol import Decoded, _decode_message, _fast_joint_coordinates, _parse_message
+    rng = np.random.default_rng(11)
+    fast_hits = 0
+    for k in range(600):
+        n = int(rng.integers(1, 26))
+        names = list(rng.choice(JOINTS, size=n, replace=False))
+        if k % 7 == 0:
+            names[0] = "Nose"                                 # unknown joint
+        if k % 11 == 0 and n > 1:
+            names[1] = names[0]                               # duplicate
+        args = ["kin" if k % 3 else 3, int(rng.integers(-1, 8))]
+        for name in names:
+            xyz = rng.normal(0, 8 if k % 5 == 0 else 1, size=3)
+            c = float(rng.choice([0.0, 0.5, 1.0, 1.2]) if k % 13 == 0 else rng.choice([0.5, 1.0]))
+            if k % 17 == 0:
+                xyz[0] = np.nan
+            args += [str(name), *map(float, xyz), c]
+        data = build("/jointCoordinates", *args)
+        if k % 19 == 0:
+            data = data[:-4]
+        general = Decoded()
+        try:
+            _decode_message(_parse_message(data), None, general, "x:1")
+        except Exception:
+            general.drops.append(("x:1", "malformed"))
+        fast = _fast_joint_coordinates(data)
+        if fast is None:
+            continue
+        fast_hits += 1
+        assert general.drops == [] and len(general.messages) == 1
+        slow = general.messages[0][0]
+        assert (fast.client, fast.user) == (slow.client, slow.user)
+        assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
+    assert fast_hits > 100
