@@ -25,7 +25,7 @@ import numpy as np
 
 from .clock import Clock, MonotonicClock
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
-from .joints import HandState
+from .joints import TORSO, HandState
 from .protocol import (FloorPlane, HandStateMsg, JointCoordinates, LostUser, Message, NewUser,
                        RegisterDevice, RegisterView, StatsQuery, decode_datagram,
                        encode_message, encode_view_hand_state, encode_view_joints,
@@ -35,6 +35,7 @@ from .stats import DropCounter, LatencyWindow, format_drops
 from .tracking import OffsetEstimator, Person, Track
 
 log = logging.getLogger("stage.engine")
+_TORSO = np.array(TORSO)
 
 
 class Transport(Protocol):
@@ -398,7 +399,9 @@ class Engine:
         person.known |= seen
         # the centre uses every torso joint ever seen, not just this frame's, so it
         # does not jump when occlusion changes which joints a view reports
-        person.centre = torso_centre(person.joints, person.known.astype(float))
+        torso = person.known[_TORSO]
+        person.centre = (person.joints[_TORSO][torso].mean(axis=0) if torso.any()
+                         else torso_centre(person.joints, person.known.astype(float)))
         person.t = max(person.t, t)
         self.counts["fused_frames"] += 1
 

@@ -212,11 +212,46 @@ def _parse_message(data: bytes) -> osc_message.OscMessage:
 
 
 def _decode_element(data: bytes, timetag: float | None, out: Decoded, source: str) -> None:
-    frame = _fast_joint_coordinates(data)
-    if frame is not None:
-        out.messages.append((frame, timetag))
+    fast = _fast_joint_coordinates(data) or _fast_hand_state(data)
+    if fast is not None:
+        out.messages.append((fast, timetag))
     else:
         _decode_message(_parse_message(data), timetag, out, source)
+
+
+_HS_ADDRESS = b"/handState\0\0"
+_HS_TAGS = b",siss\0\0\0"
+_HS_HANDS = {b"left": 0, b"right": 1}
+_HS_STATES = {name.encode(): state for state, name in
+              ((s, s.wire_name) for s in HandState)}
+
+
+def _fast_hand_state(data: bytes) -> HandStateMsg | None:
+    """``/handState clientID userID hand state`` with string client, hand and state.
+
+    Two per person per sensor frame; like the joint fast path, anything else
+    goes to the general decoder.
+    """
+    if not data.startswith(_HS_ADDRESS) or data[12:20] != _HS_TAGS:
+        return None
+    try:
+        end = data.index(b"\0", 20)
+        client = data[20:end].decode("utf-8")
+        pos = 20 + ((end - 20 + 4) & ~3)
+        user = _INT.unpack_from(data, pos)[0]
+        pos += 4
+        end = data.index(b"\0", pos)
+        hand = _HS_HANDS.get(data[pos:end])
+        pos += (end - pos + 4) & ~3
+        end = data.index(b"\0", pos)
+        state = _HS_STATES.get(data[pos:end])
+        pos += (end - pos + 4) & ~3
+    except (ValueError, UnicodeDecodeError, struct.error):
+        return None
+    if (hand is None or state is None or pos != len(data) or not client or len(client) > 64
+            or not 0 <= user <= MAX_USER_ID):
+        return None
+    return HandStateMsg(client, user, hand, state)
 
 
 _JC_ADDRESS = b"/jointCoordinates\0\0\0"

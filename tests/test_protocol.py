@@ -248,3 +248,20 @@ def test_fast_path_agrees_with_the_general_decoder():
         assert (fast.client, fast.user) == (slow.client, slow.user)
         assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
     assert fast_hits > 100
+
+
+def test_hand_state_fast_path_agrees_with_the_general_decoder():
+    from stage.protocol import Decoded, _decode_message, _fast_hand_state, _parse_message
+    hits = 0
+    for client in ("k", "kinect-12345", "x" * 70):
+        for user in (-1, 0, 5, 6):
+            for hand in ("left", "right", "Left", "middle"):
+                for state in ("open", "closed", "lasso", "notTracked", "unknown", "OPEN", "x"):
+                    data = build("/handState", client, user, hand, state)
+                    general = Decoded()
+                    _decode_message(_parse_message(data), None, general, "s")
+                    fast = _fast_hand_state(data)
+                    if fast is not None:
+                        hits += 1
+                        assert general.messages[0][0] == fast
+    assert hits == 2 * 2 * 2 * 5

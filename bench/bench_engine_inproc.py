@@ -1,0 +1,100 @@
+"""Engine CPU per second of show, in-process (decode + fusion + encode, no sockets).
+
+Complements bench_engine.py (the real server over loopback): here the same
+input is replayed into an Engine with an injected clock and a null transport,
+and CPU time (process_time) is divided by the seconds of show it covers, so the
+figure hardly depends on what else the machine is doing.
+
+Run: python bench/bench_engine_inproc.py [--seconds 3] [--configs 6x6,3x3] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from stage.body import observe_with_errors, pose, ring_of_sensors
+from stage.clock import ManualClock
+from stage.engine import Engine
+from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.rig import Rig, set_calibration
+
+FPS = 30.0
+
+
+class NullTransport:
+    def send(self, data: bytes, address: tuple[str, int]) -> None:
+        pass
+
+
+def datagrams(n_sensors: int, n_people: int, seconds: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    poses = ring_of_sensors(n_sensors, radius=4.5)
+    grid = [(x, z) for z in (-0.75, 0.75) for x in (-1.5, 0.0, 1.5)][:n_people]
+    out = []
+    for f in range(int(seconds * FPS)):
+        for s in range(n_sensors):
+            msgs = []
+            for u in range(n_people):
+                truth = pose(grid[u], 0.3 * u + 0.02 * f, 0.5 + 0.3 * np.sin(f / 10))
+                joints, conf = observe_with_errors(poses[s], truth, rng)
+                msgs += [encode_client_joints(f"s{s}", u, joints, conf),
+                         encode_message("/handState", f"s{s}", u, "left", "open"),
+                         encode_message("/handState", f"s{s}", u, "right", "closed")]
+            out.append((f / FPS + s / (FPS * n_sensors), encode_bundle(msgs, None)))
+    return poses, out
+
+
+def run(n_sensors: int, n_people: int, seconds: float) -> dict:
+    poses, data = datagrams(n_sensors, n_people, seconds)
+    rig = Rig(reference="s0", views=[("127.0.0.1", 9)])
+    rig.stage_frame = poses[0].to_stage
+    inverse = np.linalg.inv(poses[0].to_stage)
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
+    clock = ManualClock(0.0)
+    engine = Engine(rig, clock, NullTransport())
+    per_datagram = []
+    cpu0 = time.process_time()
+    for t, d in data:
+        clock.set(t)
+        c0 = time.perf_counter()
+        engine.handle_datagram(d)
+        engine.tick()
+        per_datagram.append(time.perf_counter() - c0)
+    cpu = time.process_time() - cpu0
+    us = np.array(per_datagram) * 1e6
+    return {"config": f"{n_sensors}x{n_people}", "show_s": seconds, "cpu_s": cpu,
+            "core_fraction": cpu / seconds, "persons": len(engine.persons),
+            "datagram_us_p50": float(np.percentile(us, 50)),
+            "datagram_us_p99": float(np.percentile(us, 99))}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--configs", default="1x1,3x3,6x6")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+    rows = [run(*map(int, c.split("x")), args.seconds) for c in args.configs.split(",")]
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    print(f"{'config':>7} {'CPU % of a core':>16} {'persons':>8} {'per datagram p50 us':>20} {'p99 us':>8}")
+    for r in rows:
+        print(f"{r['config']:>7} {100 * r['core_fraction']:>16.1f} {r['persons']:>8} "
+              f"{r['datagram_us_p50']:>20.0f} {r['datagram_us_p99']:>8.0f}")
+    six = [r for r in rows if r["config"] == "6x6"]
+    if six:
+        ok = six[0]["core_fraction"] < 0.25
+        print(f"target 6x6 under 25% of a core (in-process part): {100 * six[0]['core_fraction']:.1f}% "
+              f"-> {'PASS' if ok else 'FAIL'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
