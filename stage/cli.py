@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 from pythonosc.osc_message import OscMessage
 
 from . import __version__
-from .errors import StageError
+from .errors import ConfigError, StageError
 from .protocol import encode_message
 from .rig import DEFAULT_PORT, Rig, load_rig, parse_hostport
 
@@ -63,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="send fused bodies to this view too (repeatable)")
     serve.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
     serve.add_argument("--status", action="store_true", help="print a status line every second")
+    serve.add_argument("--replay", metavar="FILE",
+                       help="feed the engine from a recording instead of (as well as) the network")
+    serve.add_argument("--speed", type=_positive, default=1.0, metavar="X",
+                       help="with --replay: X times real time (default 1)")
+    serve.add_argument("--loop", action="store_true", help="with --replay: start again at the end")
 
     demo = sub.add_parser("demo", help="the engine fed by three virtual Kinects over real OSC")
     demo.add_argument("--port", type=int, default=0, help="UDP port (default: any free port)")
@@ -78,7 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     stats.add_argument("--port", type=int, default=DEFAULT_PORT)
     stats.add_argument("--timeout", type=_positive, default=2.0, metavar="S")
     for name in COMMAND_MODULES:
-        _COMMANDS.update(importlib.import_module(name).register(sub))
+        try:
+            _COMMANDS.update(importlib.import_module(name).register(sub))
+        except Exception as exc:  # one broken command module must not take the others down
+            print(f"stage: warning: commands of {name} unavailable: {exc}", file=sys.stderr)
     return parser
 
 
@@ -97,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"stage: {exc}", file=sys.stderr)
-        return Exit.BAD_INPUT if exc.__class__.__name__ == "ConfigError" else Exit.FAILURE
+        return Exit.BAD_INPUT if isinstance(exc, ConfigError) else Exit.FAILURE
     except KeyboardInterrupt:
         return Exit.INTERRUPTED
 
@@ -130,18 +138,31 @@ class StopSignals:
 def cmd_serve(args: argparse.Namespace) -> Exit:
     from .console import attach
     from .server import Server
-    rig = load_rig(args.rig) if args.rig else Rig()
+    rig = load_rig(args.rig) if args.rig else None
+    if args.replay and rig is None:  # a recording carries the rig it was made with
+        from .recording import read_recording
+        from .replay import rig_from_meta
+        rig = rig_from_meta(read_recording(args.replay).meta)
+    rig = rig or Rig()
     for view in args.view:
         if view not in rig.views:
             rig.views.append(view)
     server = Server(rig, host=args.host, port=args.port)
     if args.status:
         attach(server.engine)
+    source = None
+    if args.replay:
+        from .replay import ReplaySource
+        source = ReplaySource(args.replay, engine=server.engine, speed=args.speed, loop=args.loop)
     with StopSignals() as stop:
         server.start()
+        if source is not None:
+            source.start()
         try:
             stop.wait(args.duration)
         finally:
+            if source is not None:
+                source.stop()
             server.stop()
             log.info("stopped; %s", _summary(server.engine.stats()))
     return Exit.OK
@@ -209,6 +230,10 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 #: Modules that add subcommands: each has ``register(subparsers) -> {name: function}``,
 #: the function taking the parsed arguments and returning an exit status.
 COMMAND_MODULES: list[str] = [
+    "stage.sim.cli",
+    "stage.replay",
+    "stage.importers.cli",
+    "stage.clients.cli",
 ]
 
 

@@ -379,7 +379,10 @@ class Engine:
 
     def _fuse(self, person: Person, t: float) -> None:
         fs = self.rig.fusion
-        views = [tr for tr in person.tracks if t - tr.t <= fs.stale_s]
+        # sorted: a set's order follows memory addresses, and the float sums of the
+        # average must not, or a replay would differ from its live run in the last bit
+        views = sorted((tr for tr in person.tracks if t - tr.t <= fs.stale_s),
+                       key=lambda tr: tr.key)
         if not views:
             return
         velocity = person.velocity if person.kalman.initialised.any() else None
@@ -406,7 +409,7 @@ class Engine:
         self.counts["fused_frames"] += 1
 
     def _vote_hands(self, person: Person, now: float) -> None:
-        views = [tr for tr in person.tracks if now - tr.t <= 1.0]
+        views = sorted((tr for tr in person.tracks if now - tr.t <= 1.0), key=lambda tr: tr.key)
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand, joint in ((0, 7), (1, 11)):  # HandLeft, HandRight
             states = [tr.hands[hand] for tr in views]
