@@ -68,6 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--speed", type=_positive, default=1.0, metavar="X",
                        help="with --replay: X times real time (default 1)")
     serve.add_argument("--loop", action="store_true", help="with --replay: start again at the end")
+    serve.add_argument("--no-self-healing", action="store_true",
+                       help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
 
     demo = sub.add_parser("demo", help="the engine fed by three virtual Kinects over real OSC")
     demo.add_argument("--port", type=int, default=0, help="UDP port (default: any free port)")
@@ -154,6 +156,9 @@ def cmd_serve(args: argparse.Namespace) -> Exit:
     if args.replay:
         from .replay import ReplaySource
         source = ReplaySource(args.replay, engine=server.engine, speed=args.speed, loop=args.loop)
+    from .calibration import attach_live
+    calibrator = (attach_live(server.engine, rig, args.rig, heal=False, auto_calibrate=False)
+                  if args.no_self_healing else attach_live(server.engine, rig, args.rig))
     with StopSignals() as stop:
         server.start()
         if source is not None:
@@ -163,6 +168,7 @@ def cmd_serve(args: argparse.Namespace) -> Exit:
         finally:
             if source is not None:
                 source.stop()
+            calibrator.stop()
             server.stop()
             log.info("stopped; %s", _summary(server.engine.stats()))
     return Exit.OK
@@ -230,6 +236,7 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 #: Modules that add subcommands: each has ``register(subparsers) -> {name: function}``,
 #: the function taking the parsed arguments and returning an exit status.
 COMMAND_MODULES: list[str] = [
+    "stage.calibration.cli",
     "stage.sim.cli",
     "stage.replay",
     "stage.importers.cli",

@@ -292,6 +292,7 @@ class Engine:
         if state is None:
             return
         state.transform = None if matrix is None else np.asarray(matrix, dtype=float)
+        state.warned_uncalibrated = False
         now = self.clock.now()
         for track in state.tracks.values():  # views in the old space must not linger in fusion
             if track.person is not None:
@@ -308,8 +309,8 @@ class Engine:
                                       client.transform, client.floor))
         if client.transform is None:
             if not client.warned_uncalibrated:
-                log.warning("sensor %s has no calibration in the rig: its frames are not fused",
-                            client.id)
+                log.warning("sensor %s has no calibration in use: its frames are not fused "
+                            "until it is calibrated", client.id)
                 client.warned_uncalibrated = True
             return
         track = client.tracks.get(msg.user)

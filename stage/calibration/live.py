@@ -1,0 +1,179 @@
+"""Pieces of the live calibrator that do not own state: settings, views, consensus.
+
+Frames come from the engine's ``frame_observers`` (the sensor's own space,
+with the transform the engine used). A ``View`` is one (sensor, user)'s
+recent frames as arrays. The "consensus" for a sensor at some instants is
+what the other trusted sensors say the person's joints were, in stage
+space: each trusted view resampled at those instants, averaged with the
+confidences as weights.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..engine import SensorFrame
+from ..joints import N_JOINTS, TORSO
+from .pairs import resample
+
+_TORSO = np.array(TORSO)
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """Knobs of live calibration and self-healing (defaults suit 30 Hz Kinects).
+
+    Fitness (see ``fitness``) is computed per sensor over ``window_s`` of its
+    frames against the other trusted sensors. A sensor is suspect when it
+    stays below ``suspect_below`` for ``hold_s`` (or at once, when its torso
+    jumps ``gate_m`` away from sensors it agreed with a moment ago); a
+    suspect sensor is left out of fusion, and comes back either with its old
+    transform (fitness back above ``restore_above`` for ``restore_s``: it
+    was a glitch) or with a new one fitted on ``heal_pairs`` fresh pairs,
+    accepted only when its fitness is at least ``accept_above``.
+    """
+
+    method: str = "rigid"
+    pairs: int = 300              # pairs for a first calibration (~10 s at 30 Hz)
+    heal_pairs: int = 90          # pairs for a re-calibration (~3 s)
+    window_s: float = 0.5
+    suspect_below: float = 0.5    # fitness 0.5 = joints 10 cm apart on average
+    hold_s: float = 0.3
+    restore_above: float = 0.7    # hysteresis: 0.7 = 6.5 cm
+    restore_s: float = 1.0
+    accept_above: float = 0.7
+    gate_m: float = 0.30
+    agree_m: float = 0.15
+    link_s: float = 0.5
+    match_m: float = 0.5          # views further apart than this are different people
+    identical_frames: int = 5
+    poll_s: float = 0.1
+    delay_s: float = 0.1          # frames are judged once the partners' later frames are in
+    buffer_s: float = 2.0
+    auto_calibrate: bool = True   # calibrate sensors the rig has no calibration for
+    heal: bool = True
+    save: bool = True
+    min_joints: int = 8
+
+
+@dataclass
+class View:
+    """One (sensor, user)'s recent frames. t (n,); raw/stage (n, 25, 3); conf (n, 25).
+
+    ``stage`` holds the frames placed with the transform the engine used
+    (NaN rows where it had none).
+    """
+
+    sensor: str
+    user: int
+    t: np.ndarray
+    raw: np.ndarray
+    conf: np.ndarray
+    stage: np.ndarray
+    floor: np.ndarray | None = None
+    transform: np.ndarray | None = None    # the newest frame's
+    person: int | None = None              # the fused person the engine bound it to, if any
+
+    @classmethod
+    def of(cls, entries: list[tuple[SensorFrame, int | None]]) -> "View":
+        """From (frame, person id) entries, as the observer buffers them."""
+        entries = sorted(entries, key=lambda e: e[0].t)  # batches may interleave slightly
+        frames = [f for f, _ in entries]
+        t = np.array([f.t for f in frames])
+        raw = np.stack([f.joints for f in frames])
+        conf = np.stack([f.conf for f in frames])
+        stage = np.full_like(raw, np.nan)
+        # frames share transform objects; place each run of one transform at once
+        start = 0
+        for k in range(1, len(frames) + 1):
+            if k == len(frames) or frames[k].transform is not frames[start].transform:
+                m = frames[start].transform
+                if m is not None:
+                    stage[start:k] = raw[start:k] @ m[:3, :3].T + m[:3, 3]
+                start = k
+        return cls(frames[0].sensor, frames[0].user, t, raw, conf, stage,
+                   frames[-1].floor, frames[-1].transform, entries[-1][1])
+
+    def between(self, t0: float, t1: float) -> np.ndarray:
+        """Indices of frames with t0 < t <= t1."""
+        return np.flatnonzero((self.t > t0) & (self.t <= t1))
+
+
+@dataclass
+class Consensus:
+    """Trusted sensors' joints at given instants, stage space."""
+
+    joints: np.ndarray   # (m, 25, 3)
+    conf: np.ndarray     # (m, 25) 0 where nobody trusted saw the joint
+    sensors: list[str] = field(default_factory=list)
+
+
+def consensus(partners: list[View], at: np.ndarray) -> Consensus:
+    """Confidence-weighted average of the partners' stage joints at instants ``at``."""
+    total = np.zeros((len(at), N_JOINTS, 3))
+    weight = np.zeros((len(at), N_JOINTS))
+    used = []
+    for v in partners:
+        ok_rows = np.isfinite(v.stage).all(axis=(1, 2))
+        if not ok_rows.any():
+            continue
+        j, c, valid = resample(v.t[ok_rows], v.stage[ok_rows], v.conf[ok_rows], at,
+                               max_gap=0.1, max_dt=0.05)
+        if not valid.any():
+            continue
+        used.append(v.sensor)
+        total += j * c[..., None]
+        weight += c
+    safe = np.where(weight > 0, weight, 1.0)
+    return Consensus(total / safe[..., None], np.minimum(weight, 1.0), used)
+
+
+def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
+    """(..., 25, 3) -> (..., 3) mean of the tracked torso joints (None if none, for one frame)."""
+    c = conf[..., _TORSO]
+    w = (c > 0).astype(float)
+    n = w.sum(axis=-1)
+    if joints.ndim == 2:  # the engine-thread path: as few numpy calls as possible
+        return None if n == 0 else (w @ joints[_TORSO]) / n
+    out = (joints[..., _TORSO, :] * w[..., None]).sum(axis=-2) / np.maximum(n, 1)[..., None]
+    out[n == 0] = np.nan
+    return out
+
+
+def new_pairs(sensor: str, views: dict[str, list[View]], trusted: list[str], start: float,
+              until: float, now: float, min_joints: int) -> tuple["PairSet | None", str | None]:
+    """Pairs for calibrating ``sensor`` from its frames in (start, until].
+
+    Needs exactly one user in the sensor's view (last second) and at least one
+    trusted sensor that also sees exactly one; the target is those sensors'
+    consensus in stage space, the source the sensor's raw joints. Returns
+    (pairs or None, why we wait or None).
+    """
+    from .geometry import transform_plane
+    from .pairs import PairSet
+    seen = [v for v in views.get(sensor, []) if v.t[-1] > now - 1.0]
+    if len(seen) != 1:
+        return None, ("waiting: nobody in its view" if not seen else
+                      f"waiting: {len(seen)} people in its view; calibration needs one")
+    partners = []
+    for r in trusted:
+        rv = [v for v in views.get(r, []) if v.t[-1] > now - 1.0] if r != sensor else []
+        if len(rv) == 1:
+            partners.append(rv[0])
+    if not partners:
+        return None, "waiting for a calibrated sensor to see the same single person"
+    v = seen[0]
+    idx = v.between(start, until)
+    if not len(idx):
+        return None, None
+    cons = consensus(partners, v.t[idx])
+    w = v.conf[idx] * cons.conf
+    good = (w > 0).sum(axis=1) >= min_joints
+    floor = next((transform_plane(p.floor, p.transform) for p in partners
+                  if p.floor is not None and p.transform is not None), None)
+    pairs = PairSet("stage", sensor, cons.joints[good], v.raw[idx][good], w[good], v.t[idx][good],
+                    floor, v.floor)
+    pairs.partners = sorted(p.sensor for p in partners)  # type: ignore[attr-defined]
+    return pairs, None

@@ -1,0 +1,120 @@
+"""The closed-form least-squares rigid transform (Kabsch/Umeyama by SVD).
+
+For weighted pairs it is the exact minimiser of the weighted mean squared
+error over all rotations and translations, the objective the GA searches
+by evolution; so it is the default method and the GA's yardstick.
+Outlier joints (a Kinect glitch, a limb snapping to the wrong place) are
+handled by iteratively re-weighted least squares with Cauchy weights, or
+by RANSAC on minimal triples followed by the same re-weighting.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..fitness import Moments
+from ..geometry import matrix
+from ..pairs import CalibrationError, PairSet
+
+
+def kabsch(m: Moments, planar: bool = False) -> np.ndarray:
+    """The rigid 4x4 minimising the weighted squared error of the moments' pairs.
+
+    planar: rotation about y only (sensors already level); the vertical
+    offset is still solved.
+    """
+    if planar:
+        yaw = np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2])
+        c, s = np.cos(yaw), np.sin(yaw)
+        r = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+    else:
+        u, _, vt = np.linalg.svd(m.C)
+        d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a reflection is never a sensor pose
+        r = u @ np.diag([1.0, 1.0, d]) @ vt
+    return matrix(r, m.qbar - r @ m.pbar)
+
+
+def _batched_kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, n, 3) point sets -> K rotations (K, 3, 3) and translations (K, 3)."""
+    pbar, qbar = p.mean(axis=1), q.mean(axis=1)
+    c = np.einsum("kni,knj->kij", q - qbar[:, None], p - pbar[:, None])
+    u, _, vt = np.linalg.svd(c)
+    d = np.sign(np.linalg.det(u @ vt))
+    d[d == 0] = 1.0
+    u[:, :, 2] *= d[:, None]
+    r = u @ vt
+    return r, qbar - np.einsum("kij,kj->ki", r, pbar)
+
+
+def fit_rigid(pairs: PairSet, robust: str = "irls", planar: bool = False, iterations: int = 20,
+              ransac_iterations: int = 256, inlier_m: float = 0.10, seed: int = 0,
+              ) -> tuple[np.ndarray, dict[str, Any], np.ndarray]:
+    """Weighted rigid fit of ``pairs.other`` onto ``pairs.ref``.
+
+    robust: "none" (plain weighted least squares), "irls" (Cauchy weights
+    1 / (1 + (r/c)^2), c = max(2 x median residual, 2 cm), until the
+    transform stops moving) or "ransac" (best of ``ransac_iterations``
+    random triples by inlier weight within ``inlier_m``, then IRLS on the
+    inliers). Returns (matrix, details, final weights (N, 25)).
+    """
+    if robust not in ("none", "irls", "ransac"):
+        raise CalibrationError(f"robust must be none, irls or ransac, not '{robust}'")
+    w0 = pairs.weight
+    p, q = pairs.other, pairs.ref
+    details: dict[str, Any] = {"robust": robust}
+    w = w0.copy()
+    if robust == "ransac":
+        w = w0 * _ransac_inliers(p, q, w0, ransac_iterations, inlier_m, seed, planar)
+        details["ransac_inliers"] = float((w > 0).sum() / max((w0 > 0).sum(), 1))
+    m = kabsch(pairs.moments(w), planar)
+    if robust == "none":
+        return m, details, w
+    iterations_done = 0
+    for iterations_done in range(1, iterations + 1):
+        r = np.linalg.norm(p @ m[:3, :3].T + m[:3, 3] - q, axis=-1)
+        c = max(2.0 * float(np.median(r[w > 0])), 0.02)
+        robust_w = w * (1.0 / (1.0 + (r / c) ** 2))
+        new = kabsch(pairs.moments(robust_w), planar)
+        moved = float(np.abs(new - m).max())
+        m = new
+        if moved < 1e-7:
+            break
+    details["iterations"] = iterations_done
+    details["cauchy_c_m"] = c
+    return m, details, robust_w
+
+
+def _ransac_inliers(p: np.ndarray, q: np.ndarray, w: np.ndarray, iterations: int,
+                    inlier_m: float, seed: int, planar: bool) -> np.ndarray:
+    """(N, 25) 0/1 mask of the inliers of the best random-triple hypothesis."""
+    flat = np.flatnonzero(w.reshape(-1) > 0)
+    if len(flat) < 3:
+        raise CalibrationError("fewer than 3 joint pairs: nothing to fit")
+    pf, qf = p.reshape(-1, 3)[flat], q.reshape(-1, 3)[flat]
+    wf = w.reshape(-1)[flat]
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(flat), size=(iterations, 3), p=wf / wf.sum())
+    ps, qs = pf[pick], qf[pick]
+    # a triple spanning less than ~10 cm x 10 cm cannot fix a rotation
+    area = np.linalg.norm(np.cross(ps[:, 1] - ps[:, 0], ps[:, 2] - ps[:, 0]), axis=1)
+    keep = area > 0.01
+    if not keep.any():
+        raise CalibrationError("the joints are (nearly) collinear: rotation is undetermined")
+    r, t = _batched_kabsch(ps[keep], qs[keep])
+    if planar:  # project each hypothesis on a yaw (the data are level)
+        yaw = np.arctan2(r[:, 0, 2] - r[:, 2, 0], r[:, 0, 0] + r[:, 2, 2])
+        c, s = np.cos(yaw), np.sin(yaw)
+        r = np.zeros_like(r)
+        r[:, 0, 0], r[:, 0, 2], r[:, 1, 1], r[:, 2, 0], r[:, 2, 2] = c, s, 1.0, -s, c
+        t = qs[keep].mean(axis=1) - np.einsum("kij,kj->ki", r, ps[keep].mean(axis=1))
+    best_score, best = -1.0, None
+    for k in range(len(r)):  # one (n,3) product per hypothesis keeps memory flat
+        d = np.linalg.norm(pf @ r[k].T + t[k] - qf, axis=1) <= inlier_m
+        score = float(wf[d].sum())
+        if score > best_score:
+            best_score, best = score, d
+    mask = np.zeros(w.size)
+    mask[flat[best]] = 1.0
+    return mask.reshape(w.shape)

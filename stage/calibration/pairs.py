@@ -1,0 +1,208 @@
+"""Pairs of skeletons seen at the same moment by two sensors, and time alignment.
+
+A ``PairSet`` holds N paired frames: the reference side ``ref`` (the space
+we calibrate into: the reference sensor's, or stage space when live) and
+the sensor's own side ``other``. Joint pairs count only where both sensors
+tracked the joint; their weight is the product of the two confidences.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import StageError
+from ..joints import JOINT_INDEX, N_JOINTS
+from .fitness import Moments
+from .streams import Stream
+
+SPINE_BASE = JOINT_INDEX["SpineBase"]
+
+
+class CalibrationError(StageError):
+    """Calibration could not produce a transform (too few pairs, degenerate data)."""
+
+
+@dataclass
+class PairSet:
+    """N paired frames. ref, other: (N, 25, 3) metres; weight: (N, 25); t: (N,) s."""
+
+    ref_id: str
+    other_id: str
+    ref: np.ndarray
+    other: np.ndarray
+    weight: np.ndarray
+    t: np.ndarray
+    floor_ref: np.ndarray | None = None     # (4,) plane in the ref side's space
+    floor_other: np.ndarray | None = None   # (4,) plane in the other side's space
+    lag_s: float = 0.0                      # other's clock minus ref's clock
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @classmethod
+    def empty(cls, ref_id: str, other_id: str) -> "PairSet":
+        return cls(ref_id, other_id, np.zeros((0, N_JOINTS, 3)), np.zeros((0, N_JOINTS, 3)),
+                   np.zeros((0, N_JOINTS)), np.zeros(0))
+
+    def subset(self, index: np.ndarray | slice) -> "PairSet":
+        return replace(self, ref=self.ref[index], other=self.other[index],
+                       weight=self.weight[index], t=self.t[index])
+
+    def with_weight(self, weight: np.ndarray) -> "PairSet":
+        return replace(self, weight=np.asarray(weight, dtype=float))
+
+    def concat(self, more: "PairSet") -> "PairSet":
+        return replace(self, ref=np.concatenate([self.ref, more.ref]),
+                       other=np.concatenate([self.other, more.other]),
+                       weight=np.concatenate([self.weight, more.weight]),
+                       t=np.concatenate([self.t, more.t]))
+
+    def moments(self, weight: np.ndarray | None = None) -> Moments:
+        """Weighted statistics of (other -> ref) joint pairs; CalibrationError if empty."""
+        w = self.weight if weight is None else weight
+        if not (w > 0).any():
+            raise CalibrationError(f"no joint seen by both {self.ref_id} and {self.other_id}")
+        return Moments.of(self.other, self.ref, w)
+
+    def evenly(self, n: int) -> "PairSet":
+        """At most ``n`` pairs spread evenly over the set (all when n <= 0)."""
+        if n <= 0 or len(self) <= n:
+            return self
+        return self.subset(np.unique(np.linspace(0, len(self) - 1, n).round().astype(int)))
+
+
+def pair_streams(ref: Stream, other: Stream, lag_s: float = 0.0, max_dt: float = 0.02,
+                 max_gap: float = 0.1, interpolate: bool = True, min_joints: int = 8,
+                 single_window_s: float = 0.5) -> PairSet:
+    """Pair each usable frame of ``ref`` with ``other`` at the same instant.
+
+    ``other`` is read at ``t + lag_s`` (its clock runs ``lag_s`` ahead).
+    Usable frames: no NaN, and exactly one user visible to that sensor
+    within ``single_window_s`` (so both sensors surely see the same person).
+    With ``interpolate``, the other sensor's skeleton is linearly
+    interpolated between its two frames around that instant when they are
+    at most ``max_gap`` apart (removes up to half a frame of motion error);
+    otherwise, or when no such bracket exists, the nearest frame within
+    ``max_dt`` is used. A pair needs ``min_joints`` joints tracked by both.
+    """
+    rmask = ref.finite() & ref.single_user(single_window_s)
+    omask = other.finite() & other.single_user(single_window_s)
+    if not rmask.any() or not omask.any():
+        return _empty(ref, other, lag_s)
+    r, o = ref.subset(rmask), other.subset(omask)
+    joints, conf, valid = resample(o.t - lag_s, o.joints, o.conf, r.t, max_gap, max_dt,
+                                   o.user if interpolate else None, interpolate)
+    weight = np.where(valid[:, None], r.conf * conf, 0.0)
+    valid &= (weight > 0).sum(axis=1) >= min_joints
+    return PairSet(ref.sensor, other.sensor, r.joints[valid], joints[valid], weight[valid],
+                   r.t[valid], ref.floor, other.floor, lag_s)
+
+
+def resample(times: np.ndarray, joints: np.ndarray, conf: np.ndarray, at: np.ndarray,
+                max_gap: float = 0.1, max_dt: float = 0.02, user: np.ndarray | None = None,
+                linear: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A skeleton stream read at other instants.
+
+    times (n,) ascending; joints (n, J, 3); conf (n, J); at (m,). Between two
+    frames at most ``max_gap`` apart (and of the same ``user``, if given) the
+    joints are interpolated linearly, a joint counting only if tracked in both
+    (confidence: the smaller); elsewhere the nearest frame within ``max_dt``
+    is used. Returns (joints (m, J, 3), conf (m, J), valid (m,) bool); rows
+    that are not valid hold zeros.
+    """
+    n, m = len(times), len(at)
+    out_j = np.zeros((m,) + joints.shape[1:])
+    out_c = np.zeros((m,) + conf.shape[1:])
+    valid = np.zeros(m, dtype=bool)
+    if n == 0 or m == 0:
+        return out_j, out_c, valid
+    idx = np.searchsorted(times, at)
+    i0 = np.maximum(idx - 1, 0)   # (np.clip costs several times more on small arrays)
+    i1 = np.minimum(idx, n - 1)
+    if linear:
+        span = times[i1] - times[i0]
+        ok = (idx > 0) & (idx < n) & (span > 0) & (span <= max_gap)
+        if user is not None:
+            ok &= user[i0] == user[i1]
+        if ok.any():
+            a = ((at[ok] - times[i0[ok]]) / span[ok])[:, None, None]
+            out_j[ok] = (1 - a) * joints[i0[ok]] + a * joints[i1[ok]]
+            c0, c1 = conf[i0[ok]], conf[i1[ok]]
+            out_c[ok] = np.where((c0 > 0) & (c1 > 0), np.minimum(c0, c1), 0.0)
+            valid |= ok
+        if valid.all():
+            return out_j, out_c, valid
+    d0 = np.where(idx > 0, np.abs(at - times[i0]), np.inf)
+    d1 = np.where(idx < n, np.abs(times[i1] - at), np.inf)
+    near = np.where(d0 <= d1, i0, i1)
+    nearest = ~valid & (np.minimum(d0, d1) <= max_dt)
+    out_j[nearest] = joints[near[nearest]]
+    out_c[nearest] = conf[near[nearest]]
+    valid |= nearest
+    return out_j, out_c, valid
+
+
+def _empty(ref: Stream, other: Stream, lag_s: float) -> PairSet:
+    out = PairSet.empty(ref.sensor, other.sensor)
+    out.floor_ref, out.floor_other, out.lag_s = ref.floor, other.floor, lag_s
+    return out
+
+
+@dataclass(frozen=True)
+class LagSearch:
+    lag_s: float
+    lags: np.ndarray     # every lag tried, s
+    mse: np.ndarray      # residual (m^2) of the best rigid fit at each lag; NaN = too few pairs
+    pairs: int           # pairs at the chosen lag
+
+
+def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float | None = None,
+             fine_step_s: float = 0.002, max_frames: int = 400, min_pairs: int = 30,
+             prefer_zero: float = 0.02, smooth_frames: int = 5) -> LagSearch:
+    """The clock offset of ``other`` against ``ref`` that minimises the residual.
+
+    For each candidate lag in [-max_lag_s, max_lag_s] (one frame apart, then
+    ``fine_step_s`` apart around the best), pair the streams (interpolated),
+    fit the least-squares rigid transform and keep its mean squared residual;
+    the lag with the smallest residual wins. Both streams are first smoothed
+    over ``smooth_frames`` frames. A person standing still makes
+    every lag look alike, so zero is kept unless another lag is better by
+    more than ``prefer_zero`` (2 %). ``max_frames`` reference frames, spread
+    over the stream, keep the search fast.
+    """
+    from .methods.rigid import kabsch  # here to keep pairs free of method imports
+
+    usable = np.flatnonzero(ref.finite() & ref.single_user())
+    if len(usable) > max_frames:
+        usable = usable[np.linspace(0, len(usable) - 1, max_frames).round().astype(int)]
+    step = step_s or other.frame_interval()
+    # both streams smoothed alike: see Stream.smoothed for why
+    r = ref.smoothed(smooth_frames).subset(usable)
+    other = other.smoothed(smooth_frames)
+
+    def residual(lag: float) -> tuple[float, int]:
+        ps = pair_streams(r, other, lag)
+        if len(ps) < min(min_pairs, max(len(r) // 4, 3)):
+            return float("nan"), len(ps)
+        m = ps.moments()
+        return m.mse_of(kabsch(m)), len(ps)
+
+    coarse = np.arange(-max_lag_s, max_lag_s + step / 2, step)
+    found = {float(lag): residual(float(lag)) for lag in coarse}
+    errs = np.array([found[float(lag)][0] for lag in coarse])
+    if np.isnan(errs).all():
+        raise CalibrationError(f"{ref.sensor} and {other.sensor} never saw one person at "
+                               f"the same time (within ±{max_lag_s:g} s)")
+    best = float(coarse[np.nanargmin(errs)])
+    for lag in np.arange(best - step, best + step + fine_step_s / 2, fine_step_s):
+        found.setdefault(float(round(lag, 9)), residual(float(lag)))
+    lags = np.array(sorted(found))
+    mse = np.array([found[lag][0] for lag in lags])
+    k = int(np.nanargmin(mse))
+    lag = float(lags[k])
+    zero = residual(0.0) if abs(lag) <= max_lag_s else (float("nan"), 0)
+    if np.isfinite(zero[0]) and zero[0] <= (1.0 + prefer_zero) * mse[k]:
+        lag = 0.0
+    return LagSearch(lag, lags, mse, found.get(lag, zero)[1])

@@ -1,0 +1,103 @@
+"""A worker thread beside the engine, changing engine state only through call_soon.
+
+``EngineWorker`` owns the threading of the live calibrator: a thread that
+wakes on demand (or every half second) and runs ``_poll``; engine changes
+decided off the engine thread are queued (``_act``) and handed to
+``engine.call_soon`` once the caller's locks are released (``_send``), since
+call_soon may wait on a full engine queue while the engine thread waits for
+those locks. With ``threaded=False`` nothing runs in the background: the
+subclass polls inline on the engine thread (tests, offline replays).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from typing import Callable
+
+from ..engine import Engine
+from ..errors import StageError
+
+log = logging.getLogger("stage.calibration")
+
+
+class EngineWorker:
+    name = "stage-worker"
+
+    def __init__(self, engine: Engine, threaded: bool) -> None:
+        self.engine, self.threaded = engine, threaded
+        self._worker: threading.Thread | None = None
+        self._engine_thread: threading.Thread | None = None
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._outbox: deque[Callable[[Engine], None]] = deque()
+        self._flush_asked = 0
+        self._flush_done = 0
+        self._poll_done = threading.Condition()
+
+    def _poll(self) -> None:  # the subclass's periodic work
+        raise NotImplementedError
+
+    def _start_worker(self) -> None:
+        if self.threaded:
+            self._worker = threading.Thread(target=self._run, name=self.name, daemon=True)
+            self._worker.start()
+
+    def _stop_worker(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._worker is not None:
+            self._worker.join(timeout=10.0)
+
+    def flush(self, timeout: float = 5.0) -> None:
+        """Run one poll now and wait for it (threaded mode: on the worker)."""
+        if not self.threaded:
+            self._poll()
+            return
+        with self._poll_done:
+            self._flush_asked += 1
+            target = self._flush_asked
+            self._wake.set()
+            if not self._poll_done.wait_for(lambda: self._flush_done >= target, timeout):
+                raise StageError("the calibration worker did not answer")
+
+    def _act(self, fn: Callable[[Engine], None]) -> None:
+        """Change engine state: at once on the engine thread, else queued for call_soon."""
+        if not self.threaded or threading.current_thread() is self._engine_thread:
+            fn(self.engine)
+        else:
+            self._outbox.append(fn)
+
+    def _send(self) -> None:
+        while self._outbox:
+            fn = self._outbox.popleft()
+            try:
+                self.engine.call_soon(fn)
+            except queue.Full:
+                log.error("engine queue full: a calibration change was lost; it will be "
+                          "decided again")
+
+    def _yield(self) -> None:
+        """Worker: let the engine thread have the GIL between chunks of work."""
+        if self.threaded:
+            time.sleep(0)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(timeout=0.5)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            with self._poll_done:
+                asked = self._flush_asked
+            try:
+                self._poll()
+            except Exception:  # the show goes on without self-healing rather than stop
+                log.exception("calibration poll failed")
+            self._send()
+            with self._poll_done:
+                self._flush_done = asked
+                self._poll_done.notify_all()

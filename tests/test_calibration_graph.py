@@ -1,0 +1,120 @@
+"""Many sensors: overlap graph, best paths, chain composition, joint refinement."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from stage.calibration.geometry import invert, matrix, rot_x, rot_y, transform_error
+from stage.calibration.graph import Edge, SensorGraph
+from stage.calibration.methods import CalibrationResult
+from stage.calibration.offline import calibrate_streams
+from stage.calibration.pairs import PairSet
+from stage.calibration.synth import SimSensor, relative, simulate, walk_line
+
+
+def _row_of_sensors(spacing: float, seed: int = 0, duration: float = 80.0, n: int = 4):
+    """Sensors along a wall 'spacing' apart, all looking across the room; a performer walks
+    along the far side. At 2.5 m only neighbours overlap; at 1.6 m every other one does too."""
+    sensors = [SimSensor.looking_at(f"k{i}", (i * spacing, 1.0, 0.0), (i * spacing, 0.8, 3.0))
+               for i in range(n)]
+    walk = walk_line((-1.0, 2.5), ((n - 1) * spacing + 1.0, 2.5), period_s=40.0)
+    return sensors, simulate(sensors, walk, duration, seed=seed)
+
+
+@pytest.fixture(scope="module")
+def chain():
+    sensors, streams = _row_of_sensors(2.5)
+    return sensors, streams, calibrate_streams(streams, "k0", progress=lambda _: None)
+
+
+def test_a_chain_where_only_neighbours_overlap_lands_near_the_truth(chain):
+    sensors, streams, result = chain
+    assert sorted((e.a, e.b) for e in result.graph.edges) == [("k0", "k1"), ("k1", "k2"),
+                                                              ("k2", "k3")]
+    assert result.sensors["k3"].path == ["k0", "k1", "k2", "k3"]
+    # stated accuracy: one hop within 1 degree / 40 mm RMS, the third hop within 2 degrees /
+    # 120 mm RMS over the points that sensor sees (errors pile up along a chain)
+    limits = {"k1": (1.0, 40.0), "k2": (1.5, 80.0), "k3": (2.0, 120.0)}
+    for sid, (rot, rms) in limits.items():
+        truth = relative(sensors[0], sensors[int(sid[1])])
+        err = transform_error(result.sensors[sid].matrix, truth, streams[sid].joints[::5])
+        assert err["rot_deg"] <= rot and err["rms_mm"] <= rms, (sid, err)
+    assert result.complete and not result.warnings
+
+
+def test_chain_composition_is_the_product_along_the_path():
+    rng = np.random.default_rng(0)
+    truth = {"a": np.eye(4)}
+    for name in "bcd":
+        truth[name] = matrix(rot_y(rng.uniform(-3, 3)) @ rot_x(rng.uniform(-0.3, 0.3)),
+                             rng.normal(size=3))
+    graph = SensorGraph(["a"])
+    # edges in both storage orders: (a, b), (c, b), (c, d)
+    for near, far in (("a", "b"), ("c", "b"), ("c", "d")):
+        m = invert(truth[near]) @ truth[far]      # far -> near
+        graph.add(Edge(near, far, CalibrationResult(m, 0.02, 0.96, "rigid", 100), _dummy(near, far)))
+    composed = graph.compose("a")
+    for name in "bcd":
+        assert np.allclose(composed[name], truth[name]), name
+    assert graph.best_paths("a")["d"] == ["a", "b", "c", "d"]
+
+
+def test_best_path_prefers_fewer_and_better_hops():
+    graph = SensorGraph(["a", "b", "c"])
+    for a, b, rms in (("a", "b", 0.02), ("b", "c", 0.02), ("a", "c", 0.025)):
+        graph.add(Edge(a, b, CalibrationResult(np.eye(4), rms, 0.9, "rigid", 50), _dummy(a, b)))
+    assert graph.best_paths("a")["c"] == ["a", "c"]        # 0.025^2 < 2 x 0.02^2
+    graph.edges[-1].result.rms_m = 0.05
+    assert graph.best_paths("a")["c"] == ["a", "b", "c"]   # a poor direct overlap loses
+
+
+def test_a_sensor_without_overlap_is_reported():
+    sensors, streams = _row_of_sensors(2.5, duration=20.0, n=2)
+    far = SimSensor.looking_at("lonely", (20.0, 1.0, 0.0), (20.0, 0.8, 3.0))
+    streams.update(simulate([far], walk_line((19.0, 2.5), (21.0, 2.5)), 20.0, seed=1))
+    result = calibrate_streams(streams, "k0", progress=lambda _: None)
+    assert result.sensors["lonely"].matrix is None
+    assert "no chain of overlaps to the reference k0" in result.sensors["lonely"].error
+    assert any("lonely is not connected to the reference k0" in w for w in result.warnings)
+    assert result.graph.unreachable("k0") == ["lonely"]
+    assert not result.complete
+
+
+def test_joint_refinement_reduces_the_error_when_overlaps_form_loops():
+    sensors, streams = _row_of_sensors(1.6, duration=80.0)
+    composed = calibrate_streams(streams, "k0", refine=False, progress=lambda _: None)
+    refined = calibrate_streams(streams, "k0", progress=lambda _: None)
+    assert len(refined.graph.edges) == 5   # neighbours and every other sensor
+    info = refined.refinement
+    assert info is not None and info["after"] < 0.95 * info["before"]
+    truth = relative(sensors[0], sensors[3])
+    before = transform_error(composed.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
+    after = transform_error(refined.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
+    assert after["rms_mm"] < 0.8 * before["rms_mm"], (before, after)
+
+
+def test_refinement_changes_nothing_on_a_tree(chain):
+    _, _, result = chain
+    composed = result.graph.compose("k0")
+    refined, info = result.graph.refine(composed, "k0")
+    assert info["after"] == pytest.approx(info["before"], rel=1e-6)
+    for sid in composed:
+        assert np.allclose(refined[sid], composed[sid], atol=1e-5)
+
+
+def test_a_copied_stream_is_left_out_of_the_rig():
+    sensors, streams = _row_of_sensors(2.5, duration=20.0, n=2)
+    streams["k9"] = dataclasses.replace(streams["k1"], sensor="k9")
+    result = calibrate_streams(streams, "k0", progress=lambda _: None)
+    assert result.sensors["k9"].identical_to == "k1" and result.sensors["k9"].matrix is None
+    assert result.sensors["k1"].matrix is not None
+    assert any("bit-identical" in w for w in result.warnings)
+
+
+def _dummy(a: str, b: str) -> PairSet:
+    pairs = PairSet.empty(a, b)
+    pairs.weight = np.zeros((0, 25))
+    return pairs
