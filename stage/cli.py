@@ -6,6 +6,7 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import signal
 import socket
 import sys
@@ -110,6 +111,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return Exit.BAD_INPUT if isinstance(exc, ConfigError) else Exit.FAILURE
     except KeyboardInterrupt:
         return Exit.INTERRUPTED
+    except BrokenPipeError:  # `stage ... | head` closed the pipe: not an error worth a traceback
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return Exit.OK
 
 
 class StopSignals:

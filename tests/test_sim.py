@@ -286,7 +286,7 @@ def test_floor_plane_is_the_sensors_height_and_tilt():
     sc = one_sensor(STILL % (0, 0, 180), sensor="position: [0, 1.2, -3], yaw: 0, pitch: 10",
                     **EXACT)
     planes = [p for _, a, p in addresses(Simulator(sc), 2.5, "cam") if a == "/floorPlane"]
-    assert len(planes) == 3  # once a second
+    assert len(planes) == 5  # every half second, 0 to 2.5 s
     a, b, c, d = planes[0][1:]
     assert d == pytest.approx(1.2, abs=1e-6)
     # tilted 10 degrees down, "up" leans away from the lens: its z in camera space is negative

@@ -76,7 +76,8 @@ class KinectModel:
     lose_s: float = 0.1             # invisible this long before it reports the user lost
     max_users: int = 6              # paper 4.1.1
     mirror_back: bool = False       # report a back-facing body mirrored, as a real Kinect does
-    floor_every_s: float = 1.0      # how often /floorPlane is sent
+    floor_every_s: float = 0.5      # how often /floorPlane is sent (< the 1 s client timeout,
+                                    # so a sensor that sees nobody is not taken for silent)
 
     @classmethod
     def keys(cls) -> tuple[str, ...]:
