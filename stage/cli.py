@@ -241,6 +241,7 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 #: Modules that add subcommands: each has ``register(subparsers) -> {name: function}``,
 #: the function taking the parsed arguments and returning an exit status.
 COMMAND_MODULES: list[str] = [
+    "stage.views.cli",
     "stage.calibration.cli",
     "stage.sim.cli",
     "stage.replay",

@@ -1,0 +1,139 @@
+"""MIDI ports through python-rtmidi: which MIDI system to use, and opening a port.
+
+Which API (``choose_api``), in order:
+
+1. ``STAGE_MIDI_API`` (``jack``, ``alsa``, ``coremidi``, ``winmm``) or mido's
+   ``MIDO_BACKEND`` with an API suffix (``mido.backends.rtmidi/UNIX_JACK``):
+   the user's choice, used as given;
+2. Linux: the ALSA sequencer when ``/dev/snd/seq`` exists, else JACK when a
+   JACK server runs (its socket in ``/dev/shm``, jackd2 or jackd1, or a
+   PipeWire socket, whose JACK library serves JACK clients);
+3. macOS: CoreMIDI; Windows: Windows MM;
+4. otherwise none: the caller falls back to a Standard MIDI File.
+
+Detecting a server by its socket instead of trying to connect keeps libjack
+and alsa-lib from printing their own errors when nothing is there.
+
+A port name is looked up among the existing destinations (exact, then
+case-insensitive, then a client name or ALSA-style prefix: "fluidsynth" finds
+"fluidsynth:midi_00", "Synth" finds "Synth MIDI 1 128:0"); when none matches, a virtual port of that name is created
+(client "stage"), for a synth or DAW to connect to.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+from typing import Sequence
+
+import rtmidi
+
+from stage.errors import TransportError
+
+_API_NAMES = {
+    "jack": rtmidi.API_UNIX_JACK, "unix_jack": rtmidi.API_UNIX_JACK,
+    "alsa": rtmidi.API_LINUX_ALSA, "linux_alsa": rtmidi.API_LINUX_ALSA,
+    "coremidi": rtmidi.API_MACOSX_CORE, "macosx_core": rtmidi.API_MACOSX_CORE,
+    "winmm": rtmidi.API_WINDOWS_MM, "windows_mm": rtmidi.API_WINDOWS_MM,
+}
+
+
+def jack_server_running(server: str | None = None) -> bool:
+    """Whether a JACK server (named ``server`` or $JACK_DEFAULT_SERVER or "default") listens."""
+    name = server or os.environ.get("JACK_DEFAULT_SERVER") or "default"
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    patterns = [f"/dev/shm/jack_{name}_{uid}_*",           # jackd2
+                f"/dev/shm/jack-{uid}/{name}/jack_*"]      # jackd1
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    if runtime:
+        patterns.append(os.path.join(runtime, "pipewire-0"))  # pipewire-jack
+    return any(glob.glob(p) for p in patterns)
+
+
+def choose_api() -> tuple[int | None, str]:
+    """(rtmidi API or None when no MIDI system is available, why: one line for logs)."""
+    compiled = set(rtmidi.get_compiled_api())
+    wanted = os.environ.get("STAGE_MIDI_API", "").strip().lower()
+    backend = os.environ.get("MIDO_BACKEND", "")
+    if not wanted and "/" in backend and "rtmidi" in backend:
+        wanted = backend.rsplit("/", 1)[1].strip().lower()
+    if wanted:
+        api = _API_NAMES.get(wanted)
+        if api is None:
+            return None, f"unknown MIDI API '{wanted}' (use jack, alsa, coremidi or winmm)"
+        if api not in compiled:
+            return None, f"MIDI API '{wanted}' is not compiled into python-rtmidi"
+        return api, f"{rtmidi.get_api_display_name(api)} (chosen by environment)"
+    if sys.platform.startswith("linux"):
+        if rtmidi.API_LINUX_ALSA in compiled and os.path.exists("/dev/snd/seq"):
+            return rtmidi.API_LINUX_ALSA, "ALSA sequencer"
+        if rtmidi.API_UNIX_JACK in compiled and jack_server_running():
+            return rtmidi.API_UNIX_JACK, "JACK (no ALSA sequencer here)"
+        return None, "no ALSA sequencer (/dev/snd/seq) and no JACK server running"
+    if sys.platform == "darwin" and rtmidi.API_MACOSX_CORE in compiled:
+        return rtmidi.API_MACOSX_CORE, "CoreMIDI"
+    if sys.platform == "win32" and rtmidi.API_WINDOWS_MM in compiled:
+        return rtmidi.API_WINDOWS_MM, "Windows MM"
+    return None, f"no MIDI API for {sys.platform} in python-rtmidi"
+
+
+def match_port(wanted: str, available: Sequence[str]) -> int | None:
+    """Index of the destination ``wanted`` names, or None (ambiguous names raise)."""
+    if wanted in available:
+        return list(available).index(wanted)
+    low = wanted.lower()
+    # no substring matching: "bench" must not pick "bench-rx:in" when the user
+    # meant a new port of that name
+    for rule in (lambda p: p.lower() == low,
+                 lambda p: p.lower().startswith(low + " ") or p.lower().startswith(low + ":")):
+        hits = [k for k, p in enumerate(available) if rule(p)]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1:
+            raise TransportError(f"MIDI port '{wanted}' is ambiguous: "
+                                 + ", ".join(available[k] for k in hits))
+    return None
+
+
+class PortSink:
+    """One open MIDI output (an existing destination or a new virtual port)."""
+
+    def __init__(self, name: str, api: int, client: str = "stage", existing: bool = True) -> None:
+        """existing: look ``name`` up among the destinations first (False: always a new port)."""
+        self.name = name
+        try:
+            self._out = rtmidi.MidiOut(rtapi=api, name=client)
+        except Exception as exc:  # rtmidi raises its own SystemError/RuntimeError kinds
+            raise TransportError(f"cannot open the MIDI system: {exc}") from None
+        self.api = rtmidi.get_api_display_name(self._out.get_current_api())
+        try:
+            index = match_port(name, self._out.get_ports()) if existing else None
+            if index is None:
+                self._out.open_virtual_port(name)
+                self.where = f"new virtual port '{client}:{name}' ({self.api})"
+            else:
+                destination = self._out.get_ports()[index]
+                self._out.open_port(index, name)
+                self.where = f"port '{destination}' ({self.api})"
+        except TransportError:
+            self._out.delete()
+            raise
+        except Exception as exc:
+            self._out.delete()
+            raise TransportError(f"cannot open MIDI port '{name}': {exc}") from None
+        self.sent = 0
+        self.errors = 0
+
+    def send(self, data: bytes) -> None:
+        try:
+            self._out.send_message(data)
+            self.sent += 1
+        except Exception:  # a vanished destination must not stop the show; counted
+            self.errors += 1
+
+    def close(self) -> None:
+        try:
+            self._out.close_port()
+        finally:
+            self._out.delete()
