@@ -242,6 +242,7 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 #: the function taking the parsed arguments and returning an exit status.
 COMMAND_MODULES: list[str] = [
     "stage.views.cli",
+    "stage.piece.cli",
     "stage.calibration.cli",
     "stage.sim.cli",
     "stage.replay",

@@ -1,0 +1,361 @@
+"""The piece at play time: an engine listener that turns fused bodies into events.
+
+``PieceRuntime`` runs on the engine thread (``engine.listeners``): per frame
+it updates zone occupancy, evaluates the current section's triggers and
+mappings (and the piece-wide ones), runs the actions of the triggers that
+fire and hands one list of ``stage.events`` to the sink. Phrase notes carry
+their future times and durations; the views schedule them. Time comes only
+from frames (``frame.t``) and ``tick(t)``, so an offline run with a manual
+clock gives the same events every time for the same seed.
+
+Thread rule: call ``on_frame``/``__call__``, ``tick``, ``goto`` and ``stop``
+from one thread only (the engine's; other threads go through
+``engine.call_soon``).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Callable
+
+import numpy as np
+
+from ..engine import FusedFrame
+from ..events import AllNotesOff, Event, EventSink, SectionChange, TriggerFired, ZoneState
+from .actions import Actions, FireContext, holds
+from .mappings import MappingRun
+from .model import Piece, Section, Trigger, joint_label
+from .sinks import FanoutSink, RecordingSink
+from .triggers import ClockDetector, Detector, Firing, Person, PresenceDetector, detector_for
+
+log = logging.getLogger("stage.piece")
+
+__all__ = ["PieceRuntime", "RecordingSink", "FanoutSink", "Narrator"]
+
+#: narrator(t, text): readable lines for the console ("what fires")
+Narrator = Callable[[float, str], None]
+
+
+class _TriggerRun:
+    """A trigger with its detector and the state that decides whether a firing sounds."""
+
+    __slots__ = ("trigger", "detector", "last", "fired_in_visit")
+
+    def __init__(self, trigger: Trigger) -> None:
+        self.trigger = trigger
+        self.detector: Detector = detector_for(trigger)
+        self.last: dict = {}
+        self.fired_in_visit = False
+
+    def reset(self) -> None:
+        self.detector.reset()
+        self.fired_in_visit = False
+
+
+class PieceRuntime:
+    """Evaluates a piece against fused frames; an ``engine.listeners`` entry.
+
+    piece: a loaded Piece. sink: where events go (``.emit(list)``, must not
+    block). seed: the aleatoric choices (None: the piece's seed, else 0).
+    """
+
+    def __init__(self, piece: Piece, sink: EventSink, seed: int | None = None,
+                 narrator: Narrator | None = None) -> None:
+        self.piece, self.sink, self.narrator = piece, sink, narrator
+        self.seed = seed if seed is not None else (piece.seed if piece.seed is not None else 0)
+        self.rng = np.random.default_rng(self.seed)
+        self.min_conf = piece.defaults.min_confidence
+        self.section: Section = piece.section(piece.start)
+        self.started = False
+        self.ended = False          # 'goto: end' happened: the piece is over, its notes ring out
+        self.started_at = 0.0
+        self.section_start = 0.0
+        self.arrivals: dict[int, float] = {}
+        self.persons: dict[int, Person] = {}
+        self._chosen: dict = {}                 # performer selector -> persons, this frame
+        self.empty_since: float | None = None
+        self.zone_members: dict[str, set[int]] = {name: set() for name in piece.zones}
+        self._global = [_TriggerRun(t) for t in piece.triggers]
+        self._global_maps = [MappingRun(m) for m in piece.mappings]
+        self._runs: dict[int, list[_TriggerRun]] = {
+            s.index: [_TriggerRun(t) for t in s.triggers] for s in piece.sections}
+        self._maps: dict[int, list[MappingRun]] = {
+            s.index: [MappingRun(m) for m in s.mappings] for s in piece.sections}
+        self.actions = Actions(self)
+        self._pending_goto: tuple[str, str] | None = None
+        self._out: list[Event] = []
+        self.visited: list[str] = []
+        #: engine time when the last note emitted so far ends (to let a show ring out)
+        self.last_note_end = float("-inf")
+        self.counts = {"frames": 0, "fired": 0, "notes": 0, "errors": 0, "section_changes": 0}
+        self._last_error_log = float("-inf")
+
+    # ------------------------------------------------------------ entry points
+    def __call__(self, frame: FusedFrame) -> None:
+        self.on_frame(frame)
+
+    def start(self, t: float) -> None:
+        """Enter the start section (emits SectionChange(cause="start") and its on_enter)."""
+        if self.started:
+            return
+        self.started, self.started_at = True, t
+        self._enter(self.section, None, t, "start")
+        self._flush()
+
+    def on_frame(self, frame: FusedFrame) -> None:
+        """Evaluate one fused frame. Never raises: a bug is logged and the show goes on."""
+        try:
+            self._on_frame(frame)
+        except Exception:
+            self._error(frame.t, "frame skipped")
+
+    def tick(self, t: float) -> None:
+        """Time passes without frames (nobody on stage): time-based triggers."""
+        try:
+            if not self.started:
+                self.start(t)
+            if self.ended:
+                return
+            self._clock_triggers(t, self._active_runs())
+            self._apply_goto(t)
+            self._flush()
+        except Exception:
+            self._error(t, "tick skipped")
+
+    def goto(self, target: str, t: float, cause: str = "operator") -> bool:
+        """Force a section change (the cellist's or operator's safety). False if nothing changed."""
+        try:
+            if not self.started:
+                self.start(t)
+            changed = self._change_section(target, t, cause)
+            self._flush()
+            return changed
+        except Exception:
+            self._error(t, "section change failed")
+            return False
+
+    def _error(self, t: float, what: str) -> None:
+        """A bug must not end the show: count it, log the first of each minute with its traceback."""
+        self.counts["errors"] += 1
+        self._out.clear()
+        if t - self._last_error_log >= 60.0:
+            self._last_error_log = t
+            log.exception("piece runtime error at t=%.3f (%s; %d so far, the next ones are "
+                          "logged once a minute)", t, what, self.counts["errors"])
+
+    def stop(self, t: float) -> None:
+        """End of the show: cancel pending notes and silence every output."""
+        self._out.append(AllNotesOff(t, None, None))
+        self._flush()
+
+    # ------------------------------------------------------------ frame
+    def _active_runs(self) -> list[_TriggerRun]:
+        return self._runs[self.section.index] + self._global
+
+    def _on_frame(self, frame: FusedFrame) -> None:
+        t = frame.t
+        if not self.started:
+            self.start(t)
+        self.counts["frames"] += 1
+        if self.ended:
+            return
+        min_conf, arrivals = self.min_conf, self.arrivals
+        persons = {}
+        for pid, body in frame.bodies.items():
+            since = arrivals.get(pid)
+            if since is None:
+                since = arrivals[pid] = t
+            persons[pid] = Person(body, min_conf, since)
+        self.persons = persons
+        self._chosen = {}
+        if frame.lost:
+            for pid in frame.lost:
+                arrivals.pop(pid, None)
+            for run in self._all_runs():
+                run.detector.forget(frame.lost)
+        if persons:
+            self.empty_since = None
+        elif self.empty_since is None:
+            self.empty_since = t
+        if self.zone_members:
+            self._zones(t, persons)
+        runs = self._active_runs()
+        plist = list(persons.values())
+        firings: list[Firing] = []
+        for run in runs:
+            trig = run.trigger
+            det = run.detector
+            if isinstance(det, PresenceDetector):
+                det.presence(frame.new, frame.lost, firings)
+            elif isinstance(det, ClockDetector):
+                continue
+            else:
+                chosen = plist if trig.performer == "any" else self._select(trig.performer)
+                if chosen:
+                    det.frame(t, chosen, firings)
+            if firings:
+                for f in firings:
+                    self._consider(run, f, t)
+                firings.clear()
+        self._clock_triggers(t, runs)
+        for mrun in self._maps[self.section.index]:
+            mrun.update(self, t)
+        for mrun in self._global_maps:
+            mrun.update(self, t)
+        self._apply_goto(t)
+        self._flush()
+
+    def _all_runs(self):
+        for runs in self._runs.values():
+            yield from runs
+        yield from self._global
+
+    def _select(self, performer) -> list[Person]:
+        chosen = self._chosen.get(performer)
+        if chosen is None:
+            chosen = self._chosen[performer] = self._choose(performer)
+        return chosen
+
+    def _choose(self, performer) -> list[Person]:
+        persons = self.persons
+        if not persons:
+            return []
+        if isinstance(performer, int):
+            p = persons.get(performer)
+            return [p] if p is not None else []
+        if performer == "first":
+            return [min(persons.values(), key=lambda p: (p.since, p.id))]
+        return [max(persons.values(), key=lambda p: (p.since, p.id))]  # newest
+
+    def _zones(self, t: float, persons: dict[int, Person]) -> None:
+        for name, zone in self.piece.zones.items():
+            members = self.zone_members[name]
+            now = set()
+            for pid, p in persons.items():
+                x, y, z = p.position
+                if zone.contains(x, y, z, zone.hysteresis if pid in members else 0.0):
+                    now.add(pid)
+            if now != members:
+                self.zone_members[name] = now
+                if bool(now) != bool(members) or now:
+                    self._out.append(ZoneState(t, name, bool(now), tuple(sorted(now))))
+
+    def _clock_triggers(self, t: float, runs: list[_TriggerRun]) -> None:
+        if not self.persons and self.empty_since is None:
+            self.empty_since = t
+        firings: list[Firing] = []
+        for run in runs:
+            if isinstance(run.detector, ClockDetector):
+                run.detector.check(t, self.section_start, self.empty_since, firings)
+                for f in firings:
+                    self._consider(run, f, t)
+                firings.clear()
+
+    # ------------------------------------------------------------ firing
+    def _consider(self, run: _TriggerRun, f: Firing, t: float) -> None:
+        trig = run.trigger
+        if trig.after and t - self.section_start < trig.after:
+            return
+        if trig.once and run.fired_in_visit:
+            return
+        person = self.persons.get(f.person) if f.person is not None else None
+        if trig.condition is not None and not holds(trig.condition, person, f.joint):
+            return
+        scope = trig.cooldown_per
+        key = None if scope == "trigger" else f.person if scope == "performer" else (f.person, f.joint)
+        last = run.last.get(key)
+        if last is not None and t - last < trig.cooldown:
+            return
+        run.last[key] = t
+        if trig.probability < 1.0 and self.rng.random() >= trig.probability:
+            self._narrate(t, f"[{self.section.index + 1}] {trig.name}: (silence, by chance)")
+            return
+        run.fired_in_visit = True
+        self.counts["fired"] += 1
+        joint = None if f.joint is None else joint_label(f.joint)
+        self._out.append(TriggerFired(t, self.section.name, trig.name, f.person, joint,
+                                      None if f.value is None else round(float(f.value), 4)))
+        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed)
+        done = [self.actions.act(a, ctx) for a in trig.actions]
+        who = "" if f.person is None else f" [person {f.person}" + (
+            f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"
+        self._narrate(t, f"[{self.section.index + 1}] {trig.name}{who} -> "
+                         f"{'; '.join(d for d in done if d)}")
+
+    # ------------------------------------------------------------ sections
+    def _apply_goto(self, t: float) -> None:
+        if self._pending_goto is not None:
+            target, cause = self._pending_goto
+            self._pending_goto = None
+            self._change_section(target, t, cause)
+
+    def _change_section(self, target: str, t: float, cause: str) -> bool:
+        sections = self.piece.sections
+        current = self.section
+        if self.ended:
+            return False
+        if target == "end":
+            self.ended = True
+            self._narrate(t, f"== the end == ({cause}): no trigger or mapping acts any more")
+            return True
+        if target == "next":
+            if current.next is not None:
+                new = self.piece.section(current.next)
+            elif current.index + 1 < len(sections):
+                new = sections[current.index + 1]
+            else:
+                self._narrate(t, f"{cause}: already in the last section")
+                return False
+        elif target == "previous":
+            if current.index == 0:
+                self._narrate(t, f"{cause}: already in the first section")
+                return False
+            new = sections[current.index - 1]
+        else:
+            try:
+                new = self.piece.section(target)
+            except KeyError:
+                log.warning("no section called %r", target)
+                return False
+        for run in self._maps[current.index]:
+            if run.active and run.mapping.otherwise is not None:
+                run.send(self._out, t, run.mapping.otherwise, force=True)
+            run.active, run.smoothed, run.sent = False, None, None
+        self._enter(new, current, t, cause)
+        return True
+
+    def _enter(self, new: Section, previous: Section | None, t: float, cause: str) -> None:
+        self.section, self.section_start = new, t
+        self.visited.append(new.name)
+        if previous is not None:
+            self.counts["section_changes"] += 1
+        for run in self._runs[new.index]:
+            run.reset()
+        for run in self._global:
+            if isinstance(run.detector, ClockDetector) and run.trigger.kind == "elapsed":
+                run.detector.fired = False
+        self._out.append(SectionChange(t, new.name, previous.name if previous else None,
+                                       new.index, cause))
+        n = len(self.piece.sections)
+        self._narrate(t, f"== section {new.index + 1}/{n}: {new.name} =="
+                         + (f" ({cause})" if cause != "start" else "")
+                         + (f" -- {new.about}" if new.about else ""))
+        ctx = FireContext(t, self, "on_enter", None, None, None, None, 0.0)
+        done = [self.actions.act(a, ctx) for a in new.on_enter]
+        if done:
+            self._narrate(t, f"on entering {new.name} -> {'; '.join(done)}")
+
+    # ------------------------------------------------------------ output
+    def _narrate(self, t: float, text: str) -> None:
+        if self.narrator is not None:
+            try:
+                self.narrator(t, text)
+            except Exception:
+                log.exception("narrator failed")
+
+    def _flush(self) -> None:
+        if self._out:
+            events, self._out = self._out, []
+            self.sink.emit(events)
+
+
