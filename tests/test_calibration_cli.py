@@ -17,8 +17,7 @@ from stage.cli import main
 from stage.protocol import encode_bundle, encode_client_joints, encode_message
 from stage.rig import Rig, load_rig
 
-recording = pytest.importorskip("stage.recording", reason="stage.recording (the recording "
-                                "format) is not in this tree yet")
+from stage import recording
 
 
 def _record(path, sensors, streams, timetags: bool = True) -> None:
