@@ -19,7 +19,8 @@ from pythonosc.osc_message import OscMessage
 from . import __version__
 from .errors import ConfigError, StageError
 from .protocol import encode_message
-from .rig import DEFAULT_PORT, Rig, load_rig, parse_hostport
+from .rig import DEFAULT_PORT, Rig, load_rig
+from .cliargs import hostport as _hostport, positive as _positive
 
 log = logging.getLogger("stage")
 
@@ -29,23 +30,6 @@ class Exit(IntEnum):
     FAILURE = 1      # something went wrong at run time (a port in use, a peer that did not answer)
     BAD_INPUT = 2    # the user's command line or files are wrong
     INTERRUPTED = 130
-
-
-def _hostport(text: str) -> tuple[str, int]:
-    try:
-        return parse_hostport(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"'{text}' must be greater than 0")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -458,20 +458,10 @@ class Engine:
                 for pid, p in self.persons.items() if p.announced and p.centre is not None}
 
     def _notify(self, frame: FusedFrame) -> None:
-        for listener in list(self.listeners):
-            try:
-                listener(frame)
-            except Exception:
-                log.exception("listener %r raised; it is disabled", listener)
-                self.listeners.remove(listener)
+        _call_all(self.listeners, frame, "listener")
 
     def _observe(self, frame: SensorFrame) -> None:
-        for observer in list(self.frame_observers):
-            try:
-                observer(frame)
-            except Exception:
-                log.exception("frame observer %r raised; it is disabled", observer)
-                self.frame_observers.remove(observer)
+        _call_all(self.frame_observers, frame, "frame observer")
 
     def _broadcast(self, data: bytes) -> None:
         for view in self.views:
@@ -605,6 +595,16 @@ class Engine:
             "drops_total": sum(n for r in drops.values() for n in r.values()),
             "latency_ms": self.latency.summary_ms(),
         }
+
+
+def _call_all(callbacks: list, arg: object, what: str) -> None:
+    """Call each callback; one that raises is logged, removed, and the show goes on."""
+    for callback in list(callbacks):
+        try:
+            callback(arg)
+        except Exception:
+            log.exception("%s %r raised; it is disabled", what, callback)
+            callbacks.remove(callback)
 
 
 def _client_key(item: Inbound) -> str:

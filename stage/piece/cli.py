@@ -8,24 +8,7 @@ import sys
 from typing import Callable
 
 from ..errors import ConfigError
-
-
-def _hostport(text: str) -> tuple[str, int]:
-    from ..rig import parse_hostport
-    try:
-        return parse_hostport(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"'{text}' must be greater than 0")
-    return value
+from ..cliargs import hostport as _hostport, positive as _positive
 
 
 def _port(text: str) -> int:
