@@ -137,7 +137,11 @@ class Engine:
         self.sensor_notes: dict[str, dict] = {}
         # engine clock -> wall clock, to report client clocks against ours in seconds
         self._wall_minus_clock = time.time() - self.clock.now()
-        self._dirty: dict[int, float] = {}           # person id -> newest arrival fused in
+        # person id -> arrival of the earliest frame whose fusion is not emitted yet
+        self._dirty: dict[int, float] = {}
+        # person id -> (capture, arrival) of a frame that came too soon after the last
+        # fusion: it is averaged into the next one (see FusionSettings.min_interval_s)
+        self._pending: dict[int, tuple[float, float]] = {}
         self._lost: list[int] = []
         self._close_since: dict[tuple[int, int], float] = {}
         self._started = self.clock.now()
@@ -330,8 +334,18 @@ class Engine:
         if not (track.conf > 0).any():
             return  # nothing tracked in this frame: no position to associate or fuse
         person = self._associate(track, t)
-        self._fuse(person, t)
-        self._dirty.setdefault(person.id, arrival)
+        # Fuse at most once per min_interval_s per person. Every fusion averages the
+        # latest view of every sensor (older ones moved forward by the filter's
+        # velocity), so a frame that arrives sooner is not lost: it joins the next
+        # fusion. Re-fusing on each of S sensors' frames would feed the Kalman filter
+        # the same views S times a frame period as if independent, and cost S times
+        # the work for output no view needs faster than the sensors' 30 Hz.
+        if t - person.t >= self.rig.fusion.min_interval_s:
+            self._fuse(person, t)
+            self._pending.pop(person.id, None)
+            self._dirty.setdefault(person.id, arrival)
+        else:
+            self._pending.setdefault(person.id, (t, arrival))
 
     def _associate(self, track: Track, t: float) -> Person:
         fs = self.rig.fusion
@@ -511,6 +525,7 @@ class Engine:
                 if track.t != float("-inf") and now - track.t > timeout:
                     del client.tracks[user]  # the client is alive but forgot /lostUser
                     self._drop_track(track, now)
+        self._flush_pending(now)
         self._merge_close_persons(now)
         grace = self.rig.fusion.lost_grace_s
         for pid, person in list(self.persons.items()):
@@ -525,6 +540,18 @@ class Engine:
             if recent:
                 log.warning("dropped in the last minute: %s", format_drops(recent))
         self._emit()
+
+    def _flush_pending(self, now: float) -> None:
+        """Fuse frames that waited for a next fusion that did not come (a stream stopped)."""
+        wait = max(2.0 * self.rig.fusion.min_interval_s, 0.05)
+        for pid, (t, arrival) in list(self._pending.items()):
+            person = self.persons.get(pid)
+            if person is None or not person.tracks:
+                del self._pending[pid]
+            elif now - arrival >= wait:
+                del self._pending[pid]
+                self._fuse(person, max(tr.t for tr in person.tracks))
+                self._dirty.setdefault(pid, arrival)
 
     def _merge_close_persons(self, now: float) -> None:
         fs = self.rig.fusion

@@ -63,6 +63,7 @@ class FusionSettings:
     outlier_m: float = 0.10      # joint outlier margin beyond the median spread
     stale_s: float = 0.15        # a view older than this is not averaged in
     lost_grace_s: float = 0.5    # a person with no views is kept this long before /lostUser
+    min_interval_s: float = 0.025  # fuse a person at most this often (0: on every frame)
     hand_vote: str = "plain"     # or "confidence": votes weighted by hand-joint confidence
 
     def __post_init__(self) -> None:
@@ -234,6 +235,9 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
+_ZERO_ALLOWED = {"min_interval_s"}
+
+
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     section = where.mapping(data.get(key), f"'{key}'")
     fields = {f.name: f for f in dataclasses.fields(cls)}
@@ -249,6 +253,8 @@ def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise where.at_key(section, name, f"'{name}' must be a whole number >= 1")
             values[name] = value
+        elif name in _ZERO_ALLOWED:
+            values[name] = where.number(section, name, default, minimum=0.0)
         else:
             values[name] = where.number(section, name, default, exclusive_minimum=0.0)
     try:

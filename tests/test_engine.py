@@ -157,7 +157,7 @@ def test_every_joint_seen_by_at_least_one_sensor_is_reported():
     conf_b[[0, 1, 7]] = 1.0   # sensor b sees only the spine and HandLeft
     conf_a[24] = 0.0
     send(engine, frame("s0", 0, poses[0].observe(truth), conf_a))
-    clock.advance(0.005)
+    clock.advance(0.03)  # the next frame period: a frame sooner would wait for it
     send(engine, frame("s1", 0, poses[1].observe(truth), conf_b))
     last = out.of("/jointCoordinates")[-1]
     names = set(last[1::5])

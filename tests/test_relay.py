@@ -104,9 +104,12 @@ def test_a_person_in_room_a_appears_moves_and_leaves_in_room_b(room_b):
 
                 # the dancer walks 1 m towards +x in room A: B sees it 1 m further too
                 moved = joints + np.array([1.0, 0.0, 0.0])
-                for _ in range(10):
+                # 1 s at the sensor's 30 Hz (sooner frames are coalesced): room A's and room
+                # B's Kalman filters, in series, settle after a 1 m jump well within that
+                for _ in range(30):
                     kinect.frame(0, moved)
                     sync(room_a.address)
+                    time.sleep(1 / 30)
                 start = len(view_b.received)
                 last = view_b.wait_for(
                     lambda m: m.address == "/jointCoordinates"
