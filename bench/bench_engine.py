@@ -10,19 +10,25 @@ hand. People stand on a grid 1.5 m apart and sway slowly; the sensors stand on
 a ring around them. Sensors are staggered across the frame period, as
 free-running Kinects are (``--aligned`` sends them all at the same instant).
 
-Figures, over a steady window after a warm-up:
+Figures, over a steady window after a warm-up (2 s + 10 s by default):
   * engine-added latency: the server's own ``latency_ms`` (datagram read by the
     receiver thread -> fused datagram sent by the engine thread) from
     ``/stage/stats``; the target applies to its p99;
   * external latency, with one sensor: send -> fused ``/jointCoordinates``
     received by the view here (two loopback hops and two wake-ups included);
   * input bundles/s and skeletons/s sent, fused ``/jointCoordinates``/s received,
-    drops (from the server's counters), server CPU as % of one core, and how
-    late the generator sent against its deadlines.
+    drops (from the server's counters), server CPU as % of one core (and of its
+    receiver and engine threads), how late the generator sent against its
+    deadlines, and how much CPU other processes used meanwhile.
 
-Run ``python bench/bench_engine.py`` (all 9 configurations, 10 s each),
-``--quick`` (3 s each), ``--configs 6x6,1x1``, ``--json``; ``--profile DIR``
-runs the server with one cProfile per thread and prints its hot spots.
+Run ``python bench/bench_engine.py`` (all 9 configurations), ``--quick``
+(1 s + 2 s each), ``--configs 6x6,1x1``, ``--json``. ``--floor`` adds rows for
+a null server with the same thread hand-off and no work; ``--profile DIR``
+runs the server with one cProfile per thread and prints its hot spots;
+``--server-cmd`` benchmarks another server command (A/B runs); ``--wait-idle S``
+waits for a quiet machine before each configuration. The servers run from a
+snapshot of stage/ taken at the start, so one run measures one version of the
+code even while it is being edited (``--live`` to use the working tree).
 PASS/FAIL is printed against the targets; the exit status does not depend on it.
 """
 
@@ -55,6 +61,7 @@ from pythonosc.osc_message import OscMessage  # noqa: E402
 from pythonosc.parsing import ntp  # noqa: E402
 
 from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors  # noqa: E402
+from stage.fusion import apply_transform  # noqa: E402
 from stage.joints import HAND_STATE_NAMES, HandState  # noqa: E402
 from stage.protocol import (JointCoordinates, decode_datagram, encode_bundle,  # noqa: E402
                             encode_client_joints, encode_message)
@@ -73,6 +80,7 @@ NOISE_FRAMES = 64
 HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
 HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s
 CLK_TCK = os.sysconf("SC_CLK_TCK")
+BUSY_FRACTION = 0.10         # other processes above this much of a core skew a row
 
 
 # ------------------------------------------------------------------ scene and rig
@@ -106,28 +114,50 @@ def build_rig(sensors: int, port: int, view: tuple[str, int]) -> Rig:
     return rig
 
 
+@dataclass(frozen=True)
+class Scene:
+    """What every sensor looks at: P people, each with a floor spot, a heading and a sway phase."""
+
+    floor: np.ndarray      # (P, 2) x, z metres, stage space
+    headings: np.ndarray   # (P,) radians
+    phases: np.ndarray     # (P,) radians
+
+    @classmethod
+    def make(cls, people: int, seed: int) -> "Scene":
+        rng = np.random.default_rng(seed)
+        return cls(grid_positions(people), rng.uniform(0, 2 * np.pi, people),
+                   rng.uniform(0, 2 * np.pi, people))
+
+    def sway(self, k: int) -> np.ndarray:
+        """(P, 3) stage-space offset of each person at frame ``k``: a slow small circle."""
+        a = 2 * np.pi * (k / FPS) / SWAY_S + self.phases
+        return np.stack([SWAY_M * np.sin(a), np.zeros_like(a), SWAY_M * np.cos(a)], axis=1)
+
+
 class SensorLoad:
     """One virtual Kinect: a pre-encoded bundle patched in place every frame.
 
     The bundle is built once with the project's own encoders; each frame only
     the joint floats (one fancy-indexed numpy write for all people), the
-    timetag and, every 2 s, the 8-byte hand-state names are rewritten.
+    timetag and, every 2 s, the 8-byte hand-state names are rewritten. The
+    people move by a translation in stage space, so each frame is the rest
+    observation plus that translation turned into this sensor's axes.
     """
 
-    def __init__(self, sid: str, sensor: SensorPose, floor: np.ndarray, seed: int) -> None:
+    def __init__(self, sid: str, sensor: SensorPose, scene: Scene, seed: int) -> None:
         self.id = sid
-        rng = np.random.default_rng(seed)
-        people = len(floor)
-        headings = rng.uniform(0, 2 * np.pi, people)
-        truth = [pose(floor[u], headings[u], 0.4, 0.2, 0.0) for u in range(people)]
+        self.scene = scene
+        rng = np.random.default_rng(seed)   # this sensor's own noise only
+        people = len(scene.floor)
+        truth = [pose(scene.floor[u], scene.headings[u], 0.4, 0.2, 0.0) for u in range(people)]
         base, conf = zip(*(observe_with_errors(sensor, t, rng, noise_m=0.0) for t in truth))
         self.base = np.array(base)                      # (P, 25, 3) sensor space
         self.conf = np.array(conf)                      # (P, 25) 1 tracked, 0.5 inferred
         self.R = sensor.observe(np.eye(3)) - sensor.observe(np.zeros(3))  # stage dir -> sensor dir
-        self.phase = rng.uniform(0, 2 * np.pi, people)
         self.noise = rng.normal(0.0, NOISE_M, (NOISE_FRAMES, people, 25, 3))
         self.hello = [encode_message("/registerDevice", sid, "kinect2-bench")] + [
             encode_message("/newUser", sid, u, *map(float, self.base[u, 0])) for u in range(people)]
+        # every joint has conf > 0 (tracked or inferred), so all 25 are on the wire
         messages, joint_at, hand_at = [], [], []
         for u in range(people):
             messages.append(encode_client_joints(sid, u, self.base[u], self.conf[u]))
@@ -162,10 +192,9 @@ class SensorLoad:
         self._check()
 
     def positions(self, k: int) -> np.ndarray:
-        """(P, 25, 3) sensor-space joints of frame ``k``: each person sways on a small circle."""
-        a = 2 * np.pi * (k / FPS) / SWAY_S + self.phase
-        stage_delta = np.stack([SWAY_M * np.sin(a), np.zeros_like(a), SWAY_M * np.cos(a)], axis=1)
-        return self.base + (stage_delta @ self.R)[:, None, :] + self.noise[k % NOISE_FRAMES]
+        """(P, 25, 3) sensor-space joints of frame ``k``."""
+        return (self.base + (self.scene.sway(k) @ self.R)[:, None, :]
+                + self.noise[k % NOISE_FRAMES])
 
     def prepare(self, k: int) -> None:
         """Write frame ``k`` (positions and hand states) into the bundle; timetag is set at send."""
@@ -193,6 +222,19 @@ class SensorLoad:
             raise RuntimeError(f"bench bundle for {self.id} does not decode as intended: "
                                f"drops {decoded.drops}")
         self._hands_frame = -1
+
+
+def check_scene(loads: list[SensorLoad], rig: Rig, k: int = 11, tol_m: float = 0.05) -> None:
+    """Every sensor must report each person where the rig's calibration says: joints tracked
+    by two sensors agree in stage space within noise (the engine's calibration monitor
+    rightly leaves out sensors that disagree)."""
+    stage = [apply_transform(rig.transform_for(load.id), load.positions(k)) for load in loads]
+    for a in range(1, len(loads)):
+        both = (loads[0].conf == 1.0) & (loads[a].conf == 1.0)
+        err = np.linalg.norm(stage[a] - stage[0], axis=2)[both]
+        if err.size and err.max() > tol_m:
+            raise RuntimeError(f"bench scene inconsistent: {loads[a].id} and {loads[0].id} disagree "
+                               f"by up to {err.max():.3f} m on tracked joints")
 
 
 def _padded_len_at(message: bytes, at: int) -> int:
@@ -382,15 +424,17 @@ class Options:
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
-    floor = grid_positions(people)
-    loads = [SensorLoad(sid, p, floor, seed=1000 * sensors + 10 * people + k)
+    scene = Scene.make(people, seed=10 * people)
+    loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k)
              for k, (sid, p) in enumerate(zip(sensor_ids(sensors), sensor_poses(sensors)))]
     view = ViewSink()
     port = free_udp_port()
     target = ("127.0.0.1", port)
     tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
     rig_path = os.path.join(tmp.name, "rig.yaml")
-    build_rig(sensors, port, view.address).save(rig_path)
+    rig = build_rig(sensors, port, view.address)
+    check_scene(loads, rig)
+    rig.save(rig_path)
     log_path = os.path.join(tmp.name, "server.log")
     fingerprint = source_fingerprint(opt.src)
     if opt.server_cmd:
@@ -467,7 +511,8 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     lat = stats1["latency_ms"]
     window_samples = lat.get("n", 0) - stats0["latency_ms"].get("n", 0)
     cpu = (cpu1 - cpu0) / span
-    # stage serve starts its receiver and engine threads last (after numpy's BLAS threads)
+    # stage serve starts its receiver and engine threads last (after numpy's BLAS threads and
+    # the live calibrator's worker); thread ids grow in creation order
     tids = sorted(set(threads0) & set(threads1))
     names = [str(t) for t in tids]
     if len(tids) >= 3 and not (opt.server_cmd or opt.floor):
@@ -577,46 +622,47 @@ def null_serve(argv: list[str]) -> int:
 
 # ------------------------------------------------------------------ profiled server
 def profiled_serve(argv: list[str]) -> int:
-    """``bench_engine.py _profiled-serve PREFIX --port P --rig R``: stage serve with one
-    cProfile per server thread (``python -m cProfile`` only sees the main thread, which
-    just waits). Writes PREFIX.engine.prof, PREFIX.receiver.prof and PREFIX.threads.json."""
+    """``bench_engine.py _profiled-serve PREFIX --port P --rig R``: ``stage serve`` with one
+    cProfile per server thread (``python -m cProfile`` only sees the main thread, which just
+    waits). Wraps, by class, the receiver loop, the engine loop and the live calibrator's
+    worker loop, then runs the real CLI; writes PREFIX.<thread>.prof and PREFIX.threads.json."""
     import cProfile
-
-    from stage.rig import load_rig
-    from stage.server import Server
+    import importlib
 
     parser = argparse.ArgumentParser()
     parser.add_argument("prefix")
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--rig", required=True)
     args = parser.parse_args(argv)
-    server = Server(load_rig(args.rig), port=args.port)
     thread_cpu: dict[str, float] = {}
+    wrapped = []
+    for module, cls, method, name in (("stage.server", "Server", "_receive", "receiver"),
+                                      ("stage.engine", "Engine", "run", "engine"),
+                                      ("stage.calibration.worker", "EngineWorker", "_run",
+                                       "calibrator")):
+        try:
+            owner = getattr(importlib.import_module(module), cls)
+            fn = getattr(owner, method)
+        except (ImportError, AttributeError):
+            continue
 
-    def wrap(name, fn):
-        def run(*a):
+        def run(*a, _fn=fn, _name=name, **k):
             prof = cProfile.Profile()
             prof.enable()
             try:
-                fn(*a)
+                return _fn(*a, **k)
             finally:
                 prof.disable()
-                thread_cpu[name] = time.thread_time()
-                prof.dump_stats(f"{args.prefix}.{name}.prof")
-        return run
+                thread_cpu[_name] = time.thread_time()
+                prof.dump_stats(f"{args.prefix}.{_name}.prof")
 
-    server._receive = wrap("receiver", server._receive)          # instance attributes shadow
-    server.engine.run = wrap("engine", server.engine.run)        # the methods start() uses
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    server.start()
+        setattr(owner, method, run)
+        wrapped.append(name)
+    from stage.cli import main as stage_main
     try:
-        while not stop.wait(0.5):
-            pass
+        return stage_main(["--quiet", "serve", "--port", str(args.port), "--rig", args.rig])
     finally:
-        server.stop()
         Path(f"{args.prefix}.threads.json").write_text(json.dumps(thread_cpu))
-    return 0
 
 
 def print_profile(prefix: str, top: int = 25) -> None:
@@ -624,7 +670,7 @@ def print_profile(prefix: str, top: int = 25) -> None:
     threads = Path(f"{prefix}.threads.json")
     if threads.exists():
         print(f"thread CPU (s, under the profiler): {threads.read_text()}")
-    for name in ("engine", "receiver"):
+    for name in ("engine", "receiver", "calibrator"):
         path = f"{prefix}.{name}.prof"
         if not os.path.exists(path):
             print(f"(no profile for the {name} thread at {path})")
@@ -648,7 +694,7 @@ def print_table(results: list[dict], opt: Options) -> None:
           f"{CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
     head = (f"{'config':>9} | {'in fr/s':>7} {'skel/s':>6} | {'out fr/s':>8} | {'drops':>5} | "
             f"{'engine p50/p99/max ms':>21} {'(n)':>6} | {'ext p50/p99 ms':>14} | "
-            f"{'CPU %core (rx+eng)':>18} | {'gen late p99':>12} | {'other %':>7} | verdict")
+            f"{'CPU %core (rx+eng+rest)':>23} | {'gen late p99':>12} | {'other %':>7} | verdict")
     print(head)
     print("-" * len(head))
     for r in results:
@@ -661,7 +707,8 @@ def print_table(results: list[dict], opt: Options) -> None:
         cpu = f"{100 * r['server_cpu_core_fraction']:.1f}" + ("*" if r["cpu_pass"] is not None else "")
         th = r["server_thread_cpu_core_fraction"]
         if "receiver" in th:
-            cpu += f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f})"
+            rest = sum(v for k, v in th.items() if k not in ("receiver", "engine"))
+            cpu += f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f}+{100 * rest:.0f})"
         notes = []
         if not r["latency_pass"]:
             notes.append("p99")
@@ -669,19 +716,19 @@ def print_table(results: list[dict], opt: Options) -> None:
             notes.append("CPU")
         if (r["send_late_ms"]["p99"] or 0) > 2.0:
             notes.append("generator late")
-        if r["other_cpu_core_fraction"] > 0.10:
+        if r["other_cpu_core_fraction"] > BUSY_FRACTION:
             notes.append("machine busy")
         verdict = r["verdict"] + (f" ({', '.join(notes)})" if notes else "")
         print(f"{r['config']:>9} | {r['in_bundles_per_s']:7.1f} {r['in_skeletons_per_s']:6.0f} | "
               f"{r['out_joint_msgs_per_s']:8.1f} | {r['drops_window']:5d} | {eng:>21} {n:>6} | "
-              f"{ext_s:>14} | {cpu:>18} | {fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | "
+              f"{ext_s:>14} | {cpu:>23} | {fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | "
               f"{100 * r['other_cpu_core_fraction']:7.1f} | {verdict}")
     print("in fr/s: bundles sent per s (all sensors); skel/s: /jointCoordinates sent per s; "
           "out fr/s: fused /jointCoordinates received per s at the view;\n"
           "drops: server drops during the window; engine: the server's latency_ms (its last <= 4096 "
           "samples, n shown); ext: send -> view receive, one-sensor configs only;\n"
           "CPU: server process utime+stime over the window (* = the config the CPU target applies to;\n"
-          "  rx+eng: its receiver and engine threads); "
+          "  rx+eng+rest: its receiver thread, engine thread and all its other threads); "
           "gen late: p99 of send time - deadline;\n"
           "other %: CPU used by other processes on the machine during the window, "
           "in % of one core (> 10: figures are skewed by other load).")
@@ -747,6 +794,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--wait-idle", type=float, default=0.0, metavar="S",
                         help="before each config wait up to S s for the machine to be idle "
                              "(other processes under 5 %% of a core over 2 s)")
+    parser.add_argument("--retry-busy", type=int, default=0, metavar="N",
+                        help="run a config again (up to N times) when other processes used more "
+                             "than 10 %% of a core during its window; the last try is kept")
     parser.add_argument("--live", action="store_true",
                         help="run the servers from the working tree instead of a snapshot of "
                              "stage/ taken at the start")
@@ -762,16 +812,26 @@ def main(argv: list[str] | None = None) -> int:
     opt = Options(args.warmup, args.duration, args.aligned, args.profile,
                   server_cmd=shlex.split(args.server_cmd) if args.server_cmd else None,
                   src=src, wait_idle=args.wait_idle)
+    def run(sensors: int, people: int, o: Options) -> dict:
+        label = ("floor " if o.floor else "") + f"{sensors}x{people}"
+        for attempt in range(args.retry_busy + 1):
+            print(f"running {label} ...", file=sys.stderr, flush=True)
+            result = run_config(sensors, people, o)
+            result["attempts"] = attempt + 1
+            if result["other_cpu_core_fraction"] <= BUSY_FRACTION:
+                break
+            print(f"  other processes used {100 * result['other_cpu_core_fraction']:.0f} % of a "
+                  "core meanwhile", file=sys.stderr, flush=True)
+        return result
+
     results = []
     if args.floor:
         floor_opt = Options(args.warmup, args.duration, args.aligned, None, floor=True, src=src,
                             wait_idle=args.wait_idle)
         for sensors, people in ((1, 1), (6, 6)):
-            print(f"running floor {sensors}x{people} ...", file=sys.stderr, flush=True)
-            results.append(run_config(sensors, people, floor_opt))
+            results.append(run(sensors, people, floor_opt))
     for sensors, people in args.configs:
-        print(f"running {sensors}x{people} ...", file=sys.stderr, flush=True)
-        results.append(run_config(sensors, people, opt))
+        results.append(run(sensors, people, opt))
     if args.json:
         print(json.dumps({"fps": FPS, "warmup_s": opt.warmup, "duration_s": opt.duration,
                           "aligned": opt.aligned, "cores": os.cpu_count(),
