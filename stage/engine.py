@@ -139,6 +139,7 @@ class Engine:
         self._wall_minus_clock = time.time() - self.clock.now()
         # person id -> arrival of the earliest frame whose fusion is not emitted yet
         self._dirty: dict[int, float] = {}
+        self._hands_dirty: set[int] = set()  # persons whose hand vote may have changed
         # person id -> (capture, arrival) of a frame that came too soon after the last
         # fusion: it is averaged into the next one (see FusionSettings.min_interval_s)
         self._pending: dict[int, tuple[float, float]] = {}
@@ -241,7 +242,7 @@ class Engine:
                 track = client.tracks[msg.user] = Track(client.id, msg.user)
             track.hands[msg.hand] = msg.state
             if track.person is not None:
-                self._dirty.setdefault(track.person, item.arrival)
+                self._hands_dirty.add(track.person)
         elif isinstance(msg, FloorPlane):
             client.floor = msg.plane
         elif isinstance(msg, NewUser):
@@ -389,7 +390,7 @@ class Engine:
 
     def _drop_track(self, track: Track, t: float) -> None:
         if track.person is not None:
-            self._dirty.setdefault(track.person, t)
+            self._hands_dirty.add(track.person)  # one voter fewer
         self._unbind(track, t)
 
     def _fuse(self, person: Person, t: float) -> None:
@@ -433,11 +434,19 @@ class Engine:
 
     # ------------------------------------------------------------ output
     def _emit(self) -> None:
-        if not self._dirty and not self._lost:
+        if not self._dirty and not self._lost and not self._hands_dirty:
             return
         now = self.clock.now()
         new: list[int] = []
         updated: list[int] = []
+        for pid in self._hands_dirty - self._dirty.keys():
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            self._vote_hands(person, now)
+            if self._send_hands(person):
+                updated.append(pid)
         for pid, arrival in self._dirty.items():
             person = self.persons.get(pid)
             if person is None or person.centre is None:
@@ -451,20 +460,27 @@ class Engine:
             self._vote_hands(person, now)
             if person.tracks:
                 out.append(encode_view_joints(pid, person.joints, person.conf))
-            for hand in (0, 1):
-                if person.hands[hand] != person.sent_hands[hand]:
-                    person.sent_hands[hand] = person.hands[hand]
-                    out.append(encode_view_hand_state(pid, hand, person.hands[hand]))
             for data in out:
                 self._broadcast(data)
+            self._send_hands(person)
             updated.append(pid)
             self.latency.add(self.clock.now() - arrival)
         lost = self._lost
         for pid in lost:
             self._broadcast(encode_view_lost_user(pid))
         self._dirty, self._lost = {}, []
-        if self.listeners:
+        self._hands_dirty.clear()
+        if self.listeners and (updated or lost):
             self._notify(FusedFrame(now, self.bodies(), tuple(updated), tuple(new), tuple(lost)))
+
+    def _send_hands(self, person: Person) -> bool:
+        changed = False
+        for hand in (0, 1):
+            if person.hands[hand] != person.sent_hands[hand]:
+                person.sent_hands[hand] = person.hands[hand]
+                self._broadcast(encode_view_hand_state(person.id, hand, person.hands[hand]))
+                changed = True
+        return changed
 
     def bodies(self) -> dict[int, Body]:
         return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),

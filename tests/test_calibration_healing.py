@@ -337,7 +337,7 @@ def test_simulated_kinects_bumped_mid_show(tmp_path):
     healthy = {round(t, 4): e for t, e, _ in quiet}
     diffs = [abs(e - healthy[round(t, 4)]) for t, e, _ in bumped
              if 10.0 <= t <= done[0].t and round(t, 4) in healthy]
-    assert len(diffs) > 50 and max(diffs) < 0.03, max(diffs)
+    assert len(diffs) > 20 and max(diffs) < 0.03, max(diffs)  # fused at matching times
     assert all("kinect-b" not in s for t, _, s in bumped if suspect[0].t <= t < done[0].t)
 
 
