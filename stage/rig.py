@@ -14,7 +14,7 @@ A rig never mentions music. Example (every key optional)::
     allow_unknown_sensors: true    # false: only the sensors listed here are accepted
     views: ["127.0.0.1:9001"]
     clients: {timeout_s: 1.0, max_messages_per_s: 3000}
-    fusion: {associate_m: 0.5, ...}
+    fusion: {associate_m: 0.5, min_interval_s: 0.025, ...}   # see FusionSettings
     smoothing: {enabled: true, process_noise: 4.0, measurement_noise: 1e-4}
 """
 
