@@ -89,23 +89,9 @@ def test_every_key_of_the_language_is_documented():
     """docs/pieces.md names every key the loader accepts (in `backticks`)."""
     import re
     from stage.piece.language import PIECE
-    from stage.piece.spec import AnyOf, ListOf, MapOf, Obj
+    from stage.piece.spec import reachable_objects
     doc = (REPO / "docs" / "pieces.md").read_text(encoding="utf-8")
-    objects: dict[int, Obj] = {}
-
-    def walk(kind) -> None:
-        if isinstance(kind, Obj) and id(kind) not in objects:
-            objects[id(kind)] = kind
-            for field in kind.fields.values():
-                walk(field.kind)
-        elif isinstance(kind, ListOf):
-            walk(kind.item)
-        elif isinstance(kind, MapOf):
-            walk(kind.value)
-        elif isinstance(kind, AnyOf):
-            for option in kind.options:
-                walk(option)
-    walk(PIECE)
+    objects = {id(o): o for o in reachable_objects(PIECE)}
     missing = sorted({f"{o.name or 'Piece'}.{key}" for o in objects.values() for key in o.fields
                       if not re.search(r"`[^`]*\b" + re.escape(key) + r"\b[^`]*`", doc)})
     assert missing == [], f"not documented in docs/pieces.md: {missing}"

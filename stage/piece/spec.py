@@ -482,16 +482,15 @@ def sub_schema(kind: Kind) -> dict:
     return kind.schema()
 
 
-def definitions(root: Kind) -> dict[str, dict]:
-    """Every named ``Obj`` reachable from ``root``, as JSON Schema ``$defs``."""
-    found: dict[str, Obj] = {}
+def reachable_objects(root: Kind) -> list[Obj]:
+    """Every ``Obj`` reachable from ``root`` (named or not), each once, root first."""
+    found: dict[int, Obj] = {}
 
     def walk(kind: Kind) -> None:
         if isinstance(kind, Obj):
-            if kind.name:
-                if kind.name in found:
-                    return
-                found[kind.name] = kind
+            if id(kind) in found:
+                return
+            found[id(kind)] = kind
             for spec in kind.fields.values():
                 walk(spec.kind)
         elif isinstance(kind, ListOf):
@@ -503,4 +502,10 @@ def definitions(root: Kind) -> dict[str, dict]:
                 walk(option)
 
     walk(root)
-    return {name: obj.schema() for name, obj in sorted(found.items()) if obj is not root}
+    return list(found.values())
+
+
+def definitions(root: Kind) -> dict[str, dict]:
+    """Every named ``Obj`` reachable from ``root``, as JSON Schema ``$defs``."""
+    found = {obj.name: obj for obj in reachable_objects(root) if obj.name and obj is not root}
+    return {name: obj.schema() for name, obj in sorted(found.items())}
