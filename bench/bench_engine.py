@@ -57,6 +57,7 @@ REPO = Path(__file__).resolve().parents[1]
 # the server subprocesses import the snapshot of stage/ taken when the run started
 sys.path.insert(0, os.environ.get("STAGE_BENCH_SRC") or str(REPO))
 
+from benchlib import machine_busy_s, proc_cpu_s, wait_idle  # noqa: E402
 from pythonosc.osc_message import OscMessage  # noqa: E402
 from pythonosc.parsing import ntp  # noqa: E402
 
@@ -79,7 +80,6 @@ NOISE_M = 0.005              # per-axis joint noise, from a pre-drawn table
 NOISE_FRAMES = 64
 HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
 HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 BUSY_FRACTION = 0.10         # other processes above this much of a core skew a row
 
 
@@ -244,13 +244,6 @@ def _padded_len_at(message: bytes, at: int) -> int:
 
 
 # ------------------------------------------------------------------ measurement helpers
-def proc_cpu_s(pid: int | str = "self") -> float:
-    """utime + stime of a process, seconds."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
-
-
 def thread_cpu_s(pid: int) -> dict[int, float]:
     """utime + stime of each thread of a process, seconds, by thread id."""
     out = {}
@@ -260,13 +253,6 @@ def thread_cpu_s(pid: int) -> dict[int, float]:
         except (FileNotFoundError, ProcessLookupError):
             continue
     return out
-
-
-def machine_busy_s() -> float:
-    """CPU seconds all cores spent not idle since boot (from /proc/stat)."""
-    with open("/proc/stat") as f:
-        values = [int(v) for v in f.readline().split()[1:]]
-    return (sum(values[:8]) - values[3] - values[4]) / CLK_TCK  # minus idle and iowait
 
 
 def source_fingerprint(root: Path) -> str:
@@ -283,18 +269,6 @@ def snapshot_sources(into: str) -> Path:
     root = Path(into) / "src"
     shutil.copytree(REPO / "stage", root / "stage", ignore=shutil.ignore_patterns("__pycache__"))
     return root
-
-
-def wait_idle(max_wait: float, threshold: float = 0.05, sample: float = 2.0) -> float:
-    """Wait (at most ``max_wait`` s) until the machine's busy CPU over ``sample`` s is below
-    ``threshold`` of one core; returns the last busy fraction seen."""
-    deadline = time.monotonic() + max_wait
-    while True:
-        a = machine_busy_s()
-        time.sleep(sample)
-        busy = (machine_busy_s() - a) / sample
-        if busy < threshold or time.monotonic() >= deadline:
-            return busy
 
 
 def free_udp_port() -> int:
@@ -449,7 +423,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     else:
         cmd = [sys.executable, "-m", "stage.cli", "--quiet", "serve", "--port", str(port),
                "--rig", rig_path]
-    idle_before = wait_idle(opt.wait_idle) if opt.wait_idle > 0 else None
+    idle_before = wait_idle(opt.wait_idle, threshold=0.05) if opt.wait_idle > 0 else None
     log = open(log_path, "w")
     env = dict(os.environ, PYTHONPATH=str(opt.src), STAGE_BENCH_SRC=str(opt.src))
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=str(opt.src), env=env)

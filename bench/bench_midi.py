@@ -38,36 +38,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchlib import machine_busy_s, proc_cpu_s, wait_idle  # noqa: E402
+from plugins.midi.jack import start_dummy_jackd, stop_jackd  # noqa: E402
+
 TARGET_P99_MS = 2.0
-CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-def machine_busy_s() -> float:
-    """CPU seconds all cores spent not idle since boot (/proc/stat)."""
-    with open("/proc/stat") as f:
-        values = [int(v) for v in f.readline().split()[1:]]
-    return (sum(values[:8]) - values[3] - values[4]) / CLK_TCK
-
-
-def process_cpu_s(pid: int) -> float:
-    """User + system CPU seconds of one process (/proc/<pid>/stat), 0 when it is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / CLK_TCK
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return 0.0
-
-
-def wait_idle(max_wait: float, threshold: float = 0.10, sample: float = 2.0) -> float:
-    """Wait up to ``max_wait`` s for the machine to be below ``threshold`` of one core busy."""
-    deadline = time.monotonic() + max_wait
-    while True:
-        a = machine_busy_s()
-        time.sleep(sample)
-        busy = (machine_busy_s() - a) / sample
-        if busy < threshold or time.monotonic() >= deadline:
-            return busy
 
 
 def receiver_main(client: str, port: str) -> None:
@@ -85,32 +59,12 @@ def receiver_main(client: str, port: str) -> None:
     sys.stdout.flush()
 
 
-def start_jack(name: str, period: int, rate: int) -> subprocess.Popen:
-    env = dict(os.environ, JACK_DEFAULT_SERVER=name)
-    proc = subprocess.Popen(["jackd", "-n", name, "--no-realtime", "-d", "dummy", "-r", str(rate),
-                             "-p", str(period)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env=env)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        if subprocess.run(["jack_lsp"], capture_output=True, env=env).returncode == 0:
-            return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError("jackd did not come up")
-
-
-def stop_jackd(proc: subprocess.Popen) -> None:
-    """jackd often ignores the first SIGTERM once clients came and went; a few more stop it,
-    cleanly unregistered (a kill would leave its entry in JACK's 8-server registry)."""
-    for _ in range(20):
-        proc.terminate()
-        try:
-            proc.wait(0.25)
-            return
-        except subprocess.TimeoutExpired:
-            continue
-    proc.kill()
-    proc.wait(5)
+def _cpu_or_zero(pid: int) -> float:
+    """CPU seconds of one of our processes, 0 once it is gone."""
+    try:
+        return proc_cpu_s(pid)
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return 0.0
 
 
 def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool) -> dict:
@@ -121,7 +75,7 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
 
     server = "stage-bench"   # a fixed name: a killed server's registry entry is reclaimed
     os.environ["JACK_DEFAULT_SERVER"] = server
-    jack = start_jack(server, period, rate)
+    jack = start_dummy_jackd(server, period, rate)
     receiver = None
     demo = None
     try:
@@ -147,7 +101,7 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
             listing = subprocess.run(["jack_lsp", "-c"], capture_output=True, text=True).stdout
             raise RuntimeError(f"jack_connect failed: {done.stderr.strip()}; ports: {listing}")
         ours = [os.getpid(), jack.pid, receiver.pid]
-        busy0, ours0, wall0 = machine_busy_s(), sum(map(process_cpu_s, ours)), time.monotonic()
+        busy0, ours0, wall0 = machine_busy_s(), sum(map(_cpu_or_zero, ours)), time.monotonic()
         rng = np.random.default_rng(seed)
         # note k: key 24 + k % 96, channel k % 16, so every message is identifiable
         start = clock.now() + 0.3
@@ -166,7 +120,7 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
             host.emit([Note(float(times[k]), "bench", int(k % 16), int(24 + k % 96), 100,
                             float(durations[k]))])
         time.sleep(max(0.0, times[-1] + durations.max() - clock.now()) + 0.1)
-        others = ((machine_busy_s() - busy0) - (sum(map(process_cpu_s, ours)) - ours0)) / (
+        others = ((machine_busy_s() - busy0) - (sum(map(_cpu_or_zero, ours)) - ours0)) / (
             time.monotonic() - wall0)
         host.stop()
         ports.PortSink.send = original
@@ -252,7 +206,7 @@ def main() -> None:
     rows = []
     for p in periods:
         if args.wait_idle:
-            wait_idle(args.wait_idle)
+            wait_idle(args.wait_idle, threshold=0.10)
         rows.append(run_period(p, args.rate, notes, args.seed, args.engine))
     if args.json:
         print(json.dumps(rows, indent=2))

@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchlib import machine_busy_s
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -91,11 +92,8 @@ def frames(people: int, seconds: float, seed: int = 1) -> list[FusedFrame]:
 def others_cpu() -> tuple[float, float]:
     """(busy jiffies of the whole machine, this process's CPU seconds), to tell how much other
     processes used meanwhile (a 2-core machine shared with others makes p99 noisy)."""
-    with open("/proc/stat") as f:
-        fields = [int(v) for v in f.readline().split()[1:]]
-    idle = fields[3] + fields[4]
     t = os.times()
-    return (sum(fields) - idle) / os.sysconf("SC_CLK_TCK"), t.user + t.system
+    return machine_busy_s(), t.user + t.system
 
 
 def one_pass(piece, stream: list[FusedFrame], section: str | None, seed: int) -> tuple:

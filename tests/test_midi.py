@@ -17,6 +17,8 @@ import time
 import mido
 import pytest
 
+from plugins.midi.jack import start_dummy_jackd, stop_jackd
+
 import plugins.midi as midi_view
 from plugins.midi.ports import PortSink, choose_api, jack_server_running, match_port
 from plugins.midi.schedule import MidiScheduler
@@ -359,21 +361,6 @@ def test_api_choice_follows_the_environment(monkeypatch):
 DUMP_LINE = re.compile(r"^\s*(\d+):((?: [0-9a-f]{2})+)(?= |$)")
 
 
-def stop_jackd(proc: subprocess.Popen) -> None:
-    """jackd often ignores the first SIGTERM once clients have come and gone (it hangs in its
-    shutdown); a few more get it out, cleanly unregistered. Killing it instead would leave its
-    entry in JACK's shared registry, which holds only 8 servers."""
-    for _ in range(20):
-        proc.terminate()
-        try:
-            proc.wait(0.25)
-            return
-        except subprocess.TimeoutExpired:
-            continue
-    proc.kill()
-    proc.wait(5)
-
-
 @pytest.fixture
 def jack_server(monkeypatch, tmp_path):
     """A private JACK server with the dummy driver; JACK_DEFAULT_SERVER points at it.
@@ -394,14 +381,11 @@ def jack_server(monkeypatch, tmp_path):
     monkeypatch.setenv("JACK_DEFAULT_SERVER", name)
     log = tmp_path / "jackd.log"
     with open(log, "w") as err:
-        proc = subprocess.Popen(["jackd", "-n", name, "--no-realtime", "-d", "dummy", "-r",
-                                 "48000", "-p", "256"], stdout=err, stderr=err)
+        try:
+            proc = start_dummy_jackd(name, 256, 48000, log=err)
+        except RuntimeError as exc:
+            pytest.fail(f"{exc}: {log.read_text()[-500:]}")
     try:
-        deadline = time.monotonic() + 10
-        while subprocess.run(["jack_lsp"], capture_output=True).returncode != 0:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"jackd did not start: {log.read_text()[-500:]}")
-            time.sleep(0.05)
         assert jack_server_running(name)
         yield name
     finally:
