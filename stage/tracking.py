@@ -14,6 +14,10 @@ from .joints import N_JOINTS, TORSO, HandState
 from .kalman import JointKalman, KalmanSettings
 
 
+_TORSO_MASK = np.zeros(N_JOINTS, dtype=bool)
+_TORSO_MASK[list(TORSO)] = True
+
+
 class OffsetEstimator:
     """Estimates ``engine_time - client_time`` from (arrival, timetag) pairs.
 
@@ -91,9 +95,8 @@ class Person:
         that jumps with what happens to be occluded.
         """
         shared = (conf > 0) & self.known
-        torso = np.zeros(N_JOINTS, dtype=bool)
-        torso[list(TORSO)] = True
-        mask = shared & torso if (shared & torso).any() else shared
+        on_torso = shared & _TORSO_MASK
+        mask = on_torso if on_torso.any() else shared
         if not mask.any():
             return None
         dt = min(max(t - self.t, 0.0), 0.5)
