@@ -29,14 +29,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stage.calibration.geometry import transform_error  # noqa: E402
+from stage.geometry import transform_error  # noqa: E402
 from stage.calibration.methods import METHODS, calibrate  # noqa: E402
 from stage.calibration.methods.ga import run_ga  # noqa: E402
 from stage.calibration.methods.rigid import kabsch  # noqa: E402
 from stage.calibration.offline import calibrate_streams  # noqa: E402
 from stage.calibration.pairs import find_lag, pair_streams  # noqa: E402
-from stage.calibration.synth import (SimSensor, relative, simulate, two_sensor_rig,  # noqa: E402
-                                     walk_line, wander)
+from stage.calibration.synth import SimSensor, relative, simulate, two_sensor_rig, walk_line, wander
 
 GA_TARGET_S = 0.5
 CURVE_EPOCHS = (0, 1, 2, 5, 10, 25, 50, 100, 150, 200, 250)
@@ -149,12 +148,12 @@ def live_costs() -> dict:
     """The live calibrator's cost: its observer on the engine thread (per frame) and its
     polls (worker thread), for 3 sensors x 1 dancer with a bump, and 6 sensors x 6 people."""
     from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors
-    from stage.calibration.geometry import invert
+    from stage.geometry import invert
     from stage.calibration.healing import attach_live
     from stage.clock import ManualClock
     from stage.demo import dancer
-    from stage.engine import Engine
-    from stage.protocol import encode_client_joints
+    from stage.engine.engine import Engine
+    from stage.sensors.protocol import encode_client_joints
     from stage.rig import Rig, set_calibration
 
     def episode(n_sensors: int, n_people: int, seconds: float, bump: bool) -> dict:

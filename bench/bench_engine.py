@@ -62,10 +62,10 @@ from pythonosc.osc_message import OscMessage  # noqa: E402
 from pythonosc.parsing import ntp  # noqa: E402
 
 from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors  # noqa: E402
-from stage.fusion import apply_transform  # noqa: E402
+from stage.engine.fusion import apply_transform  # noqa: E402
 from stage.joints import HAND_STATE_NAMES, HandState  # noqa: E402
-from stage.protocol import (JointCoordinates, decode_datagram, encode_bundle,  # noqa: E402
-                            encode_client_joints, encode_message)
+from stage.sensors.protocol import (JointCoordinates, decode_datagram, encode_bundle,
+                                    encode_client_joints, encode_message)
 from stage.rig import Rig, set_calibration  # noqa: E402
 
 FPS = 30.0
@@ -610,8 +610,8 @@ def profiled_serve(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     thread_cpu: dict[str, float] = {}
     wrapped = []
-    for module, cls, method, name in (("stage.server", "Server", "_receive", "receiver"),
-                                      ("stage.engine", "Engine", "run", "engine"),
+    for module, cls, method, name in (("stage.sensors.receiver", "Server", "_receive", "receiver"),
+                                      ("stage.engine.engine", "Engine", "run", "engine"),
                                       ("stage.calibration.worker", "EngineWorker", "_run",
                                        "calibrator")):
         try:
@@ -632,7 +632,7 @@ def profiled_serve(argv: list[str]) -> int:
 
         setattr(owner, method, run)
         wrapped.append(name)
-    from stage.cli import main as stage_main
+    from stage.cli.main import main as stage_main
     try:
         return stage_main(["--quiet", "serve", "--port", str(args.port), "--rig", args.rig])
     finally:

@@ -19,8 +19,8 @@ import numpy as np
 
 from stage.body import observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
-from stage.engine import Engine
-from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.engine.engine import Engine
+from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 from stage.rig import Rig, set_calibration
 
 FPS = 30.0

@@ -24,9 +24,10 @@ import numpy as np
 
 from stage.body import observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
-from stage.engine import Engine, Inbound
-from stage.protocol import JointCoordinates
-from stage.rig import FusionSettings, Rig, set_calibration
+from stage.engine.engine import Engine, Inbound
+from stage.sensors.protocol import JointCoordinates
+from stage.settings import FusionSettings
+from stage.rig import Rig, set_calibration
 
 FPS = 30.0
 

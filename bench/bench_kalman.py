@@ -20,7 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from filterpy.common import Q_discrete_white_noise  # noqa: E402
 from filterpy.kalman import KalmanFilter  # noqa: E402
 
-from stage.kalman import JointKalman, KalmanSettings  # noqa: E402
+from stage.engine.kalman import JointKalman
+from stage.settings import KalmanSettings  # noqa: E402
 
 FPS = 30.0
 FRAME = 1.0 / FPS

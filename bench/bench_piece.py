@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from stage.body import pose  # noqa: E402
-from stage.engine import Body, FusedFrame  # noqa: E402
+from stage.frames import Body, FusedFrame  # noqa: E402
 from stage.joints import JOINT_INDEX, TORSO, HandState  # noqa: E402
 from stage.piece import PieceRuntime, load_piece  # noqa: E402
 

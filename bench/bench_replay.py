@@ -28,8 +28,8 @@ import statistics
 import tempfile
 import time
 
-from stage.replay import fused_json, offline_engine, replay_offline
-from stage.sim import Simulator
+from stage.sensors.replay import fused_json, offline_engine, replay_offline
+from stage.sensors.sim import Simulator
 
 CONFIGS = {"3x1": "default", "6x6": "crowd"}
 TARGET = 20.0

@@ -24,7 +24,7 @@ import json
 import statistics
 import time
 
-from stage.sim import Simulator
+from stage.sensors.sim import Simulator
 
 CONFIGS = {"3x1": "default", "3x2": "duet", "6x6": "crowd"}
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from .body import SensorPose, misread_hand, observe_with_errors, pose, ring_of_sensors
 from .joints import HandState
-from .protocol import encode_bundle, encode_client_joints, encode_message
+from .sensors.protocol import encode_bundle, encode_client_joints, encode_message
 from .rig import Rig, set_calibration
 
 FPS = 30.0

@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from .errors import ConfigError
-from .kalman import KalmanSettings
+from .settings import ClientSettings, FusionSettings, KalmanSettings
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
 DEFAULT_PORT = 7770
@@ -51,32 +51,6 @@ class SensorConfig:
     id: str
     type: str = "kinect2"
     calibration: Calibration | None = None
-
-
-@dataclass(frozen=True)
-class FusionSettings:
-    associate_m: float = 0.5     # an unbound view joins a person whose torso is this close
-    release_m: float = 0.8       # a bound view leaves its person beyond this distance...
-    release_frames: int = 3      # ...for this many frames in a row (hysteresis)
-    merge_m: float = 0.3         # two persons this close...
-    merge_s: float = 0.5         # ...for this long, never seen together by one sensor, are one
-    outlier_m: float = 0.10      # joint outlier margin beyond the median spread
-    stale_s: float = 0.15        # a view older than this is not averaged in
-    lost_grace_s: float = 0.5    # a person with no views is kept this long before /lostUser
-    min_interval_s: float = 0.025  # fuse a person at most this often (0: on every frame)
-    hand_vote: str = "plain"     # or "confidence": votes weighted by hand-joint confidence
-
-    def __post_init__(self) -> None:
-        if self.hand_vote not in ("plain", "confidence"):
-            raise ConfigError(f"'hand_vote' must be 'plain' or 'confidence', got '{self.hand_vote}'")
-        if self.release_m < self.associate_m:
-            raise ConfigError("'release_m' must be at least 'associate_m' (hysteresis)")
-
-
-@dataclass(frozen=True)
-class ClientSettings:
-    timeout_s: float = 1.0            # silence after which a client loses its users
-    max_messages_per_s: float = 3000  # per-source budget; beyond it datagrams count as flood
 
 
 @dataclass

@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 from pythonosc import osc_bundle, osc_message
 
-from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 
 LOCALHOST = "127.0.0.1"
 TIMEOUT_S = 5.0

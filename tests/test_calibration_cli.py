@@ -11,13 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from stage.calibration.geometry import transform_error
+from stage.geometry import transform_error
 from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
-from stage.cli import main
-from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.cli.main import main
+from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 from stage.rig import Rig, load_rig
 
-from stage import recording
+from stage.sensors import recording
 
 
 def _record(path, sensors, streams, timetags: bool = True) -> None:
@@ -130,7 +130,7 @@ def test_not_a_recording_is_a_clear_error(tmp_path, capsys):
 
 
 def test_the_simulators_recording_calibrates_to_its_true_poses(tmp_path, capsys):
-    sim_mod = pytest.importorskip("stage.sim", reason="the simulator (stage.sim) is not in "
+    sim_mod = pytest.importorskip("stage.sensors.sim", reason="the simulator (stage.sim) is not in "
                                   "this tree")
     sim = sim_mod.Simulator(sim_mod.load_scenario("default"), seed=3)
     path = tmp_path / "sim.stagerec"

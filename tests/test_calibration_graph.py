@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stage.calibration.geometry import invert, matrix, rot_x, rot_y, transform_error
+from stage.geometry import invert, matrix, rot_x, rot_y, transform_error
 from stage.calibration.graph import Edge, SensorGraph
 from stage.calibration.methods import CalibrationResult
 from stage.calibration.offline import calibrate_streams

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from stage.body import SensorPose, observe_with_errors, ring_of_sensors
-from stage.calibration.geometry import invert, transform_error
+from stage.geometry import invert, transform_error
 from stage.calibration.healing import attach_live
 from stage.clock import ManualClock
 from stage.demo import dancer
-from stage.engine import Engine
-from stage.protocol import encode_client_joints
+from stage.engine.engine import Engine
+from stage.sensors.protocol import encode_client_joints
 from stage.rig import Rig, load_rig, set_calibration
 
 FPS = 30.0
@@ -293,11 +293,11 @@ def test_request_recalibrates_on_demand_while_still_fused(tmp_path):
 def _sim_run(bump_deg: float | None):
     """The simulator's default rehearsal (3 Kinects, one dancer), fed offline with the
     calibrator attached; optionally kinect-b is turned by ``bump_deg`` at 10 s."""
-    sim_mod = pytest.importorskip("stage.sim", reason="the simulator (stage.sim) is not here")
+    sim_mod = pytest.importorskip("stage.sensors.sim", reason="the simulator (stage.sim) is not here")
     from importlib import resources
 
     from stage.yamlio import loads_marked
-    text = (resources.files("stage.sim") / "scenarios" / "default.yaml").read_text()
+    text = (resources.files("stage.sensors.sim") / "scenarios" / "default.yaml").read_text()
     if bump_deg is not None:
         text += f"\nevents:\n  - {{bump: kinect-b, at: 10, yaw: {bump_deg}}}\n"
     sim = sim_mod.Simulator(sim_mod.parse_scenario(loads_marked(text), "bump.yaml"), seed=2)

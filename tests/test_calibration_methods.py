@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from stage.calibration.fitness import Moments, evaluate_points, fitness_from_mse, per_frame_fitness
-from stage.calibration.geometry import (apply, euler_matrices, invert, level_matrix, matrix, rot_x,
-                                        rot_y, rot_z, transform_error)
+from stage.geometry import (apply, euler_matrices, invert, level_matrix, matrix, rot_x, rot_y,
+                            rot_z, transform_error)
 from stage.calibration.methods import METHODS, CalibrationError, calibrate
 from stage.calibration.methods.ga import GAConfig, run_ga
 from stage.calibration.methods.rigid import kabsch

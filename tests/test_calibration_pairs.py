@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from stage.calibration.methods import calibrate
-from stage.calibration.geometry import transform_error
+from stage.geometry import transform_error
 from stage.calibration.pairs import CalibrationError, find_lag, pair_streams
 from stage.calibration.streams import Stream, find_identical_streams, streams_from_datagrams
 from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
-from stage.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 
 
 def _streams(offset: float = 0.0, phase: float = 0.0, seed: int = 3, duration: float = 20.0):

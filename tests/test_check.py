@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from stage.cli import main
+from stage.cli.main import main
 
 REPO = Path(__file__).resolve().parents[1]
 

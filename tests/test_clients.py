@@ -10,16 +10,16 @@ import pytest
 from helpers import query_stats
 
 from stage.body import pose
-from stage.clients.azure import AZURE_INDEX, K4ABT_JOINTS, azure_body
-from stage.clients.kinect2 import RelativeClock, floor_plane, kinect2_body
-from stage.clients.osc import BodyFrame, ClientEncoder, UdpSender, UserSlots
-from stage.clients.webcam import L, Camera, confidence, hip_distance, landmarks_to_body
+from stage.sensors.clients.azure import AZURE_INDEX, K4ABT_JOINTS, azure_body
+from stage.sensors.clients.kinect2 import RelativeClock, floor_plane, kinect2_body
+from stage.sensors.clients.osc import BodyFrame, ClientEncoder, UdpSender, UserSlots
+from stage.sensors.clients.webcam import L, Camera, confidence, hip_distance, landmarks_to_body
 from stage.joints import JOINT_INDEX as J
 from stage.joints import HandState
-from stage.protocol import (FloorPlane, JointCoordinates, LostUser, NewUser,
-                            RegisterDevice, decode_datagram)
+from stage.sensors.protocol import (FloorPlane, JointCoordinates, LostUser, NewUser,
+                                    RegisterDevice, decode_datagram)
 from stage.rig import Rig
-from stage.server import Server
+from stage.sensors.receiver import Server
 
 
 def body(key, x=0.0, z=3.0) -> BodyFrame:

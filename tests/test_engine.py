@@ -10,10 +10,11 @@ from pythonosc.osc_message import OscMessage
 
 from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
-from stage.engine import Engine
+from stage.engine.engine import Engine
 from stage.joints import JOINTS, HandState
-from stage.protocol import encode_bundle, encode_client_joints, encode_message
-from stage.rig import ClientSettings, FusionSettings, Rig, set_calibration
+from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.settings import ClientSettings, FusionSettings
+from stage.rig import Rig, set_calibration
 
 FPS = 30.0
 
@@ -257,8 +258,8 @@ def test_clock_offset_is_estimated_and_frames_fused_in_capture_order():
         body_a = pose((0.01 * k, 2.5), 0.0)
         body_b = pose((0.01 * (k + 1), 2.5), 0.0)
         clock.set(max(arr_a, arr_b))
-        from stage.engine import Inbound
-        from stage.protocol import decode_datagram
+        from stage.engine.engine import Inbound
+        from stage.sensors.protocol import decode_datagram
         items = []
         for body, cap in ((body_b, cap_b), (body_a, cap_a)):
             for msg, tt in decode_datagram(frame("kin", 0, body, timetag=cap + offset)).messages:

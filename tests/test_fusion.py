@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stage.fusion import apply_transform, fuse_joints, torso_centre, vote_hand
+from stage.engine.fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from stage.joints import HandState
 
 O, C, L = HandState.OPEN, HandState.CLOSED, HandState.LASSO

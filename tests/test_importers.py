@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from stage.cli import main
+from stage.cli.main import main
 from stage.errors import ConfigError
-from stage.importers.bvh import (BvhMotion, forward_kinematics, kinect_joints, load_bvh,
-                                 parse_bvh, resolve_mapping)
-from stage.importers.ntu import import_ntu, read_skeleton_file, write_skeleton_file
-from stage.importers.nucla import V1_TO_V2, import_nucla, read_nucla_json
+from stage.sensors.importers.bvh import (BvhMotion, forward_kinematics, kinect_joints, load_bvh,
+                                         parse_bvh, resolve_mapping)
+from stage.sensors.importers.ntu import import_ntu, read_skeleton_file, write_skeleton_file
+from stage.sensors.importers.nucla import V1_TO_V2, import_nucla, read_nucla_json
 from stage.joints import JOINT_INDEX as J
 from stage.joints import JOINTS
-from stage.protocol import (HandStateMsg, JointCoordinates, LostUser, NewUser, RegisterDevice,
-                            decode_datagram)
-from stage.recording import read_recording
+from stage.sensors.protocol import (HandStateMsg, JointCoordinates, LostUser, NewUser,
+                                    RegisterDevice, decode_datagram)
+from stage.sensors.recording import read_recording
 
 DATA = Path(__file__).parent / "data"
 NTU = sorted(DATA.glob("S001C00*P001R001A001.skeleton"))

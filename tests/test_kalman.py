@@ -10,7 +10,8 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 
 from stage.errors import ConfigError
-from stage.kalman import JointKalman, KalmanSettings, initial_state, predict, update
+from stage.engine.kalman import JointKalman, initial_state, predict, update
+from stage.settings import KalmanSettings
 
 SETTINGS = KalmanSettings()
 H = np.zeros((3, 6))

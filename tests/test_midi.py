@@ -25,8 +25,7 @@ from plugins.midi.schedule import MidiScheduler
 from plugins.midi.smf import TICKS_PER_S, SmfWriter, varlen
 from stage.clock import ManualClock
 from stage.errors import ConfigError, TransportError
-from stage.events import (AllNotesOff, ControlChange, MappingValue, Note, OutputDecl,
-                          ProgramChange)
+from stage.events import AllNotesOff, ControlChange, MappingValue, Note, OutputDecl, ProgramChange
 from stage.views import ViewHost
 
 

@@ -20,8 +20,8 @@ import pytest
 
 from plugins.monitor.state import event_text, frame_json, normalise_zone, status_json
 from stage.clock import ManualClock
-from stage.events import (AllNotesOff, MappingValue, Note, OscOut, SectionChange,
-                          TriggerFired, ZoneState)
+from stage.events import (AllNotesOff, MappingValue, Note, OscOut, SectionChange, TriggerFired,
+                          ZoneState)
 from stage.views import SensorStatus, Status, ViewHost
 from test_views import make_body, make_frame
 

@@ -27,7 +27,7 @@ import pytest
 
 from stage.body import pose
 from stage.clock import ManualClock
-from stage.engine import Body, FusedFrame
+from stage.frames import Body, FusedFrame
 from stage.events import SectionChange, ZoneState
 from stage.joints import HandState
 from stage.views import SensorStatus, Status, ViewHost

@@ -25,7 +25,7 @@ from stage.events import (MappingValue, Note, OscOut, OutputDecl, SectionChange,
                           ZoneState)
 from stage.joints import HandState
 from stage.rig import Rig
-from stage.server import Server
+from stage.sensors.receiver import Server
 from stage.views import Status, ViewHost
 from test_views import make_body, make_frame
 
@@ -87,7 +87,7 @@ def test_frame_encoder_speaks_the_server_to_view_api():
 
 
 def FusedFrame_lost(t: float, pid: int):
-    from stage.engine import FusedFrame
+    from stage.frames import FusedFrame
     return FusedFrame(t, {}, (), (), (pid,))
 
 

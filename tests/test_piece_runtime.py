@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from stage.clock import ManualClock
-from stage.engine import Engine
+from stage.engine.engine import Engine
 from stage.events import (AllNotesOff, ControlChange, MappingValue, Note, OscOut, ProgramChange,
                           SectionChange, TriggerFired, ZoneState)
 from stage.joints import JOINT_INDEX
 from stage.piece import PieceRuntime, RecordingSink, loads_piece
 from stage.piece.script import ScriptedStage, standing
-from stage.protocol import encode_client_joints, encode_message
+from stage.sensors.protocol import encode_client_joints, encode_message
 
 HEAD = """
 piece: test

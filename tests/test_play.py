@@ -21,7 +21,7 @@ import pytest
 
 from stage.events import Note, SectionChange, TriggerFired, to_json
 from stage.piece import load_piece
-from stage.piece.play import PlayOptions, Player
+from stage.app.play import PlayOptions, Player
 
 REPO = Path(__file__).resolve().parents[1]
 LIMINAL = str(REPO / "pieces" / "liminal.yaml")
@@ -29,7 +29,7 @@ CLI = [sys.executable, "-m", "stage.cli"]
 
 import mido  # noqa: E402  (a dependency of stage: reads the MIDI files back)
 
-from stage import sim  # noqa: E402
+from stage.sensors import sim  # noqa: E402
 
 
 def midi_notes(path: Path) -> tuple[int, int, float]:

@@ -21,7 +21,7 @@ import pytest
 
 from stage.body import pose
 from stage.clock import ManualClock
-from stage.engine import FusedFrame
+from stage.frames import FusedFrame
 from stage.views import GROUP, View, ViewHost, discover_views
 from test_views import make_body
 

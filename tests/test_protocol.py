@@ -12,10 +12,10 @@ from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 
 from stage.joints import JOINTS, HandState
-from stage.protocol import (DROP_REASONS, HandStateMsg, JointCoordinates, LostUser, NewUser,
-                            RegisterDevice, RegisterView, StatsQuery, decode_datagram,
-                            encode_bundle, encode_client_joints, encode_message,
-                            encode_view_hand_state, encode_view_joints)
+from stage.sensors.protocol import (DROP_REASONS, HandStateMsg, JointCoordinates, LostUser,
+                                    NewUser, RegisterDevice, RegisterView, StatsQuery,
+                                    decode_datagram, encode_bundle, encode_client_joints,
+                                    encode_message, encode_view_hand_state, encode_view_joints)
 
 
 def build(address: str, *args) -> bytes:
@@ -204,7 +204,7 @@ def test_message_encoder_types_match_python_osc():
 
 
 def test_floor_plane_extension_is_normalised_and_validated():
-    from stage.protocol import FloorPlane
+    from stage.sensors.protocol import FloorPlane
     msg, _ = only_message(build("/floorPlane", "k", 0.0, 2.0, 0.0, 1.6))
     assert isinstance(msg, FloorPlane)
     np.testing.assert_allclose(msg.plane, [0, 1, 0, 0.8])
@@ -214,7 +214,8 @@ def test_floor_plane_extension_is_normalised_and_validated():
 
 def test_fast_path_agrees_with_the_general_decoder():
     """The hot-path decoder accepts exactly what the general one accepts, with equal values."""
-    from stage.protocol import Decoded, _decode_message, _fast_joint_coordinates, _parse_message
+    from stage.sensors.protocol import (Decoded, _decode_message, _fast_joint_coordinates,
+                                        _parse_message)
     rng = np.random.default_rng(11)
     fast_hits = 0
     for k in range(600):
@@ -251,7 +252,7 @@ def test_fast_path_agrees_with_the_general_decoder():
 
 
 def test_hand_state_fast_path_agrees_with_the_general_decoder():
-    from stage.protocol import Decoded, _decode_message, _fast_hand_state, _parse_message
+    from stage.sensors.protocol import Decoded, _decode_message, _fast_hand_state, _parse_message
     hits = 0
     for client in ("k", "kinect-12345", "x" * 70):
         for user in (-1, 0, 5, 6):

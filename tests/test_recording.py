@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from stage.recording import (MAGIC, Record, RecordingError, RecordingWriter, read_recording)
+from stage.sensors.recording import MAGIC, Record, RecordingError, RecordingWriter, read_recording
 
 
 def _records(n: int, seed: int = 3) -> list[Record]:

@@ -19,12 +19,12 @@ from helpers import (LOCALHOST, TIMEOUT_S, Peer, Sensor, free_udp_port, joint_gr
                      query_stats, register_view, sync)
 from stage.body import pose
 from stage.clock import ManualClock
-from stage.engine import FusedFrame
+from stage.frames import FusedFrame
 from stage.joints import JOINT_INDEX
-from stage.protocol import (HandStateMsg, JointCoordinates, LostUser, NewUser, RegisterDevice,
-                            decode_datagram)
+from stage.sensors.protocol import (HandStateMsg, JointCoordinates, LostUser, NewUser,
+                                    RegisterDevice, decode_datagram)
 from stage.rig import Rig
-from stage.server import Server
+from stage.sensors.receiver import Server
 from stage.views import Status, ViewHost
 from test_views import make_body, make_frame
 

@@ -14,12 +14,13 @@ import pytest
 from helpers import free_udp_port, query_stats
 
 from stage.clock import ManualClock, MonotonicClock
-from stage.engine import Engine
-from stage.protocol import JointCoordinates, decode_datagram, encode_bundle, encode_message
-from stage.recording import RecordingWriter, read_recording
-from stage.replay import ReplaySource, _retimed, fused_json, offline_engine, replay_offline, rig_from_meta
-from stage.server import Server
-from stage.sim import Simulator
+from stage.engine.engine import Engine
+from stage.sensors.protocol import JointCoordinates, decode_datagram, encode_bundle, encode_message
+from stage.sensors.recording import RecordingWriter, read_recording
+from stage.sensors.replay import (ReplaySource, _retimed, fused_json, offline_engine,
+                                  replay_offline, rig_from_meta)
+from stage.sensors.receiver import Server
+from stage.sensors.sim import Simulator
 
 
 def fused_log(engine: Engine) -> list[str]:

@@ -14,9 +14,10 @@ import pytest
 from helpers import LOCALHOST, Msg, Peer, Sensor, joint_groups, query_stats, register_view, sync
 from stage.body import pose
 from stage.joints import JOINTS, TORSO
-from stage.protocol import encode_client_joints, encode_message
-from stage.rig import ClientSettings, FusionSettings, Rig, set_calibration
-from stage.server import Server
+from stage.sensors.protocol import encode_client_joints, encode_message
+from stage.settings import ClientSettings, FusionSettings
+from stage.rig import Rig, set_calibration
+from stage.sensors.receiver import Server
 
 pytestmark = pytest.mark.integration
 

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from stage.clock import ManualClock
-from stage.engine import Engine
+from stage.engine.engine import Engine
 from stage.joints import JOINT_INDEX as J
 from stage.joints import HandState
-from stage.protocol import JointCoordinates, decode_datagram
-from stage.sim import Simulator, parse_scenario
-from stage.sim.kinect import KinectModel
+from stage.sensors.protocol import JointCoordinates, decode_datagram
+from stage.sensors.sim import Simulator, parse_scenario
+from stage.sensors.sim.kinect import KinectModel
 from stage.yamlio import loads_marked
 
 EXACT = {"noise_m": 0, "noise_per_m": 0, "fit_bias_m": 0, "occlusion_bias_m": 0, "drop_p": 0,

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from helpers import Peer
 
-from stage.cli import main
-from stage.recording import read_recording
+from stage.cli.main import main
+from stage.sensors.recording import read_recording
 from stage.rig import load_rig
-from stage.sim import Simulator, load_truth
+from stage.sensors.sim import Simulator, load_truth
 
 
 def test_sim_writes_recording_truth_and_rig(tmp_path, capsys):

@@ -12,7 +12,7 @@ import pytest
 from stage.errors import ConfigError
 from stage.joints import JOINT_INDEX as J
 from stage.joints import HandState
-from stage.sim import Simulator, builtin_names, load_scenario, parse_scenario
+from stage.sensors.sim import Simulator, builtin_names, load_scenario, parse_scenario
 from stage.yamlio import loads_marked
 
 CMU = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu" / "131_01.bvh"
@@ -324,7 +324,7 @@ def test_cmu_walk_drives_a_performer_seen_by_the_sensors(tmp_path):
 
 
 def test_default_scenario_with_any_number_of_sensors():
-    from stage.sim import default_scenario
+    from stage.sensors.sim import default_scenario
     for n in (1, 6):
         sc = default_scenario(n)
         assert [s.id for s in sc.sensors][-1] == f"kinect-{chr(ord('a') + n - 1)}"

@@ -16,10 +16,11 @@ import pytest
 
 from stage.body import pose
 from stage.clock import ManualClock
-from stage.engine import Body, Engine, FusedFrame
+from stage.frames import Body, FusedFrame
+from stage.engine.engine import Engine
 from stage.events import MappingValue, Note, SectionChange
 from stage.joints import HandState
-from stage.protocol import encode_client_joints, encode_message
+from stage.sensors.protocol import encode_client_joints, encode_message
 from stage.rig import Rig, set_calibration
 from stage.views import Scene, Status, View, ViewHost, sensor_health
 from stage.views.base import overrides

@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections import deque
 from typing import Any, Sequence
 
-from stage.engine import FusedFrame
+from stage.frames import FusedFrame
 from stage.events import (ControlChange, Event, MappingValue, OscOut, SectionChange, ZoneState,
                           to_json)
 from stage.views import Scene, Status, View, ViewContext

@@ -20,7 +20,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from stage.engine import Body, FusedFrame
+from stage.frames import Body, FusedFrame
 from stage.events import (AllNotesOff, ControlChange, Event, MappingValue, Note, OscOut,
                           ProgramChange, SectionChange, TriggerFired, ZoneState)
 from stage.joints import JOINTS

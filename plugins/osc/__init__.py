@@ -27,7 +27,7 @@ import socket
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from stage.engine import FusedFrame
+from stage.frames import FusedFrame
 from stage.errors import ConfigError
 from stage.events import Event, OscOut, OutputDecl
 from stage.rig import parse_hostport

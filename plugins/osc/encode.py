@@ -23,11 +23,11 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from stage.engine import Body, FusedFrame
+from stage.frames import Body, FusedFrame
 from stage.events import (Event, MappingValue, OscOut, SectionChange, TriggerFired, ZoneState,
                           to_json)
-from stage.protocol import (encode_bundle, encode_message, encode_view_hand_state,
-                            encode_view_joints, encode_view_lost_user, encode_view_new_user)
+from stage.sensors.protocol import (encode_bundle, encode_message, encode_view_hand_state,
+                                    encode_view_joints, encode_view_lost_user, encode_view_new_user)
 
 
 def piece_event_message(event: Event) -> bytes | None:

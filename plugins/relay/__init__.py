@@ -23,9 +23,9 @@ from __future__ import annotations
 import socket
 from typing import Any
 
-from stage.engine import FusedFrame
+from stage.frames import FusedFrame
 from stage.errors import ConfigError
-from stage.protocol import MAX_USER_ID, encode_bundle, encode_client_joints, encode_message
+from stage.sensors.protocol import MAX_USER_ID, encode_bundle, encode_client_joints, encode_message
 from stage.rig import parse_hostport
 from stage.views import Status, View, ViewContext
 

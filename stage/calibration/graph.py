@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import apply, invert, matrix, nearest_rotation
+from ..geometry import apply, invert, matrix, nearest_rotation
 from .methods import CalibrationResult
 from .pairs import PairSet
 

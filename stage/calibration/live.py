@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..engine import SensorFrame
+from ..frames import SensorFrame
 from ..joints import N_JOINTS, TORSO
 from .pairs import resample
 
@@ -151,7 +151,7 @@ def new_pairs(sensor: str, views: dict[str, list[View]], trusted: list[str], sta
     consensus in stage space, the source the sensor's raw joints. Returns
     (pairs or None, why we wait or None).
     """
-    from .geometry import transform_plane
+    from ..geometry import transform_plane
     from .pairs import PairSet
     seen = [v for v in views.get(sensor, []) if v.t[-1] > now - 1.0]
     if len(seen) != 1:

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import StageError
 from ..joints import JOINT_INDEX
 from .fitness import per_frame_fitness
-from .geometry import apply
+from ..geometry import apply
 from .methods import METHODS, calibrate
 from .offline import RigCalibration
 from .pairs import CalibrationError, pair_streams

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rig import Rig, SensorConfig, set_calibration
-from .geometry import invert
+from ..geometry import invert
 
 
 def store_stage_transform(rig: Rig, sensor: str, to_stage: np.ndarray, reference: str | None,

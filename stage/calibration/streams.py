@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import StageError
 from ..joints import N_JOINTS
-from ..protocol import FloorPlane, JointCoordinates, decode_datagram
+from ..sensors.protocol import FloorPlane, JointCoordinates, decode_datagram
 
 log = logging.getLogger("stage.calibration")
 
@@ -159,7 +159,7 @@ def streams_from_datagrams(records: Iterable[tuple[float, bytes, float | None]],
 def load_recording(path: str) -> tuple[dict[str, Stream], dict[str, int]]:
     """A recording file (``stage.recording`` format) -> streams and drop counts."""
     try:
-        from ..recording import read_recording  # type: ignore[attr-defined]
+        from ..sensors.recording import read_recording  # type: ignore[attr-defined]
     except ImportError:
         raise StageError("cannot read recordings: the stage.recording module is not "
                          "available in this installation") from None

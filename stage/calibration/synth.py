@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 
 from ..body import observe_with_errors, pose
-from .geometry import invert, matrix, rot_z
+from ..geometry import invert, matrix, rot_z
 from .streams import Stream
 
 Performer = Callable[[float], np.ndarray]

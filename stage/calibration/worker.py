@@ -18,7 +18,7 @@ import time
 from collections import deque
 from typing import Callable
 
-from ..engine import Engine
+from ..engine.engine import Engine
 from ..errors import StageError
 
 log = logging.getLogger("stage.calibration")

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..engine import FusedFrame
+from ..frames import FusedFrame
 from ..events import AllNotesOff, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
 from .mappings import MappingRun

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from ..body import pose
-from ..engine import Body, FusedFrame
+from ..frames import Body, FusedFrame
 from ..joints import JOINT_INDEX, TORSO, HandState
 
 OPEN = (HandState.OPEN, HandState.OPEN)

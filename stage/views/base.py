@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Sequence
 
 from ..clock import Clock, MonotonicClock
-from ..engine import FusedFrame
+from ..frames import FusedFrame
 from ..events import Event
 
 #: The entry-point group views register in. The suffix is the API version:

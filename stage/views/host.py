@@ -20,7 +20,8 @@ import time
 from typing import Any, Iterable, Sequence
 
 from ..clock import Clock, MonotonicClock
-from ..engine import Engine, FusedFrame
+from ..engine.engine import Engine
+from ..frames import FusedFrame
 from ..errors import ConfigError
 from ..events import Event, OutputDecl
 from .base import Scene, Status, View, ViewContext

@@ -17,7 +17,7 @@ from collections import deque
 from typing import Any, Sequence
 
 from ..clock import Clock
-from ..engine import FusedFrame
+from ..frames import FusedFrame
 from ..events import Event
 from .base import Scene, Status, View, ViewContext, overrides
 

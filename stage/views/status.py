@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..engine import Engine
+from ..engine.engine import Engine
 from .base import SensorStatus, Status
 
 #: Calibration states that mean "fine". The live calibrator (stage.calibration)

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from stage.importers.ntu import NtuBody, write_skeleton_file
-from stage.importers.nucla import V1_TO_V2, write_nucla_json
-from stage.protocol import HandStateMsg, JointCoordinates, decode_datagram
-from stage.sim import Simulator
+from stage.sensors.importers.ntu import NtuBody, write_skeleton_file
+from stage.sensors.importers.nucla import V1_TO_V2, write_nucla_json
+from stage.sensors.protocol import HandStateMsg, JointCoordinates, decode_datagram
+from stage.sensors.sim import Simulator
 
 HERE = Path(__file__).parent
 STATE = {0.0: 0, 0.5: 1, 1.0: 2}

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..fitness import Moments
-from ..geometry import apply, invert, level_matrix, matrix
+from ...geometry import apply, invert, level_matrix, matrix
 from ..pairs import CalibrationError, PairSet
 from .rigid import kabsch
 

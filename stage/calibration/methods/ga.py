@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..fitness import Moments, fitness_from_mse
-from ..geometry import apply, euler_matrices, invert, level_matrix, matrix, yaw_matrices
+from ...geometry import apply, euler_matrices, invert, level_matrix, matrix, yaw_matrices
 from ..pairs import CalibrationError, PairSet
 
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import matrix
+from ...geometry import matrix
 from ..pairs import CalibrationError, PairSet
 
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..fitness import Moments
-from ..geometry import matrix
+from ...geometry import matrix
 from ..pairs import CalibrationError, PairSet
 
 

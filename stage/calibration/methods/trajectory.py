@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import matrix, rot_x, rot_y
+from ...geometry import matrix, rot_x, rot_y
 from ..pairs import SPINE_BASE, CalibrationError, PairSet
 
 

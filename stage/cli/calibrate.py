@@ -1,0 +1,270 @@
+"""``stage calibrate``: a recording (or live sensors) -> the rig's calibration section.
+
+    stage calibrate rehearsal.stagerec --rig rig.yaml            # write the rig
+    stage calibrate rehearsal.stagerec --method ga --json        # per-sensor JSON
+    stage calibrate rehearsal.stagerec --plot calib.png          # the paper's Figure 5
+    stage calibrate --live --rig rig.yaml                        # calibrate now, live
+
+``--live`` runs its own engine on the rig's port (stop ``stage serve``
+first, or give ``--port``): every sensor but the reference is re-calibrated
+from fresh pairs while exactly one person walks where the sensors overlap,
+and each accepted calibration is written to the rig at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import sys
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ..errors import ConfigError, StageError, TransportError
+from ..rig import Rig, SensorConfig, load_rig
+from ..geometry import invert
+from ..calibration.methods import DEFAULT_PAIRS, METHODS
+from ..calibration.offline import RigCalibration, calibrate_streams
+from ..calibration.pairs import CalibrationError
+from ..calibration.rigio import store_reference_transform
+
+log = logging.getLogger("stage.calibration")
+
+
+def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
+    from .main import _positive
+    p = sub.add_parser(
+        "calibrate", help="calibrate the sensors from a recording (or live) into the rig",
+        description="Find each sensor's transform into the reference sensor's space from "
+                    "moments when one person was seen by several sensors.")
+    p.add_argument("recording", nargs="?", help="a stage recording (stage record / the simulator)")
+    p.add_argument("--method", choices=list(METHODS), default="rigid",
+                   help="rigid (default, least squares), regression and ga (the paper's), ga3d, "
+                        "trajectory (seed 002), floor (seed 004, needs /floorPlane)")
+    p.add_argument("--reference", metavar="ID",
+                   help="the sensor whose space is stage space (default: the rig's, else the "
+                        "first by name)")
+    p.add_argument("--rig", metavar="RIG.yaml",
+                   help="write the calibration into this rig file (created if missing)")
+    p.add_argument("--json", action="store_true", help="print the results as JSON")
+    p.add_argument("--plot", metavar="PNG", help="draw the points and fitness over time (PNG)")
+    p.add_argument("--pairs", type=int, metavar="N",
+                   help="paired frames per sensor pair, spread over the recording (default 300, "
+                        "trajectory 500; 0 = all)")
+    p.add_argument("--lag", default="auto", metavar="S|auto",
+                   help="clock offset between sensors: auto (search, default) or seconds")
+    p.add_argument("--max-lag", type=_positive, default=1.0, metavar="S",
+                   help="search the lag within +-S seconds (default 1)")
+    p.add_argument("--robust", choices=("irls", "ransac", "none"), default="irls",
+                   help="rigid: outlier handling (default irls)")
+    p.add_argument("--min-fitness", type=float, default=0.5, metavar="F",
+                   help="ignore an overlap whose fit is below F (default 0.5: joints 10 cm apart "
+                        "on average; they were watching different people)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep the composed chains (no joint refinement over all overlaps)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the GA and RANSAC (default 0)")
+    p.add_argument("--live", action="store_true",
+                   help="calibrate live sensors now (runs its own engine on the rig's port)")
+    p.add_argument("--sensor", action="append", default=[], metavar="ID",
+                   help="--live: only these sensors (repeatable; default all but the reference)")
+    p.add_argument("--host", help="--live: address to listen on (default: the rig's)")
+    p.add_argument("--port", type=int, help="--live: UDP port (default: the rig's, else 7770)")
+    p.add_argument("--timeout", type=_positive, default=120.0, metavar="S",
+                   help="--live: give up after S seconds (default 120)")
+    return {"calibrate": cmd_calibrate}
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .main import Exit
+    if args.live:
+        if args.recording:
+            raise ConfigError("give a recording or --live, not both")
+        return _live(args)
+    if not args.recording:
+        raise ConfigError("give a RECORDING to calibrate from (or --live)")
+    if not os.path.isfile(args.recording):
+        raise ConfigError(f"{args.recording}: no such file" if not os.path.exists(args.recording)
+                          else f"{args.recording}: not a file")
+    if args.pairs is not None and args.pairs < 0:
+        raise ConfigError("--pairs must be 0 (all) or more")
+    if not 0 <= args.min_fitness < 1:
+        raise ConfigError("--min-fitness must be from 0 to below 1")
+    lag: str | float = args.lag
+    if lag != "auto":
+        try:
+            lag = float(lag)
+        except ValueError:
+            raise ConfigError(f"--lag must be 'auto' or seconds, not '{args.lag}'") from None
+    rig = _load_rig(args.rig)
+    from ..calibration.streams import load_recording
+    streams, drops = load_recording(args.recording)
+    if not streams:
+        raise StageError(f"{args.recording}: no skeletons in this recording")
+    reference = args.reference or (rig.reference if rig and rig.reference in streams else None)
+    if args.reference and args.reference not in streams:
+        raise ConfigError(f"--reference {args.reference}: that sensor sent no skeletons; "
+                          f"sensors in the recording: {', '.join(sorted(streams))}")
+    options: dict[str, Any] = {}
+    if args.method in ("ga", "ga3d"):
+        options["seed"] = args.seed
+    if args.method == "rigid":
+        options.update(robust=args.robust, seed=args.seed)
+    try:
+        result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
+                                   args.max_lag, min_fitness=args.min_fitness,
+                                   refine=not args.no_refine, options=options,
+                                   progress=lambda text: log.info("%s", text))
+    except CalibrationError as exc:
+        raise StageError(str(exc)) from None
+    for warning in result.warnings:
+        log.warning("%s", warning)
+    if args.rig:
+        _write_rig(rig or Rig(), args.rig, result)
+    if args.plot:
+        from ..calibration.plot import plot_calibration
+        plot_calibration(args.plot, result, streams, seed=args.seed)
+        log.info("wrote %s", args.plot)
+    if args.json:
+        print(dumps(_as_json(result, args.method, drops)))
+    else:
+        _print_table(result)
+    missing = [s for s, c in result.sensors.items() if c.matrix is None]
+    if missing:
+        print(f"stage: not calibrated: {', '.join(missing)}", file=sys.stderr)
+        return Exit.FAILURE
+    return Exit.OK
+
+
+def dumps(obj: Any) -> str:
+    """Indented JSON with each innermost list of numbers on one line (matrix rows)."""
+    text = json.dumps(obj, indent=2)
+    return re.sub(r"\[\s+([-+\d.eE,\s]+?)\s+\]",
+                  lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", text)
+
+
+def _load_rig(path: str | None) -> Rig | None:
+    if path is None:
+        return None
+    if not os.path.exists(path):
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise ConfigError(f"{path}: folder {folder} does not exist")
+        return None
+    return load_rig(path)
+
+
+def _write_rig(rig: Rig, path: str, result: RigCalibration) -> None:
+    ref = result.reference
+    if rig.reference not in (None, ref):
+        log.warning("the rig's reference was %s; it is now %s (its stage frame no longer "
+                    "applies and is reset)", rig.reference, ref)
+        rig.stage_frame = np.eye(4)
+    rig.reference = ref
+    rig.sensors.setdefault(ref, SensorConfig(ref))
+    for sid, c in result.sensors.items():
+        if c.matrix is not None and sid != ref:
+            store_reference_transform(rig, sid, c.matrix, ref, c.method or "?", c.fitness,
+                                      c.rms_m)
+    rig.save(path)
+    log.info("wrote the calibration of %d sensor(s) to %s",
+             sum(1 for s, c in result.sensors.items() if c.matrix is not None and s != ref), path)
+
+
+def _as_json(result: RigCalibration, method: str, drops: dict[str, int]) -> dict[str, Any]:
+    return {"reference": result.reference, "method": method,
+            "sensors": {sid: c.as_json() for sid, c in result.sensors.items()},
+            "refinement": None if result.refinement is None else
+            {"before_rms_m": round(float(np.sqrt(result.refinement["before"])), 5),
+             "after_rms_m": round(float(np.sqrt(result.refinement["after"])), 5),
+             "iterations": result.refinement["iterations"]},
+            "overlaps": [{"a": e.a, "b": e.b, "pairs": len(e.pairs),
+                          "rms_m": round(e.result.rms_m, 5), "lag_s": round(e.pairs.lag_s, 4)}
+                         for e in result.graph.edges],
+            "warnings": result.warnings, "drops": drops}
+
+
+def _print_table(result: RigCalibration) -> None:
+    print(f"reference: {result.reference}")
+    print(f"{'sensor':<16} {'method':<11} {'rms mm':>7} {'fitness':>7} {'pairs':>6} "
+          f"{'lag s':>7}  path")
+    for sid, c in result.sensors.items():
+        if c.matrix is None:
+            print(f"{sid:<16} {'-':<11} {'':>7} {'':>7} {'':>6} {'':>7}  {c.error}")
+            continue
+        print(f"{sid:<16} {c.method:<11} {c.rms_m * 1000:7.1f} {c.fitness:7.3f} {c.pairs:6d} "
+              f"{c.lag_s:+7.3f}  {' -> '.join(c.path[::-1])}")
+    if result.refinement:
+        r = result.refinement
+        print(f"joint refinement: rms disagreement {np.sqrt(r['before']) * 1000:.1f} -> "
+              f"{np.sqrt(r['after']) * 1000:.1f} mm")
+
+
+def _live(args: argparse.Namespace) -> int:
+    from .main import Exit, StopSignals
+    from ..sensors.receiver import Server
+    from ..calibration.healing import attach_live
+    from ..calibration.live import LiveSettings
+    rig = _load_rig(args.rig) or Rig(path=args.rig)
+    pairs = args.pairs or DEFAULT_PAIRS.get(args.method, 300)
+    try:
+        server = Server(rig, host=args.host, port=args.port)
+    except TransportError as exc:
+        raise StageError(f"{exc} (is `stage serve` running? stop it, or use --port)") from None
+    settings = LiveSettings(method=args.method, pairs=pairs)
+    calibrator = attach_live(server.engine, rig, args.rig, settings)
+    calibrator.request(args.sensor or None, pairs)
+    print(f"stage calibrate: listening on udp {server.address[0]}:{server.address[1]}; walk "
+          f"where the sensors overlap, one person at a time. Ctrl-C stops.", file=sys.stderr,
+          flush=True)
+    done: dict[str, Any] = {}
+    with StopSignals() as stop:
+        server.start()
+        deadline = time.monotonic() + args.timeout
+        try:
+            while not stop.event.is_set() and time.monotonic() < deadline:
+                stop.wait(1.0)
+                for event in list(calibrator.events):
+                    if event.kind == "calibrated" and event.sensor not in done:
+                        done[event.sensor] = event
+                states = calibrator.states()
+                reference = server.engine.reference
+                wanted = args.sensor or [s for s in states if s != reference]
+                line = "; ".join(f"{s}: {states[s].get('state')} "
+                                 f"{states[s].get('progress', '')}".strip()
+                                 for s in wanted if s in states)
+                if line:
+                    print(f"  {line}", file=sys.stderr, flush=True)
+                if wanted and all(s in done for s in wanted):
+                    break
+        finally:
+            calibrator.stop()
+            server.stop()
+    reference = server.engine.reference
+    frame = rig.stage_frame
+    out = {}
+    for sid, event in done.items():
+        m = invert(frame) @ event.matrix
+        st = calibrator.states().get(sid, {})
+        out[sid] = {"matrix": [[round(float(v), 6) for v in row] for row in m],
+                    "rms_m": None, "fitness": None if event.fitness is None else
+                    round(event.fitness, 4), "pairs": pairs, "method": args.method,
+                    "lag_s": 0.0, "state": st.get("state")}
+        cal = rig.sensors.get(sid)
+        if cal is not None and cal.calibration is not None:
+            out[sid]["rms_m"] = cal.calibration.rms_m
+    wanted = args.sensor or [s for s in calibrator.states() if s != reference]
+    if args.json:
+        print(dumps({"reference": reference, "method": args.method, "sensors": out}))
+    else:
+        for sid, entry in out.items():
+            print(f"{sid}: fitness {entry['fitness']}, written to {args.rig or '(no rig file)'}")
+    missing = [s for s in wanted if s not in done]
+    if missing or not wanted:
+        print(f"stage: not calibrated: {', '.join(missing) or 'no sensor besides the reference'}"
+              " (was one person visible to it and a calibrated sensor?)", file=sys.stderr)
+        return Exit.FAILURE
+    return Exit.OK

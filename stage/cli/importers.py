@@ -1,0 +1,48 @@
+"""``stage import ntu|nucla|bvh FILE... --out RECORDING``."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..errors import ConfigError
+
+
+def register(sub) -> dict:
+    from .main import _positive
+    p = sub.add_parser("import", help="turn dataset files (NTU RGB+D, N-UCLA, BVH) into a "
+                       "recording", description="Import skeleton data into a stage recording; "
+                       "several cameras of one take become one multi-sensor recording.")
+    p.add_argument("format", choices=("ntu", "nucla", "bvh"),
+                   help="ntu: NTU RGB+D .skeleton files (the cameras of one performance); "
+                   "nucla: N-UCLA JSON (the views of one sample); bvh: one BVH file")
+    p.add_argument("files", nargs="+", metavar="FILE")
+    p.add_argument("--out", required=True, metavar="RECORDING", help="the recording to write")
+    p.add_argument("--fps", type=_positive, default=30.0,
+                   help="frame rate of the source (ntu, nucla) or of the output (bvh); default 30")
+    p.add_argument("--align", choices=("start", "stretch"), default="start",
+                   help="nucla: views start together, or are stretched to the longest")
+    p.add_argument("--height", type=_positive, default=1.75, metavar="M",
+                   help="bvh: the performer's height in metres (default 1.75)")
+    p.add_argument("--sensor", default="bvh", help="bvh: the sensor id (default 'bvh')")
+    from ..sensors.recording import as_bad_input
+    return {"import": as_bad_input(cmd_import)}
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from .main import Exit
+    from ..sensors.recording import read_recording
+    if args.format == "ntu":
+        from ..sensors.importers.ntu import import_ntu
+        n = import_ntu(args.files, args.out, args.fps)
+    elif args.format == "nucla":
+        from ..sensors.importers.nucla import import_nucla
+        n = import_nucla(args.files, args.out, args.fps, args.align)
+    else:
+        if len(args.files) != 1:
+            raise ConfigError("bvh: give one file (one performer) per recording")
+        from ..sensors.importers.bvh import import_bvh
+        n = import_bvh(args.files[0], args.out, args.height, args.fps, args.sensor)
+    info = read_recording(args.out).scan()
+    print(f"stage import: {len(args.files)} file(s) -> {args.out}: {n} datagram(s), "
+          f"{len(info['sources'])} sensor(s), {info['duration_s']:.2f} s", flush=True)
+    return Exit.OK

@@ -1,0 +1,90 @@
+"""`stage check` and `stage play` (registered through ``stage.cli.COMMAND_MODULES``)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Callable
+
+from ..errors import ConfigError
+from .args import hostport as _hostport, positive as _positive
+
+
+def _port(text: str) -> int:
+    if not text.isdigit() or not 0 <= int(text) <= 65535:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a UDP port (0-65535)")
+    return int(text)
+
+
+def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
+    check = sub.add_parser("check", help="check piece files and summarise them",
+                           description="Check piece files: every mistake is reported as "
+                                       "file:line:column with what was expected (exit status 2).")
+    check.add_argument("pieces", nargs="+", metavar="PIECE.yaml")
+    check.add_argument("--quiet-summary", action="store_true", dest="brief",
+                       help="one line per piece instead of the summary")
+
+    play = sub.add_parser(
+        "play", help="perform a piece: sensors, simulator or recording in; MIDI and OSC out",
+        description="Perform a piece. With no source option, listen for sensor clients like "
+                    "`stage serve`. Ctrl-C stops: every sounding note gets its note-off.")
+    play.add_argument("piece", metavar="PIECE.yaml")
+    source = play.add_mutually_exclusive_group()
+    source.add_argument("--sim", nargs="?", const="", default=None, metavar="SCENARIO",
+                        help="a simulated dancer (default: the piece's rehearsal scenario)")
+    source.add_argument("--replay", metavar="FILE", help="replay a recording")
+    source.add_argument("--port", type=_port, help="UDP port for sensors (default: the rig's)")
+    play.add_argument("--host", help="address to listen on (default: the rig's)")
+    play.add_argument("--rig", help="rig file (sensors, calibration, settings)")
+    midi = play.add_mutually_exclusive_group()
+    midi.add_argument("--midi", metavar="PORT", help="MIDI port for the piece's MIDI outputs")
+    midi.add_argument("--midi-file", metavar="OUT.mid", help="write the MIDI to a file instead")
+    play.add_argument("--osc", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                      help="target of the piece's OSC outputs (repeatable)")
+    play.add_argument("--seed", type=int, help="seed of the aleatoric choices (default: the "
+                                                "piece's, else random and printed)")
+    play.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    play.add_argument("--events", metavar="OUT.jsonl",
+                      help="write every trigger, section change and output message as JSON lines")
+    play.add_argument("--monitor", nargs="?", const=True, default=False, type=_port,
+                      metavar="PORT", help="live monitor in a browser (default port 7780)")
+    play.add_argument("--speed", type=_positive, default=1.0,
+                      help="--sim/--replay: play faster or slower than real time")
+    play.add_argument("--offline", action="store_true",
+                      help="--sim/--replay: run ahead of time on a manual clock (no waiting); "
+                           "with --midi-file renders the rehearsal")
+    return {"check": cmd_check, "play": cmd_play}
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from ..piece.narrator import check_summary
+    from ..piece.loader import load_piece
+    status = 0
+    for path in args.pieces:
+        try:
+            piece = load_piece(path)
+        except ConfigError as exc:
+            print(f"stage: {exc}", file=sys.stderr)
+            status = 2
+            continue
+        lines = check_summary(piece, path)
+        try:
+            print("\n".join(lines[:1] if args.brief else lines), flush=True)
+        except BrokenPipeError:  # `stage check x.yaml | head`: the reader has had enough
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return status
+    return status
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    from .main import StopSignals
+    from ..app.play import PlayOptions, Player
+    opts = PlayOptions(piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
+                       host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
+                       osc=list(args.osc), seed=args.seed, duration=args.duration,
+                       events=args.events, monitor=args.monitor, offline=args.offline,
+                       speed=args.speed)
+    with StopSignals() as stop:
+        Player(opts, stop_event=stop.event).run()
+    return 0

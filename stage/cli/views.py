@@ -1,0 +1,144 @@
+"""``stage plugins`` and ``stage monitor``.
+
+``stage plugins`` lists every installed view and source plugin, the
+distribution and module it comes from, and whether it loads (importing it,
+never starting it). ``stage monitor`` runs the server (from a rig, or the demo
+with virtual Kinects) with the live web monitor and the installed views.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from typing import Callable
+
+from ..errors import StageError
+from ..views.base import GROUP
+from ..views.host import MONITOR_PORT, ViewHost
+from ..views.loader import GROUPS, PluginInfo, discover_all
+
+log = logging.getLogger("stage.views")
+
+
+def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
+    from .main import _hostport, _positive  # the CLI's own argument types
+    plugins = sub.add_parser("plugins", help="list installed views and sources and whether they load")
+    plugins.add_argument("--json", action="store_true", help="machine-readable output")
+    plugins.add_argument("--check", action="store_true",
+                         help="exit with status 1 when a plugin fails to load")
+
+    mon = sub.add_parser("monitor", help="the server with the live web monitor (and installed views)")
+    mon.add_argument("--rig", help="rig file (sensors, calibration, views, settings)")
+    mon.add_argument("--host", help="address to listen on for sensors (default: rig's)")
+    mon.add_argument("--port", type=int, help="UDP port for sensors (default: rig's, else 7770)")
+    mon.add_argument("--http", type=int, default=MONITOR_PORT, metavar="PORT",
+                     help=f"the monitor's web port on localhost (default {MONITOR_PORT}; 0: any)")
+    mon.add_argument("--bind", default="127.0.0.1", metavar="ADDRESS",
+                     help="serve the page on this address (default 127.0.0.1; 0.0.0.0 shows it "
+                          "to the whole network)")
+    mon.add_argument("--demo", type=int, nargs="?", const=3, choices=range(1, 7), metavar="N",
+                     help="feed the engine with N virtual Kinects around one dancer (default 3)")
+    mon.add_argument("--seed", type=int, default=1, help="the demo's seed")
+    mon.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                     help="also stream fused bodies to this OSC view (repeatable)")
+    mon.add_argument("--osc", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                     help="the OSC view: bodies and piece events to this target (repeatable)")
+    mon.add_argument("--relay", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                     help="relay fused bodies to another stage server (repeatable)")
+    mon.add_argument("--no-plugins", action="store_true",
+                     help="do not run the installed third-party views")
+    mon.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    return {"plugins": cmd_plugins, "monitor": cmd_monitor}
+
+
+def _origin(info: PluginInfo) -> str:
+    dist = f"{info.distribution} {info.version}" if info.distribution else "?"
+    return dist
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from .main import Exit
+    found = discover_all()
+    failed = [i for infos in found.values() for i in infos if not i.loaded]
+    if args.json:
+        print(json.dumps({group: [i.as_dict() | ({"autostart": bool(getattr(i.obj, "autostart", True))}
+                                                 if group == GROUP and i.loaded else {})
+                                  for i in infos]
+                          for group, infos in found.items()}, indent=2))
+    else:
+        for group, infos in found.items():
+            print(f"{GROUPS[group]} ({group})")
+            if not infos:
+                print("  (none installed)")
+            rows = []
+            for i in infos:
+                if i.loaded:
+                    starts = ""
+                    if group == GROUP:
+                        starts = "auto" if getattr(i.obj, "autostart", True) else "on request"
+                    rows.append((i.name, "loaded", starts, _origin(i), i.value, i.description))
+                else:
+                    rows.append((i.name, "FAILED", "", _origin(i), i.value, i.error or ""))
+            columns = [k for k in range(5) if any(r[k] for r in rows)]  # sources: no 'starts'
+            widths = {k: max(len(r[k]) for r in rows) for k in columns}
+            for r in rows:
+                print("  " + "  ".join(r[k].ljust(widths[k]) for k in columns) + "  " + r[5])
+            print()
+        print("'auto' views run in every show; 'on request' ones when the command line or the "
+              "piece asks (--midi, --osc, --monitor, --relay).")
+        if failed:
+            print(f"{len(failed)} plugin(s) failed to load; `stage --debug plugins` shows why "
+                  "in full.", file=sys.stderr)
+    return Exit.FAILURE if failed and args.check else Exit.OK
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from .main import Exit, StopSignals, _summary
+    from ..rig import Rig, load_rig
+    from ..sensors.receiver import Server
+    source = None
+    if args.demo:
+        from ..demo import DemoSource, demo_rig
+        rig, sensors = demo_rig(args.demo, args.port or 0)
+        server = Server(rig, host="127.0.0.1")
+    else:
+        rig = load_rig(args.rig) if args.rig else Rig()
+        server = Server(rig, host=args.host, port=args.port)
+    for view in args.view:
+        if view not in server.engine.views:
+            server.engine.views.append(view)
+    try:
+        host = ViewHost.for_play([], osc=args.osc, monitor=args.http, relay=args.relay,
+                                 plugins=not args.no_plugins, monitor_host=args.bind,
+                                 clock=server.clock)
+    except BaseException:
+        server.sock.close()
+        raise
+    host.attach(server.engine)
+    with StopSignals() as stop:
+        server.start()
+        host.start()
+        try:
+            if host.monitor_url is None:
+                slot = next((s for s in host.slots if s.name == "monitor"), None)
+                why = (slot.error or "").split(": ", 2)[-1] if slot is not None else (
+                    "the monitor plugin is not installed (see `stage plugins`)")
+                raise StageError(f"the monitor did not start: {why}")
+            address = f"{server.address[0]}:{server.address[1]}"
+            print(f"stage monitor: open {host.monitor_url} in a browser; sensors and views on "
+                  f"udp {address}. Ctrl-C stops.", flush=True)
+            for line in host.summary():
+                if not line.startswith("monitor"):
+                    log.info("view %s", line)
+            if args.demo:
+                source = DemoSource(server.address, sensors, seed=args.seed).start()
+            stop.wait(args.duration)
+        finally:
+            if source is not None:
+                source.stop()
+            host.stop()
+            server.stop()
+            print(f"stage monitor: done; {_summary(server.engine.stats())}", flush=True)
+    return Exit.OK

@@ -1,0 +1,621 @@
+"""The engine: one thread that owns all live state.
+
+Input is a stream of ``Inbound`` items (decoded sensor messages with their
+arrival and capture times); output is Server-to-View datagrams handed to a
+``Transport`` and ``FusedFrame`` objects handed to in-process listeners.
+Time comes from an injected clock, so tests and replays run with no sleeps.
+
+Per batch of inbound items, in capture-time order:
+  sensor frame -> calibration transform -> track update -> association to a
+  person (hysteresis) -> confidence-weighted average with outlier rejection
+  -> Kalman smoothing -> (end of batch) emission to views and listeners.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from ..clock import Clock, MonotonicClock
+from ..frames import Body, FusedFrame, SensorFrame
+from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
+from ..joints import TORSO, HandState
+from ..sensors.protocol import (FloorPlane, HandStateMsg, JointCoordinates, LostUser, Message,
+                                NewUser, RegisterDevice, RegisterView, StatsQuery, decode_datagram,
+                                encode_message, encode_view_hand_state, encode_view_joints,
+                                encode_view_lost_user, encode_view_new_user)
+from ..rig import Rig
+from ..stats import DropCounter, LatencyWindow, format_drops
+from .tracking import OffsetEstimator, Person, Track
+
+log = logging.getLogger("stage.engine")
+_TORSO = np.array(TORSO)
+
+
+class Transport(Protocol):
+    def send(self, data: bytes, address: tuple[str, int]) -> None:
+        """Send one datagram; must not block and must not raise."""
+
+
+@dataclass(slots=True)
+class Inbound:
+    """A decoded message as the receiver hands it to the engine."""
+
+    message: Message
+    arrival: float              # engine clock, when the datagram was read
+    source: tuple[str, int]     # sender address
+    timetag: float | None = None  # capture time on the client's clock (Unix s), if bundled
+
+
+@dataclass(slots=True)
+class Call:
+    """A function to run on the engine thread (see ``Engine.call_soon``)."""
+
+    fn: Callable[["Engine"], None]
+
+
+class ClientState:
+    def __init__(self, client: str, sensor_type: str, source: tuple[str, int], now: float,
+                 offset: OffsetEstimator) -> None:
+        self.id, self.type, self.source = client, sensor_type, source
+        self.registered = now
+        self.last_seen = now
+        self.frames = 0
+        self.tracks: dict[int, Track] = {}
+        self.offset = offset
+        self.transform: np.ndarray | None = None
+        self.warned_uncalibrated = False
+        self.floor: np.ndarray | None = None
+        self.active = True
+
+
+class Engine:
+    """Kuatro's server core. Call ``process`` and ``tick`` from one thread only."""
+
+    def __init__(self, rig: Rig | None = None, clock: Clock | None = None,
+                 transport: Transport | None = None, drops: DropCounter | None = None) -> None:
+        self.rig = rig or Rig()
+        self.clock = clock or MonotonicClock()
+        self.transport = transport
+        self.drops = drops or DropCounter()
+        self.queue: queue.Queue[Inbound] = queue.Queue(maxsize=8192)
+        self.clients: dict[str, ClientState] = {}
+        self.persons: dict[int, Person] = {}
+        self.views: list[tuple[str, int]] = list(dict.fromkeys(self.rig.views))
+        self.listeners: list[Callable[[FusedFrame], None]] = []
+        #: called on the engine thread with every valid sensor frame, calibrated or not
+        self.frame_observers: list[Callable[[SensorFrame], None]] = []
+        self.latency = LatencyWindow()
+        self.counts = {"messages": 0, "frames": 0, "fused_frames": 0, "datagrams_out": 0,
+                       "send_errors": 0}
+        self._next_id = 1
+        self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
+        self._stats_replies: list[tuple[str, int]] = []
+        #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
+        #: written on the engine thread (via call_soon), shown in stats and monitors
+        self.sensor_notes: dict[str, dict] = {}
+        # engine clock -> wall clock, to report client clocks against ours in seconds
+        self._wall_minus_clock = time.time() - self.clock.now()
+        # person id -> arrival of the earliest frame whose fusion is not emitted yet
+        self._dirty: dict[int, float] = {}
+        self._hands_dirty: set[int] = set()  # persons whose hand vote may have changed
+        # person id -> (capture, arrival) of a frame that came too soon after the last
+        # fusion: it is averaged into the next one (see FusionSettings.min_interval_s)
+        self._pending: dict[int, tuple[float, float]] = {}
+        self._lost: list[int] = []
+        self._close_since: dict[tuple[int, int], float] = {}
+        self._started = self.clock.now()
+        self._last_tick = self._started
+        self._last_drop_report = self._started
+        self.reference = self.rig.reference
+
+    # ------------------------------------------------------------ input
+    def submit(self, item: Inbound) -> bool:
+        """Thread-safe enqueue from a receiver; a full queue counts a drop."""
+        try:
+            self.queue.put_nowait(item)
+            return True
+        except queue.Full:
+            self.drops.add(_client_key(item), "queue_full")
+            return False
+
+    def call_soon(self, fn: Callable[["Engine"], None]) -> None:
+        """Run ``fn(engine)`` on the engine thread, in order with the data (thread-safe).
+
+        The only way another thread (a calibration worker, a UI) may change
+        engine state. In-process users call ``drain()`` to run what is queued.
+        """
+        self.queue.put(Inbound(Call(fn), self.clock.now(), ("engine", 0)), timeout=1.0)  # type: ignore[arg-type]
+
+    def drain(self) -> None:
+        """Process everything queued so far, on the calling thread (tests, offline replay)."""
+        batch: list[Inbound] = []
+        while True:
+            try:
+                batch.append(self.queue.get_nowait())
+            except queue.Empty:
+                break
+        if batch:
+            self.process(batch)
+
+    def handle_datagram(self, data: bytes, source: tuple[str, int] = ("127.0.0.1", 0),
+                        arrival: float | None = None) -> None:
+        """Decode one datagram and process it now (in-process use: tests, replay)."""
+        arrival = self.clock.now() if arrival is None else arrival
+        decoded = decode_datagram(data, f"{source[0]}:{source[1]}")
+        for client, reason in decoded.drops:
+            self.drops.add(client, reason)
+        self.process([Inbound(m, arrival, source, tt) for m, tt in decoded.messages])
+
+    def process(self, batch: list[Inbound]) -> None:
+        """Apply a batch of inbound items in capture-time order, then emit once."""
+        timed = sorted(((self._capture_time(item), k, item) for k, item in enumerate(batch)),
+                       key=lambda e: (e[0], e[1]))
+        for t, _, item in timed:
+            self.counts["messages"] += 1
+            try:
+                self._apply(item, t)
+            except Exception:  # a bug must not end the show: log it, drop the item
+                log.exception("error while handling %s; item dropped", type(item.message).__name__)
+                self.drops.add(_client_key(item), "internal_error")
+        self._emit()
+        if self._stats_replies:
+            reply = encode_message("/stage/stats", json.dumps(self.stats()))
+            for address in self._stats_replies:
+                self._send(reply, address)
+            self._stats_replies.clear()
+
+    def _capture_time(self, item: Inbound) -> float:
+        msg = item.message
+        client = getattr(msg, "client", None)
+        if item.timetag is None or client is None:
+            return item.arrival
+        estimator = self._offsets.get(client)
+        if estimator is None:
+            estimator = self._offsets[client] = OffsetEstimator()
+        offset = estimator.update(item.arrival, item.timetag)
+        return min(item.timetag + offset, item.arrival)
+
+    def _apply(self, item: Inbound, t: float) -> None:
+        msg = item.message
+        if isinstance(msg, Call):
+            msg.fn(self)
+            return
+        if isinstance(msg, RegisterView):
+            self._register_view(msg)
+            return
+        if isinstance(msg, StatsQuery):
+            # answered after this batch's emission, so a reply never overtakes
+            # the fused output of frames that arrived before the query
+            self._stats_replies.append((item.source[0], msg.reply_port or item.source[1]))
+            return
+        client = self._client(msg, item)
+        if client is None:
+            return
+        if isinstance(msg, JointCoordinates):
+            stamp = item.arrival if item.timetag is None else item.timetag
+            self._on_frame(client, msg, t, item.arrival, stamp)
+        elif isinstance(msg, HandStateMsg):
+            track = client.tracks.get(msg.user)
+            if track is None:
+                track = client.tracks[msg.user] = Track(client.id, msg.user)
+            track.hands[msg.hand] = msg.state
+            if track.person is not None:
+                self._hands_dirty.add(track.person)
+        elif isinstance(msg, FloorPlane):
+            client.floor = msg.plane
+        elif isinstance(msg, NewUser):
+            old = client.tracks.pop(msg.user, None)
+            if old is not None:
+                self._drop_track(old, t)
+            client.tracks[msg.user] = Track(client.id, msg.user)
+        elif isinstance(msg, LostUser):
+            track = client.tracks.pop(msg.user, None)
+            if track is not None:
+                self._drop_track(track, t)
+
+    def _client(self, msg: Message, item: Inbound) -> ClientState | None:
+        cid = msg.client  # type: ignore[union-attr]
+        now = item.arrival
+        if (not self.rig.allow_unknown_sensors and self.rig.sensors
+                and cid not in self.rig.sensors):
+            self.drops.add(cid, "not_allowed")
+            return None
+        state = self.clients.get(cid)
+        if isinstance(msg, RegisterDevice):
+            if state is None:
+                log.info("sensor %s (%s) registered from %s:%d", cid, msg.sensor_type, *item.source)
+            else:
+                log.info("sensor %s re-registered from %s:%d", cid, *item.source)
+        if state is None:
+            state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now,
+                                self._offsets.setdefault(cid, OffsetEstimator()))
+            self.clients[cid] = state
+            if not isinstance(msg, RegisterDevice):
+                log.info("sensor %s sending from %s:%d without /registerDevice; accepted",
+                         cid, *item.source)
+            self._set_transform(state)
+        elif not state.active:
+            log.info("sensor %s is back after %.1f s of silence", cid, now - state.last_seen)
+            state.active = True
+        if isinstance(msg, RegisterDevice):
+            state.type, state.source = msg.sensor_type, item.source
+        state.last_seen = max(state.last_seen, now)
+        return state
+
+    def _set_transform(self, state: ClientState) -> None:
+        if self.reference is None:
+            self.reference = state.id
+            log.info("sensor %s is the reference: its space is stage space", state.id)
+        state.transform = (self.rig.stage_frame.copy() if state.id == self.reference
+                           else self.rig.transform_for(state.id))
+
+    def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
+        """Use a new sensor->stage transform from now on (None: leave the sensor out)."""
+        state = self.clients.get(client)
+        if state is None:
+            return
+        state.transform = None if matrix is None else np.asarray(matrix, dtype=float)
+        state.warned_uncalibrated = False
+        now = self.clock.now()
+        for track in state.tracks.values():  # views in the old space must not linger in fusion
+            if track.person is not None:
+                self._drop_track(track, now)
+            track.t = track.stamp = float("-inf")
+
+    # ------------------------------------------------------------ fusion
+    def _on_frame(self, client: ClientState, msg: JointCoordinates, t: float,
+                  arrival: float, stamp: float) -> None:
+        client.frames += 1
+        self.counts["frames"] += 1
+        if self.frame_observers:
+            self._observe(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
+                                      client.transform, client.floor))
+        if client.transform is None:
+            if not client.warned_uncalibrated:
+                log.warning("sensor %s has no calibration in use: its frames are not fused "
+                            "until it is calibrated", client.id)
+                client.warned_uncalibrated = True
+            return
+        track = client.tracks.get(msg.user)
+        if track is None:
+            track = client.tracks[msg.user] = Track(client.id, msg.user)
+        # "late" is judged on the client's own clock: the offset estimate only
+        # improves (decreases) over time, so engine-clock capture times of two
+        # frames can cross even though the client sent them in order
+        if stamp <= track.stamp:
+            self.drops.add(client.id, "late")
+            return
+        track.stamp = stamp
+        t = max(t, track.t)
+        track.joints = apply_transform(client.transform, msg.joints)
+        track.conf = msg.conf
+        track.t = t
+        if not (track.conf > 0).any():
+            return  # nothing tracked in this frame: no position to associate or fuse
+        person = self._associate(track, t)
+        # Fuse at most once per min_interval_s per person. Every fusion averages the
+        # latest view of every sensor (older ones moved forward by the filter's
+        # velocity), so a frame that arrives sooner is not lost: it joins the next
+        # fusion. Re-fusing on each of S sensors' frames would feed the Kalman filter
+        # the same views S times a frame period as if independent, and cost S times
+        # the work for output no view needs faster than the sensors' 30 Hz.
+        if t - person.t >= self.rig.fusion.min_interval_s:
+            self._fuse(person, t)
+            self._pending.pop(person.id, None)
+            self._dirty.setdefault(person.id, arrival)
+        else:
+            self._pending.setdefault(person.id, (t, arrival))
+
+    def _associate(self, track: Track, t: float) -> Person:
+        fs = self.rig.fusion
+        if track.person is not None:
+            person = self.persons[track.person]
+            d = person.distance(track.joints, track.conf, t)
+            if d is None or d <= fs.release_m or len(person.tracks) == 1:
+                track.far_frames = 0
+                return person
+            track.far_frames += 1
+            if track.far_frames < fs.release_frames:
+                return person
+            log.info("sensor %s user %d left person %d (%.2f m away)", track.client, track.user,
+                     person.id, d)
+            self._unbind(track, t)
+        best, best_d = None, fs.associate_m
+        for person in self.persons.values():
+            if any(other.client == track.client for other in person.tracks):
+                continue  # one sensor never sees one person twice
+            d = person.distance(track.joints, track.conf, t)
+            if d is not None and d <= best_d:
+                best, best_d = person, d
+        if best is None:
+            best = Person.new(self._next_id, t, self.rig.smoothing)
+            self._next_id += 1
+            self.persons[best.id] = best
+        elif best.orphan_since is not None:
+            log.info("person %d picked up again by sensor %s", best.id, track.client)
+        best.tracks.add(track)
+        best.orphan_since = None
+        track.person, track.far_frames = best.id, 0
+        return best
+
+    def _unbind(self, track: Track, t: float) -> None:
+        person = self.persons.get(track.person) if track.person is not None else None
+        track.person = None
+        if person is not None:
+            person.tracks.discard(track)
+            if not person.tracks:
+                person.orphan_since = t
+
+    def _drop_track(self, track: Track, t: float) -> None:
+        if track.person is not None:
+            self._hands_dirty.add(track.person)  # one voter fewer
+        self._unbind(track, t)
+
+    def _fuse(self, person: Person, t: float) -> None:
+        fs = self.rig.fusion
+        # sorted: a set's order follows memory addresses, and the float sums of the
+        # average must not, or a replay would differ from its live run in the last bit
+        views = sorted((tr for tr in person.tracks if t - tr.t <= fs.stale_s),
+                       key=lambda tr: tr.key)
+        if not views:
+            return
+        velocity = person.velocity if person.kalman.initialised.any() else None
+        positions = np.stack([tr.joints if velocity is None or tr.t >= t
+                              else tr.joints + velocity * (t - tr.t) for tr in views])
+        conf = np.stack([tr.conf for tr in views])
+        fused, weight, used = fuse_joints(positions, conf, fs.outlier_m)
+        seen = weight > 0
+        if self.rig.smoothing_enabled:
+            smoothed = person.kalman.step(t, fused, weight)
+            # never-measured joints have NaN velocity; they must not poison compensation
+            person.velocity = np.nan_to_num(person.kalman.velocities)
+        else:
+            smoothed = fused
+        person.joints = np.where(seen[:, None], smoothed, person.joints)
+        person.conf = np.minimum(np.where(used, conf, 0.0).max(axis=0), 1.0)
+        person.known |= seen
+        # the centre uses every torso joint ever seen, not just this frame's, so it
+        # does not jump when occlusion changes which joints a view reports
+        torso = person.known[_TORSO]
+        person.centre = (person.joints[_TORSO][torso].mean(axis=0) if torso.any()
+                         else torso_centre(person.joints, person.known.astype(float)))
+        person.t = max(person.t, t)
+        self.counts["fused_frames"] += 1
+
+    def _vote_hands(self, person: Person, now: float) -> None:
+        views = sorted((tr for tr in person.tracks if now - tr.t <= 1.0), key=lambda tr: tr.key)
+        weighted = self.rig.fusion.hand_vote == "confidence"
+        for hand, joint in ((0, 7), (1, 11)):  # HandLeft, HandRight
+            states = [tr.hands[hand] for tr in views]
+            weights = [float(tr.conf[joint]) for tr in views] if weighted else None
+            person.hands[hand] = vote_hand(states, weights)
+
+    # ------------------------------------------------------------ output
+    def _emit(self) -> None:
+        if not self._dirty and not self._lost and not self._hands_dirty:
+            return
+        now = self.clock.now()
+        new: list[int] = []
+        updated: list[int] = []
+        for pid in self._hands_dirty - self._dirty.keys():
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            self._vote_hands(person, now)
+            if self._send_hands(person):
+                updated.append(pid)
+        for pid, arrival in self._dirty.items():
+            person = self.persons.get(pid)
+            if person is None or person.centre is None:
+                continue
+            out: list[bytes] = []
+            if not person.announced:
+                person.announced = True
+                new.append(pid)
+                log.info("person %d found (seen by %s)", pid, ", ".join(person.sensors()))
+                out.append(encode_view_new_user(pid, person.centre))
+            self._vote_hands(person, now)
+            if person.tracks:
+                out.append(encode_view_joints(pid, person.joints, person.conf))
+            for data in out:
+                self._broadcast(data)
+            self._send_hands(person)
+            updated.append(pid)
+            self.latency.add(self.clock.now() - arrival)
+        lost = self._lost
+        for pid in lost:
+            self._broadcast(encode_view_lost_user(pid))
+        self._dirty, self._lost = {}, []
+        self._hands_dirty.clear()
+        if self.listeners and (updated or lost):
+            self._notify(FusedFrame(now, self.bodies(), tuple(updated), tuple(new), tuple(lost)))
+
+    def _send_hands(self, person: Person) -> bool:
+        changed = False
+        for hand in (0, 1):
+            if person.hands[hand] != person.sent_hands[hand]:
+                person.sent_hands[hand] = person.hands[hand]
+                self._broadcast(encode_view_hand_state(person.id, hand, person.hands[hand]))
+                changed = True
+        return changed
+
+    def bodies(self) -> dict[int, Body]:
+        return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
+                          (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors())
+                for pid, p in self.persons.items() if p.announced and p.centre is not None}
+
+    def _notify(self, frame: FusedFrame) -> None:
+        _call_all(self.listeners, frame, "listener")
+
+    def _observe(self, frame: SensorFrame) -> None:
+        _call_all(self.frame_observers, frame, "frame observer")
+
+    def _broadcast(self, data: bytes) -> None:
+        for view in self.views:
+            self._send(data, view)
+
+    def _send(self, data: bytes, address: tuple[str, int]) -> None:
+        if self.transport is None:
+            return
+        try:
+            self.transport.send(data, address)
+            self.counts["datagrams_out"] += 1
+        except OSError:
+            self.counts["send_errors"] += 1
+
+    def _register_view(self, msg: RegisterView) -> None:
+        target = (msg.host, msg.port)
+        if not msg.register:
+            if target in self.views:
+                self.views.remove(target)
+                log.info("view %s:%d unregistered", *target)
+            return
+        if target not in self.views:
+            self.views.append(target)
+            log.info("view %s:%d registered", *target)
+        for pid, person in self.persons.items():  # a late view learns who is there
+            if person.announced and person.centre is not None:
+                self._send(encode_view_new_user(pid, person.centre), target)
+                for hand in (0, 1):
+                    self._send(encode_view_hand_state(pid, hand, person.hands[hand]), target)
+
+    # ------------------------------------------------------------ housekeeping
+    def tick(self, now: float | None = None) -> None:
+        """Timeouts, person expiry and merging, the per-minute drop report."""
+        now = self.clock.now() if now is None else now
+        self._last_tick = now
+        timeout = self.rig.clients.timeout_s
+        for client in self.clients.values():
+            if client.active and now - client.last_seen > timeout:
+                client.active = False
+                n = len(client.tracks)
+                log.warning("sensor %s silent for %.1f s%s", client.id, now - client.last_seen,
+                            f": lost its {n} user(s)" if n else "")
+                for track in client.tracks.values():
+                    self._drop_track(track, now)
+                client.tracks.clear()
+            for user, track in list(client.tracks.items()):
+                if track.t != float("-inf") and now - track.t > timeout:
+                    del client.tracks[user]  # the client is alive but forgot /lostUser
+                    self._drop_track(track, now)
+        self._flush_pending(now)
+        self._merge_close_persons(now)
+        grace = self.rig.fusion.lost_grace_s
+        for pid, person in list(self.persons.items()):
+            if person.orphan_since is not None and now - person.orphan_since >= grace:
+                del self.persons[pid]
+                if person.announced:
+                    log.info("person %d lost", pid)
+                    self._lost.append(pid)
+        if now - self._last_drop_report >= 60.0:
+            self._last_drop_report = now
+            recent = self.drops.since_last_report()
+            if recent:
+                log.warning("dropped in the last minute: %s", format_drops(recent))
+        self._emit()
+
+    def _flush_pending(self, now: float) -> None:
+        """Fuse frames that waited for a next fusion that did not come (a stream stopped)."""
+        wait = max(2.0 * self.rig.fusion.min_interval_s, 0.05)
+        for pid, (t, arrival) in list(self._pending.items()):
+            person = self.persons.get(pid)
+            if person is None or not person.tracks:
+                del self._pending[pid]
+            elif now - arrival >= wait:
+                del self._pending[pid]
+                self._fuse(person, max(tr.t for tr in person.tracks))
+                self._dirty.setdefault(pid, arrival)
+
+    def _merge_close_persons(self, now: float) -> None:
+        fs = self.rig.fusion
+        live = [p for p in self.persons.values() if p.centre is not None and p.tracks]
+        close_now: set[tuple[int, int]] = set()
+        for i, a in enumerate(live):
+            for b in live[i + 1:]:
+                if np.linalg.norm(a.centre - b.centre) > fs.merge_m:
+                    continue
+                if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
+                    continue  # one sensor sees both: two people
+                key = (min(a.id, b.id), max(a.id, b.id))
+                close_now.add(key)
+                since = self._close_since.setdefault(key, now)
+                if now - since >= fs.merge_s:
+                    keep, gone = (a, b) if a.id < b.id else (b, a)
+                    log.info("person %d and %d are one person: keeping %d", keep.id, gone.id,
+                             keep.id)
+                    for track in list(gone.tracks):
+                        track.person = keep.id
+                        keep.tracks.add(track)
+                    gone.tracks.clear()
+                    gone.orphan_since = now - fs.lost_grace_s  # lost at once
+                    close_now.discard(key)
+        self._close_since = {k: v for k, v in self._close_since.items() if k in close_now}
+
+    # ------------------------------------------------------------ thread
+    def run(self, stop: threading.Event, tick_s: float = 0.02) -> None:
+        """The engine thread: drain the queue in batches, tick between them."""
+        while not stop.is_set():
+            try:
+                batch = [self.queue.get(timeout=tick_s)]
+            except queue.Empty:
+                batch = []
+            while batch and len(batch) < 512:
+                try:
+                    batch.append(self.queue.get_nowait())
+                except queue.Empty:
+                    break
+            if batch:
+                self.process(batch)
+            now = self.clock.now()
+            if now - self._last_tick >= tick_s:
+                self.tick(now)
+
+    def stats(self) -> dict:
+        now = self.clock.now()
+        drops = self.drops.snapshot()
+        return {
+            "uptime_s": round(now - self._started, 3),
+            "reference": self.reference,
+            "clients": {cid: {"type": c.type, "source": f"{c.source[0]}:{c.source[1]}",
+                              "active": c.active, "silent_s": round(now - c.last_seen, 3),
+                              "frames": c.frames, "users": sorted(c.tracks),
+                              "calibrated": c.transform is not None,
+                              "clock_ahead_s": None if c.offset.offset is None else
+                              round(-c.offset.offset - self._wall_minus_clock, 4),
+                              "calibration": self.sensor_notes.get(cid, {}),
+                              "drops": drops.get(cid, {})}
+                        for cid, c in self.clients.items()},
+            "persons": {pid: {"sensors": list(p.sensors()),
+                              "position": None if p.centre is None else
+                              [round(float(v), 4) for v in p.centre]}
+                        for pid, p in self.persons.items() if p.announced},
+            "views": [f"{h}:{p}" for h, p in self.views],
+            "counts": dict(self.counts),
+            "drops": drops,
+            "drops_total": sum(n for r in drops.values() for n in r.values()),
+            "latency_ms": self.latency.summary_ms(),
+        }
+
+
+def _call_all(callbacks: list, arg: object, what: str) -> None:
+    """Call each callback; one that raises is logged, removed, and the show goes on."""
+    for callback in list(callbacks):
+        try:
+            callback(arg)
+        except Exception:
+            log.exception("%s %r raised; it is disabled", what, callback)
+            callbacks.remove(callback)
+
+
+def _client_key(item: Inbound) -> str:
+    client = getattr(item.message, "client", None)
+    return client if client is not None else f"{item.source[0]}:{item.source[1]}"

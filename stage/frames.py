@@ -1,0 +1,50 @@
+"""The frame types that cross layers: what the engine reads and what it hands on.
+
+``SensorFrame`` is one sensor's skeleton as it arrived (calibration and tools
+watch these); ``FusedFrame`` holds the fused ``Body`` of every person, and is
+what the piece runtime and every view receive. Views and plugins import this
+module, never the engine.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .joints import HandState
+
+
+@dataclass(slots=True)
+class SensorFrame:
+    """One sensor's skeleton as it arrived, before fusion (for calibration and monitors)."""
+
+    sensor: str
+    user: int
+    t: float                        # capture time, engine clock
+    joints: np.ndarray              # (25, 3) metres, the SENSOR's own space
+    conf: np.ndarray                # (25,)
+    transform: np.ndarray | None    # (4, 4) sensor -> stage in use now; None = not fused
+    floor: np.ndarray | None = None  # (4,) the sensor's last /floorPlane (a, b, c, d), if any
+
+
+@dataclass(slots=True)
+class Body:
+    """One fused person in one frame. Arrays are stage space, metres."""
+
+    id: int
+    joints: np.ndarray      # (25, 3) smoothed positions
+    conf: np.ndarray        # (25,) 0 where no sensor saw the joint in this frame
+    velocity: np.ndarray    # (25, 3) m/s, from the Kalman filter
+    hands: tuple[HandState, HandState]
+    position: np.ndarray    # (3,) torso centre
+    sensors: tuple[str, ...]
+
+
+@dataclass(slots=True)
+class FusedFrame:
+    t: float
+    bodies: dict[int, Body]  # every person currently tracked
+    updated: tuple[int, ...]
+    new: tuple[int, ...]
+    lost: tuple[int, ...]

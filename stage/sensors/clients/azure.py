@@ -1,0 +1,93 @@
+"""Azure Kinect / Orbbec Femto client (Azure Kinect Body Tracking SDK, through pykinect_azure).
+
+Install the Azure Kinect Sensor SDK and Body Tracking SDK (for an Orbbec
+Femto: Orbbec's K4A wrapper, which the same Body Tracking SDK drives), then
+``pip install 'stage[azure]'`` and run ``stage client azure --to
+SERVER:7770 --id femto-a``.
+
+The body tracker reports 32 joints in millimetres in the depth camera's
+space (x right, y down, z away) with a confidence level per joint (0 none,
+1 low, 2 medium, 3 high). They are mapped onto the 25 Kinect v2 joints by
+the skeletons' structure (the shoulders branch at Azure's SPINE_CHEST as at
+Kinect v2's SpineShoulder), converted to metres and to Kinect camera axes
+(x to the sensor's left, y up, z away). The body tracker has no hand states
+and no floor plane, so neither is sent. The mapping is tested with recorded
+arrays; ``run`` needs the device.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ...joints import JOINT_INDEX
+from .osc import BodyFrame
+
+log = logging.getLogger("stage.clients.azure")
+
+K4ABT_JOINTS = ("PELVIS", "SPINE_NAVEL", "SPINE_CHEST", "NECK", "CLAVICLE_LEFT",
+                "SHOULDER_LEFT", "ELBOW_LEFT", "WRIST_LEFT", "HAND_LEFT", "HANDTIP_LEFT",
+                "THUMB_LEFT", "CLAVICLE_RIGHT", "SHOULDER_RIGHT", "ELBOW_RIGHT", "WRIST_RIGHT",
+                "HAND_RIGHT", "HANDTIP_RIGHT", "THUMB_RIGHT", "HIP_LEFT", "KNEE_LEFT",
+                "ANKLE_LEFT", "FOOT_LEFT", "HIP_RIGHT", "KNEE_RIGHT", "ANKLE_RIGHT", "FOOT_RIGHT",
+                "HEAD", "NOSE", "EYE_LEFT", "EAR_LEFT", "EYE_RIGHT", "EAR_RIGHT")
+_TO_KINECT2 = {"PELVIS": "SpineBase", "SPINE_NAVEL": "SpineMid", "SPINE_CHEST": "SpineShoulder",
+               "NECK": "Neck", "HEAD": "Head"}
+for _side in ("Left", "Right"):
+    for _part, _k in (("Shoulder", "SHOULDER"), ("Elbow", "ELBOW"), ("Wrist", "WRIST"),
+                      ("Hand", "HAND"), ("HandTip", "HANDTIP"), ("Thumb", "THUMB"),
+                      ("Hip", "HIP"), ("Knee", "KNEE"), ("Ankle", "ANKLE"), ("Foot", "FOOT")):
+        _TO_KINECT2[f"{_k}_{_side.upper()}"] = _part + _side
+#: for each Kinect v2 joint, the index of the Azure joint it comes from
+AZURE_INDEX = np.array([K4ABT_JOINTS.index(next(a for a, k in _TO_KINECT2.items() if k == name))
+                        for name in JOINT_INDEX])
+CONFIDENCE = np.array([0.0, 0.5, 1.0, 1.0])   # none, low, medium, high
+_AXES = np.array([-1.0, -1.0, 1.0]) / 1000.0   # mm, x right / y down -> m, x left / y up
+
+
+def azure_body(body_id: int, positions_mm: np.ndarray, confidence_levels: np.ndarray
+               ) -> BodyFrame:
+    """One Azure body (32 joints, mm, depth camera axes) -> a Kinect v2 body in metres."""
+    pos = np.asarray(positions_mm, float).reshape(len(K4ABT_JOINTS), 3)
+    levels = np.clip(np.asarray(confidence_levels, int).reshape(len(K4ABT_JOINTS)), 0, 3)
+    joints = pos[AZURE_INDEX] * _AXES
+    conf = CONFIDENCE[levels[AZURE_INDEX]]
+    return BodyFrame(int(body_id), joints, conf, None)
+
+
+def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
+    """Read the body tracker and send until ``stop`` is set (needs the device and SDKs)."""
+    from ...errors import StageError
+    from .osc import ClientEncoder, UdpSender
+    try:
+        import pykinect_azure as pykinect
+    except ImportError:
+        raise StageError("the Azure Kinect / Orbbec client needs the Azure Kinect Sensor and "
+                         "Body Tracking SDKs and pip install 'stage[azure]' (pykinect_azure)"
+                         ) from None
+    pykinect.initialize_libraries(track_body=True)
+    config = pykinect.default_configuration
+    config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
+    config.depth_mode = pykinect.K4A_DEPTH_MODE_NFOV_UNBINNED
+    device = pykinect.start_device(config=config)
+    tracker = pykinect.start_body_tracker()
+    encoder, sender = ClientEncoder(client_id, "azure-kinect"), UdpSender(target)
+    sender.send(encoder.register())
+    try:
+        while stop is None or not stop.is_set():
+            device.update()
+            frame = tracker.update()
+            stamp = time.time()
+            bodies = []
+            for k in range(frame.get_num_bodies()):
+                body = frame.get_body(k)
+                positions = [(j.position.x, j.position.y, j.position.z) for j in body.joints]
+                levels = [j.confidence_level for j in body.joints]
+                bodies.append(azure_body(body.id, positions, levels))
+            data = encoder.frame(bodies, stamp)
+            if data is not None:
+                sender.send(data)
+    finally:
+        sender.close()

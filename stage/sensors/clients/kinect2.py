@@ -1,0 +1,104 @@
+"""Kinect v2 client (Windows, Kinect for Windows SDK 2.0, through PyKinect2).
+
+Install on the Windows machine the Kinect is plugged into: the Kinect for
+Windows SDK 2.0, then ``pip install 'stage[kinect2]'`` (``pykinect2024``, the
+maintained fork of Microsoft's PyKinect2, imported as ``pykinect2``). Run
+``stage client kinect2 --to SERVER:7770 --id kinect-a``.
+
+The SDK already speaks our contract: the 25 joints in ``JointType`` order,
+camera space in metres (x to the sensor's left, y up, z away), joint
+``TrackingState`` 0/1/2 (not tracked / inferred / tracked), hand states
+0-4, and the frame's ``FloorClipPlane``. This module maps those arrays to
+messages (tested here with recorded arrays); ``run`` is the thin loop that
+reads the sensor and cannot run without one.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ...joints import N_JOINTS, HandState
+from .osc import BodyFrame
+
+log = logging.getLogger("stage.clients.kinect2")
+
+#: Kinect TrackingState -> confidence
+TRACKING_CONF = np.array([0.0, 0.5, 1.0])
+BODY_COUNT = 6
+
+
+def kinect2_body(tracking_id: int, positions: np.ndarray, states: np.ndarray, hand_left: int,
+                 hand_right: int) -> BodyFrame:
+    """One tracked Kinect v2 body -> BodyFrame.
+
+    positions: (25, 3) CameraSpacePoint x, y, z (metres); states: (25,)
+    TrackingState 0-2; hand_left/right: HandState codes 0-4.
+    """
+    positions = np.asarray(positions, float).reshape(N_JOINTS, 3)
+    states = np.clip(np.asarray(states, int).reshape(N_JOINTS), 0, 2)
+    hands = tuple(HandState(h) if 0 <= h <= 4 else HandState.UNKNOWN for h in (hand_left,
+                                                                                   hand_right))
+    return BodyFrame(int(tracking_id), positions, TRACKING_CONF[states], hands)  # type: ignore[arg-type]
+
+
+def floor_plane(vector4: tuple[float, float, float, float]) -> np.ndarray | None:
+    """FloorClipPlane (x, y, z, w) -> /floorPlane (a, b, c, d); None before the SDK finds a floor."""
+    v = np.asarray(vector4, float)
+    if not np.isfinite(v).all() or np.linalg.norm(v[:3]) < 1e-6:
+        return None
+    return v
+
+
+class RelativeClock:
+    """Turns the SDK's RelativeTime (100 ns ticks since an arbitrary start) into Unix seconds."""
+
+    def __init__(self) -> None:
+        self._base: tuple[int, float] | None = None
+
+    def __call__(self, ticks: int) -> float:
+        if self._base is None:
+            self._base = (int(ticks), time.time())
+        return self._base[1] + (int(ticks) - self._base[0]) * 1e-7
+
+
+def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
+    """Read body frames from the Kinect and send them until ``stop`` is set (Windows only)."""
+    from ...errors import StageError
+    from .osc import ClientEncoder, UdpSender
+    try:
+        from pykinect2 import PyKinectRuntime, PyKinectV2
+    except ImportError:
+        raise StageError("the Kinect v2 client needs Windows, the Kinect for Windows SDK 2.0 and "
+                         "pip install 'stage[kinect2]' (PyKinect2)") from None
+    kinect = PyKinectRuntime.PyKinectRuntime(PyKinectV2.FrameSourceTypes_Body)
+    encoder, sender = ClientEncoder(client_id, "kinect2"), UdpSender(target)
+    clock = RelativeClock()
+    sender.send(encoder.register())
+    try:
+        while stop is None or not stop.is_set():
+            if not kinect.has_new_body_frame():
+                time.sleep(0.002)
+                continue
+            frame = kinect.get_last_body_frame()
+            stamp = clock(getattr(frame, "relative_time", int(time.monotonic() * 1e7)))
+            bodies = []
+            for k in range(kinect.max_body_count):
+                body = frame.bodies[k]
+                if not body.is_tracked:
+                    continue
+                joints = body.joints
+                positions = [(joints[j].Position.x, joints[j].Position.y, joints[j].Position.z)
+                             for j in range(N_JOINTS)]
+                states = [joints[j].TrackingState for j in range(N_JOINTS)]
+                bodies.append(kinect2_body(body.tracking_id, positions, states,
+                                           body.hand_left_state, body.hand_right_state))
+            fp = frame.floor_clip_plane
+            data = encoder.frame(bodies, stamp, floor_plane((fp.x, fp.y, fp.z, fp.w)))
+            if data is not None:
+                sender.send(data)
+    finally:
+        kinect.close()
+        sender.close()

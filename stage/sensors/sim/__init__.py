@@ -1,0 +1,23 @@
+"""The simulator: Kinect-faithful virtual sensors watching scripted performers.
+
+    from stage.sensors.sim import Simulator, load_scenario
+    sim = Simulator(load_scenario("default"), seed=4)
+    rig = sim.rig()                      # exact calibrations (or rig(calibrated=False))
+    for capture, sensor, datagram in sim.datagrams(10.0): ...
+    sim.feed(engine, clock, 10.0)        # offline into an in-process Engine (ManualClock)
+    sim.run_realtime(("127.0.0.1", 7770), duration=30)   # over UDP
+
+Scenario files (YAML) describe the rig, the performers' timelines and
+events; see docs/sources.md.
+"""
+
+from .kinect import KinectModel, VirtualPose
+from .performer import Performer, Step
+from .scenario import (Event, Scenario, SensorSpec, builtin_names, default_scenario, load_scenario,
+                       parse_scenario)
+from .simulator import EPOCH, Datagram, SimSource, Simulator
+from .truth import Truth, load_truth, write_truth
+
+__all__ = ["Simulator", "SimSource", "Datagram", "Scenario", "SensorSpec", "Event",
+           "Performer", "Step", "KinectModel", "VirtualPose", "load_scenario", "default_scenario",
+           "parse_scenario", "builtin_names", "load_truth", "write_truth", "Truth", "EPOCH"]
