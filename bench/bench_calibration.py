@@ -165,7 +165,7 @@ def live_costs() -> dict:
             set_calibration(rig, sid, invert(poses[0].to_stage) @ p.to_stage, "bench")
         clock = ManualClock(0.0)
         engine = Engine(rig, clock)
-        cal = attach_live(engine, rig, None, threaded=False)
+        cal = attach_live(engine, None, threaded=False)
         polls: list[float] = []
         observed: list[float] = []
         real_poll, real_observe = cal._poll, cal._observe

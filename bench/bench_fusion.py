@@ -24,7 +24,8 @@ import numpy as np
 
 from stage.body import observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
-from stage.engine.engine import Engine, Inbound
+from stage.engine.engine import Engine
+from stage.sensors.protocol import Inbound
 from stage.sensors.protocol import JointCoordinates
 from stage.settings import FusionSettings
 from stage.rig import Rig, set_calibration

@@ -43,7 +43,7 @@ class Run:
         self.engine = Engine(self.rig, self.clock)
         self.fused: list[tuple[float, float, tuple[str, ...]]] = []  # t, error (m), sensors
         self.engine.listeners.append(self._listen)
-        self.cal = attach_live(self.engine, self.rig, self.rig_path, threaded=threaded, **settings)
+        self.cal = attach_live(self.engine, self.rig_path, threaded=threaded, **settings)
         self.rng = np.random.default_rng(seed)
         self.actual = list(self.poses)   # where the sensors really are
         self.t = 0.0
@@ -315,7 +315,7 @@ def _sim_run(bump_deg: float | None):
                 fused.append((frame.t, float(np.linalg.norm(body.joints[seen] - joints[seen],
                                                             axis=1).mean()), body.sensors))
     engine.listeners.append(listen)
-    cal = attach_live(engine, rig, None, threaded=False)
+    cal = attach_live(engine, None, threaded=False)
     sim.feed(engine, clock, 16.0)
     return sim, cal, fused
 

@@ -258,7 +258,7 @@ def test_clock_offset_is_estimated_and_frames_fused_in_capture_order():
         body_a = pose((0.01 * k, 2.5), 0.0)
         body_b = pose((0.01 * (k + 1), 2.5), 0.0)
         clock.set(max(arr_a, arr_b))
-        from stage.engine.engine import Inbound
+        from stage.sensors.protocol import Inbound
         from stage.sensors.protocol import decode_datagram
         items = []
         for body, cap in ((body_b, cap_b), (body_a, cap_a)):

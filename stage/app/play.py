@@ -238,7 +238,7 @@ class Player:
         engine = Engine(rig, clock)
         # self-healing calibration, on the engine thread and without saving: deterministic
         from ..calibration import attach_live
-        attach_live(engine, rig, None, threaded=False, save=False)
+        attach_live(engine, None, threaded=False, save=False)
         host = _view_host(self.piece, opts, clock, threaded=False)
         runtime = self._runtime(console, host)
         if host is not None:
@@ -328,7 +328,7 @@ class Player:
                 engine, lambda e: runtime.tick(e.clock.now()))))
             safety = self._safety(engine, runtime, console)
             from ..calibration import attach_live
-            safety.append(attach_live(engine, rig, opts.rig).stop)
+            safety.append(attach_live(engine, opts.rig).stop)
             source_done = threading.Event()
             if simulator is not None:
                 length = opts.duration or simulator.scenario.duration

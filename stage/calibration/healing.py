@@ -1,6 +1,6 @@
 """Live calibration and self-healing (K-Multiscope, end of section 3.4).
 
-``attach_live(engine, rig, rig_path)`` plugs a ``LiveCalibrator`` into a
+``attach_live(engine, rig_path)`` plugs a ``LiveCalibrator`` into a
 running engine:
 
 - a sensor the rig has no calibration for is calibrated as soon as exactly
@@ -16,7 +16,8 @@ running engine:
   ``restore_s``) is simply restored;
 - two sensors sending bit-identical skeletons are flagged, the copy left out;
 - every change is logged, shown in ``engine.sensor_notes`` (stats, monitor)
-  and written atomically to the rig file.
+  and handed to the engine thread, which owns the rig, records it there and
+  writes the rig file atomically (``Engine.record_calibration``).
 
 Threads: the observer runs on the engine thread and only appends to
 bounded buffers, hashes the frame and checks the torso gate (a few
@@ -39,14 +40,12 @@ import numpy as np
 from ..engine.engine import Engine
 from ..frames import SensorFrame
 from ..errors import StageError
-from ..rig import Rig
 from .fitness import fitness_from_mse
 from .gate import CopyDetector, JumpGate
 from .live import LiveSettings, View, new_pairs, torso_centre
 from .methods import CalibrationResult, calibrate
 from .scoring import grid, score
 from .pairs import CalibrationError, PairSet
-from .rigio import store_stage_transform
 from .worker import EngineWorker
 
 log = logging.getLogger("stage.calibration")
@@ -93,16 +92,17 @@ class LiveCalibrator(EngineWorker):
 
     name = "stage-calibration"
 
-    def __init__(self, engine: Engine, rig: Rig, rig_path: str | None,
+    def __init__(self, engine: Engine, rig_path: str | None,
                  settings: LiveSettings | None = None, threaded: bool = True,
                  on_event: Callable[[LiveEvent], None] | None = None) -> None:
         super().__init__(engine, threaded)
-        self.rig, self.rig_path = rig, rig_path
+        self.rig_path = rig_path
         self.settings = settings or LiveSettings()
         self.on_event = on_event
         self.events: list[LiveEvent] = []
         self._lock = threading.Lock()
-        self._rig_lock = threading.Lock()
+        # the engine's reference sensor, as last seen on the engine thread (read under _lock)
+        self._reference: str | None = engine.reference
         self._buffers: dict[tuple[str, int], deque] = {}   # of (frame, person id)
         self._states: dict[str, _State] = {}
         self._order: list[str] = []
@@ -139,7 +139,7 @@ class LiveCalibrator(EngineWorker):
         with self._lock:
             if sensors is None:
                 self._request_all = pairs or self.settings.pairs
-            targets = sensors or [s for s in self._order if s != self.engine.reference]
+            targets = sensors or [s for s in self._order if s != self._reference]
             seen = []
             for sid in targets:
                 st = self._states.get(sid)
@@ -165,6 +165,7 @@ class LiveCalibrator(EngineWorker):
         s = self.settings
         self._engine_thread = threading.current_thread()
         with self._lock:
+            self._reference = self.engine.reference
             st = self._states.get(frame.sensor) or self._new_state(frame)
             st.transform = frame.transform
             key = (frame.sensor, frame.user)
@@ -192,7 +193,7 @@ class LiveCalibrator(EngineWorker):
 
     def _new_state(self, frame: SensorFrame) -> _State:
         sid = frame.sensor
-        if sid == self.engine.reference:
+        if sid == self._reference:
             st = _State(sid, "ok", "reference: its space is stage space")
         elif frame.transform is None:
             st = _State(sid, "uncalibrated", "no calibration yet" + (
@@ -202,7 +203,7 @@ class LiveCalibrator(EngineWorker):
             st = _State(sid, "ok", "calibrated")
         st.transform = st.last_good = frame.transform
         pending = self._pending.pop(sid, None)
-        if pending is None and self._request_all and sid != self.engine.reference:
+        if pending is None and self._request_all and sid != self._reference:
             pending = self._request_all
         st.needed = pending or self.settings.pairs
         st.requested = pending is not None
@@ -226,7 +227,7 @@ class LiveCalibrator(EngineWorker):
 
     def _flag_identical(self, pair: tuple[str, str], t: float) -> None:
         a, b = pair
-        ref = self.engine.reference
+        ref = self._reference
         if a == ref or (b != ref and self._order.index(a) < self._order.index(b)):
             original, copy = a, b
         else:
@@ -388,7 +389,7 @@ class LiveCalibrator(EngineWorker):
                 # with two sensors both look wrong to each other: blame the lowest, and on a
                 # near tie not the reference (stage space is its space)
                 worst = min(candidates, key=lambda c: (round(c.fitness / 0.05),
-                                                       c.sensor == self.engine.reference))
+                                                       c.sensor == self._reference))
                 self._quarantine(worst, now, f"fitness {worst.fitness:.2f} stayed below "
                                              f"{s.suspect_below} for {s.hold_s:g} s")
 
@@ -484,22 +485,16 @@ class LiveCalibrator(EngineWorker):
             self._save(sid, result)
 
     def _save(self, sid: str, result: CalibrationResult) -> None:
-        with self._rig_lock:
-            store_stage_transform(self.rig, sid, result.matrix, self.engine.reference,
-                                  f"{result.method} (live)", result.fitness, result.rms_m)
-            if not (self.settings.save and self.rig_path):
-                if self.settings.save:
-                    log.info("%s's calibration is in use but not saved: no rig file (--rig)", sid)
-                return
-            try:
-                self.rig.save(self.rig_path)
-                log.info("rig %s updated with %s's calibration", self.rig_path, sid)
-            except (OSError, StageError) as exc:
-                log.error("could not write the rig %s: %s (the calibration is in use "
-                          "anyway)", self.rig_path, exc)
+        """Hand an accepted calibration to the engine thread, which owns the rig and saves it."""
+        path = self.rig_path if self.settings.save else None
+        if self.settings.save and not self.rig_path:
+            log.info("%s's calibration is in use but not saved: no rig file (--rig)", sid)
+        matrix, method = result.matrix, f"{result.method} (live)"
+        fitness, rms, wait = result.fitness, result.rms_m, not self.threaded
+        self._act(lambda e: e.record_calibration(sid, matrix, method, fitness, rms, path, wait))
 
 
-def attach_live(engine: Engine, rig: Rig, rig_path: str | None = None,
+def attach_live(engine: Engine, rig_path: str | None = None,
                 settings: LiveSettings | None = None, threaded: bool = True,
                 on_event: Callable[[LiveEvent], None] | None = None,
                 **overrides: object) -> LiveCalibrator:
@@ -509,4 +504,4 @@ def attach_live(engine: Engine, rig: Rig, rig_path: str | None = None,
     them in memory only. ``overrides`` replace fields of ``settings``.
     """
     settings = replace(settings or LiveSettings(), **overrides)  # type: ignore[arg-type]
-    return LiveCalibrator(engine, rig, rig_path, settings, threaded, on_event).start()
+    return LiveCalibrator(engine, rig_path, settings, threaded, on_event).start()

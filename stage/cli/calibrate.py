@@ -30,7 +30,7 @@ from ..geometry import invert
 from ..calibration.methods import DEFAULT_PAIRS, METHODS
 from ..calibration.offline import RigCalibration, calibrate_streams
 from ..calibration.pairs import CalibrationError
-from ..calibration.rigio import store_reference_transform
+from ..rig import store_reference_transform
 
 log = logging.getLogger("stage.calibration")
 
@@ -215,7 +215,7 @@ def _live(args: argparse.Namespace) -> int:
     except TransportError as exc:
         raise StageError(f"{exc} (is `stage serve` running? stop it, or use --port)") from None
     settings = LiveSettings(method=args.method, pairs=pairs)
-    calibrator = attach_live(server.engine, rig, args.rig, settings)
+    calibrator = attach_live(server.engine, args.rig, settings)
     calibrator.request(args.sensor or None, pairs)
     print(f"stage calibrate: listening on udp {server.address[0]}:{server.address[1]}; walk "
           f"where the sensors overlap, one person at a time. Ctrl-C stops.", file=sys.stderr,

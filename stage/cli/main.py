@@ -146,8 +146,8 @@ def cmd_serve(args: argparse.Namespace) -> Exit:
         from ..sensors.replay import ReplaySource
         source = ReplaySource(args.replay, engine=server.engine, speed=args.speed, loop=args.loop)
     from ..calibration import attach_live
-    calibrator = (attach_live(server.engine, rig, args.rig, heal=False, auto_calibrate=False)
-                  if args.no_self_healing else attach_live(server.engine, rig, args.rig))
+    calibrator = (attach_live(server.engine, args.rig, heal=False, auto_calibrate=False)
+                  if args.no_self_healing else attach_live(server.engine, args.rig))
     with StopSignals() as stop:
         server.start()
         if source is not None:

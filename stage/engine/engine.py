@@ -7,8 +7,14 @@ Time comes from an injected clock, so tests and replays run with no sleeps.
 
 Per batch of inbound items, in capture-time order:
   sensor frame -> calibration transform -> track update -> association to a
-  person (hysteresis) -> confidence-weighted average with outlier rejection
-  -> Kalman smoothing -> (end of batch) emission to views and listeners.
+  person (``tracking``) -> confidence-weighted average with outlier rejection
+  (``fusion``) -> Kalman smoothing (``kalman``) -> (end of batch) emission to
+  views (``output``) and in-process listeners.
+
+Ownership: everything here, the rig included, belongs to the engine thread.
+Other threads change it only through ``call_soon`` (a calibration result,
+an operator's command) or the copy-on-write callback lists; the rig is
+changed and saved by ``apply_calibration`` on this thread.
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Callable
 
 import numpy as np
 
@@ -27,31 +33,18 @@ from ..clock import Clock, MonotonicClock
 from ..frames import Body, FusedFrame, SensorFrame
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from ..joints import TORSO, HandState
-from ..sensors.protocol import (FloorPlane, HandStateMsg, JointCoordinates, LostUser, Message,
-                                NewUser, RegisterDevice, RegisterView, StatsQuery, decode_datagram,
-                                encode_message, encode_view_hand_state, encode_view_joints,
-                                encode_view_lost_user, encode_view_new_user)
-from ..rig import Rig
+from ..rig import Rig, store_stage_transform
+from ..sensors.protocol import (FloorPlane, HandStateMsg, Inbound, JointCoordinates, LostUser,
+                                Message, NewUser, RegisterDevice, RegisterView, StatsQuery,
+                                decode_datagram, encode_message)
 from ..stats import DropCounter, LatencyWindow, format_drops
-from .tracking import OffsetEstimator, Person, Track
+from .callbacks import Callbacks
+from .output import Transport, ViewOutput
+from .rigstore import RigStore
+from .tracking import OffsetEstimator, Person, Track, Tracker
 
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
-
-
-class Transport(Protocol):
-    def send(self, data: bytes, address: tuple[str, int]) -> None:
-        """Send one datagram; must not block and must not raise."""
-
-
-@dataclass(slots=True)
-class Inbound:
-    """A decoded message as the receiver hands it to the engine."""
-
-    message: Message
-    arrival: float              # engine clock, when the datagram was read
-    source: tuple[str, int]     # sender address
-    timetag: float | None = None  # capture time on the client's clock (Unix s), if bundled
 
 
 @dataclass(slots=True)
@@ -83,19 +76,20 @@ class Engine:
                  transport: Transport | None = None, drops: DropCounter | None = None) -> None:
         self.rig = rig or Rig()
         self.clock = clock or MonotonicClock()
-        self.transport = transport
         self.drops = drops or DropCounter()
         self.queue: queue.Queue[Inbound] = queue.Queue(maxsize=8192)
         self.clients: dict[str, ClientState] = {}
-        self.persons: dict[int, Person] = {}
-        self.views: list[tuple[str, int]] = list(dict.fromkeys(self.rig.views))
-        self.listeners: list[Callable[[FusedFrame], None]] = []
+        self.tracker = Tracker(self.rig.fusion, self.rig.smoothing)
+        self.output = ViewOutput(transport, self.rig.views)
+        #: called on the engine thread with every fused frame (copy-on-write: add and
+        #: remove from any thread)
+        self.listeners = Callbacks("listener")
         #: called on the engine thread with every valid sensor frame, calibrated or not
-        self.frame_observers: list[Callable[[SensorFrame], None]] = []
+        self.frame_observers = Callbacks("frame observer")
+        #: writes the rig file off the engine thread (see ``apply_calibration``)
+        self.rig_store = RigStore()
         self.latency = LatencyWindow()
-        self.counts = {"messages": 0, "frames": 0, "fused_frames": 0, "datagrams_out": 0,
-                       "send_errors": 0}
-        self._next_id = 1
+        self.counts = {"messages": 0, "frames": 0, "fused_frames": 0}
         self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._stats_replies: list[tuple[str, int]] = []
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
@@ -110,11 +104,25 @@ class Engine:
         # fusion: it is averaged into the next one (see FusionSettings.min_interval_s)
         self._pending: dict[int, tuple[float, float]] = {}
         self._lost: list[int] = []
-        self._close_since: dict[tuple[int, int], float] = {}
         self._started = self.clock.now()
         self._last_tick = self._started
         self._last_drop_report = self._started
         self.reference = self.rig.reference
+
+    @property
+    def persons(self) -> dict[int, Person]:
+        """Fused persons by id (the tracker's; engine thread only)."""
+        return self.tracker.persons
+
+    @property
+    def views(self) -> list[tuple[str, int]]:
+        """Registered Server-to-View addresses (engine thread only)."""
+        return self.output.views
+
+    def add_view(self, address: tuple[str, int]) -> None:
+        """Send fused bodies to ``address`` too (before start, or on the engine thread)."""
+        if address not in self.output.views:
+            self.output.views.append(address)
 
     # ------------------------------------------------------------ input
     def submit(self, item: Inbound) -> bool:
@@ -169,7 +177,7 @@ class Engine:
         if self._stats_replies:
             reply = encode_message("/stage/stats", json.dumps(self.stats()))
             for address in self._stats_replies:
-                self._send(reply, address)
+                self.output.send(reply, address)
             self._stats_replies.clear()
 
     def _capture_time(self, item: Inbound) -> float:
@@ -189,7 +197,9 @@ class Engine:
             msg.fn(self)
             return
         if isinstance(msg, RegisterView):
-            self._register_view(msg)
+            self.output.register(msg, ((pid, p.centre, (p.hands[0], p.hands[1]))
+                                       for pid, p in self.persons.items()
+                                       if p.announced and p.centre is not None))
             return
         if isinstance(msg, StatsQuery):
             # answered after this batch's emission, so a reply never overtakes
@@ -270,14 +280,30 @@ class Engine:
                 self._drop_track(track, now)
             track.t = track.stamp = float("-inf")
 
+    def record_calibration(self, sensor: str, to_stage: np.ndarray, method: str,
+                           fitness: float | None, rms_m: float | None, path: str | None = None,
+                           wait: bool = False) -> None:
+        """Engine thread: write a sensor's new sensor -> stage calibration into the rig.
+
+        The transform in use is set separately (``set_calibration``); this
+        keeps the rig, which views and status read on this thread, in step,
+        and with ``path`` saves it (atomically, by the writer thread of
+        ``rig_store``; ``wait``: until it is on disk).
+        """
+        store_stage_transform(self.rig, sensor, to_stage, self.reference, method, fitness, rms_m)
+        if path is not None:
+            self.rig_store.save(self.rig, path, f"{sensor}'s calibration")
+            if wait:
+                self.rig_store.flush()
+
     # ------------------------------------------------------------ fusion
     def _on_frame(self, client: ClientState, msg: JointCoordinates, t: float,
                   arrival: float, stamp: float) -> None:
         client.frames += 1
         self.counts["frames"] += 1
         if self.frame_observers:
-            self._observe(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
-                                      client.transform, client.floor))
+            self.frame_observers.call(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
+                                                  client.transform, client.floor))
         if client.transform is None:
             if not client.warned_uncalibrated:
                 log.warning("sensor %s has no calibration in use: its frames are not fused "
@@ -300,7 +326,7 @@ class Engine:
         track.t = t
         if not (track.conf > 0).any():
             return  # nothing tracked in this frame: no position to associate or fuse
-        person = self._associate(track, t)
+        person = self.tracker.associate(track, t)
         # Fuse at most once per min_interval_s per person. Every fusion averages the
         # latest view of every sensor (older ones moved forward by the filter's
         # velocity), so a frame that arrives sooner is not lost: it joins the next
@@ -314,50 +340,10 @@ class Engine:
         else:
             self._pending.setdefault(person.id, (t, arrival))
 
-    def _associate(self, track: Track, t: float) -> Person:
-        fs = self.rig.fusion
-        if track.person is not None:
-            person = self.persons[track.person]
-            d = person.distance(track.joints, track.conf, t)
-            if d is None or d <= fs.release_m or len(person.tracks) == 1:
-                track.far_frames = 0
-                return person
-            track.far_frames += 1
-            if track.far_frames < fs.release_frames:
-                return person
-            log.info("sensor %s user %d left person %d (%.2f m away)", track.client, track.user,
-                     person.id, d)
-            self._unbind(track, t)
-        best, best_d = None, fs.associate_m
-        for person in self.persons.values():
-            if any(other.client == track.client for other in person.tracks):
-                continue  # one sensor never sees one person twice
-            d = person.distance(track.joints, track.conf, t)
-            if d is not None and d <= best_d:
-                best, best_d = person, d
-        if best is None:
-            best = Person.new(self._next_id, t, self.rig.smoothing)
-            self._next_id += 1
-            self.persons[best.id] = best
-        elif best.orphan_since is not None:
-            log.info("person %d picked up again by sensor %s", best.id, track.client)
-        best.tracks.add(track)
-        best.orphan_since = None
-        track.person, track.far_frames = best.id, 0
-        return best
-
-    def _unbind(self, track: Track, t: float) -> None:
-        person = self.persons.get(track.person) if track.person is not None else None
-        track.person = None
-        if person is not None:
-            person.tracks.discard(track)
-            if not person.tracks:
-                person.orphan_since = t
-
     def _drop_track(self, track: Track, t: float) -> None:
-        if track.person is not None:
-            self._hands_dirty.add(track.person)  # one voter fewer
-        self._unbind(track, t)
+        pid = self.tracker.unbind(track, t)
+        if pid is not None:
+            self._hands_dirty.add(pid)  # one voter fewer
 
     def _fuse(self, person: Person, t: float) -> None:
         fs = self.rig.fusion
@@ -417,34 +403,32 @@ class Engine:
             person = self.persons.get(pid)
             if person is None or person.centre is None:
                 continue
-            out: list[bytes] = []
             if not person.announced:
                 person.announced = True
                 new.append(pid)
                 log.info("person %d found (seen by %s)", pid, ", ".join(person.sensors()))
-                out.append(encode_view_new_user(pid, person.centre))
+                self.output.new_user(pid, person.centre)
             self._vote_hands(person, now)
             if person.tracks:
-                out.append(encode_view_joints(pid, person.joints, person.conf))
-            for data in out:
-                self._broadcast(data)
+                self.output.joints(pid, person.joints, person.conf)
             self._send_hands(person)
             updated.append(pid)
             self.latency.add(self.clock.now() - arrival)
         lost = self._lost
         for pid in lost:
-            self._broadcast(encode_view_lost_user(pid))
+            self.output.lost_user(pid)
         self._dirty, self._lost = {}, []
         self._hands_dirty.clear()
         if self.listeners and (updated or lost):
-            self._notify(FusedFrame(now, self.bodies(), tuple(updated), tuple(new), tuple(lost)))
+            self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
+                                           tuple(lost)))
 
     def _send_hands(self, person: Person) -> bool:
         changed = False
         for hand in (0, 1):
             if person.hands[hand] != person.sent_hands[hand]:
                 person.sent_hands[hand] = person.hands[hand]
-                self._broadcast(encode_view_hand_state(person.id, hand, person.hands[hand]))
+                self.output.hand(person.id, hand, person.hands[hand])
                 changed = True
         return changed
 
@@ -452,41 +436,6 @@ class Engine:
         return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
                           (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors())
                 for pid, p in self.persons.items() if p.announced and p.centre is not None}
-
-    def _notify(self, frame: FusedFrame) -> None:
-        _call_all(self.listeners, frame, "listener")
-
-    def _observe(self, frame: SensorFrame) -> None:
-        _call_all(self.frame_observers, frame, "frame observer")
-
-    def _broadcast(self, data: bytes) -> None:
-        for view in self.views:
-            self._send(data, view)
-
-    def _send(self, data: bytes, address: tuple[str, int]) -> None:
-        if self.transport is None:
-            return
-        try:
-            self.transport.send(data, address)
-            self.counts["datagrams_out"] += 1
-        except OSError:
-            self.counts["send_errors"] += 1
-
-    def _register_view(self, msg: RegisterView) -> None:
-        target = (msg.host, msg.port)
-        if not msg.register:
-            if target in self.views:
-                self.views.remove(target)
-                log.info("view %s:%d unregistered", *target)
-            return
-        if target not in self.views:
-            self.views.append(target)
-            log.info("view %s:%d registered", *target)
-        for pid, person in self.persons.items():  # a late view learns who is there
-            if person.announced and person.centre is not None:
-                self._send(encode_view_new_user(pid, person.centre), target)
-                for hand in (0, 1):
-                    self._send(encode_view_hand_state(pid, hand, person.hands[hand]), target)
 
     # ------------------------------------------------------------ housekeeping
     def tick(self, now: float | None = None) -> None:
@@ -508,14 +457,8 @@ class Engine:
                     del client.tracks[user]  # the client is alive but forgot /lostUser
                     self._drop_track(track, now)
         self._flush_pending(now)
-        self._merge_close_persons(now)
-        grace = self.rig.fusion.lost_grace_s
-        for pid, person in list(self.persons.items()):
-            if person.orphan_since is not None and now - person.orphan_since >= grace:
-                del self.persons[pid]
-                if person.announced:
-                    log.info("person %d lost", pid)
-                    self._lost.append(pid)
+        self.tracker.merge_close(now)
+        self._lost.extend(self.tracker.expire(now))
         if now - self._last_drop_report >= 60.0:
             self._last_drop_report = now
             recent = self.drops.since_last_report()
@@ -534,31 +477,6 @@ class Engine:
                 del self._pending[pid]
                 self._fuse(person, max(tr.t for tr in person.tracks))
                 self._dirty.setdefault(pid, arrival)
-
-    def _merge_close_persons(self, now: float) -> None:
-        fs = self.rig.fusion
-        live = [p for p in self.persons.values() if p.centre is not None and p.tracks]
-        close_now: set[tuple[int, int]] = set()
-        for i, a in enumerate(live):
-            for b in live[i + 1:]:
-                if np.linalg.norm(a.centre - b.centre) > fs.merge_m:
-                    continue
-                if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
-                    continue  # one sensor sees both: two people
-                key = (min(a.id, b.id), max(a.id, b.id))
-                close_now.add(key)
-                since = self._close_since.setdefault(key, now)
-                if now - since >= fs.merge_s:
-                    keep, gone = (a, b) if a.id < b.id else (b, a)
-                    log.info("person %d and %d are one person: keeping %d", keep.id, gone.id,
-                             keep.id)
-                    for track in list(gone.tracks):
-                        track.person = keep.id
-                        keep.tracks.add(track)
-                    gone.tracks.clear()
-                    gone.orphan_since = now - fs.lost_grace_s  # lost at once
-                    close_now.discard(key)
-        self._close_since = {k: v for k, v in self._close_since.items() if k in close_now}
 
     # ------------------------------------------------------------ thread
     def run(self, stop: threading.Event, tick_s: float = 0.02) -> None:
@@ -599,21 +517,12 @@ class Engine:
                               [round(float(v), 4) for v in p.centre]}
                         for pid, p in self.persons.items() if p.announced},
             "views": [f"{h}:{p}" for h, p in self.views],
-            "counts": dict(self.counts),
+            "counts": {**self.counts, "datagrams_out": self.output.datagrams_out,
+                       "send_errors": self.output.send_errors},
             "drops": drops,
             "drops_total": sum(n for r in drops.values() for n in r.values()),
             "latency_ms": self.latency.summary_ms(),
         }
-
-
-def _call_all(callbacks: list, arg: object, what: str) -> None:
-    """Call each callback; one that raises is logged, removed, and the show goes on."""
-    for callback in list(callbacks):
-        try:
-            callback(arg)
-        except Exception:
-            log.exception("%s %r raised; it is disabled", what, callback)
-            callbacks.remove(callback)
 
 
 def _client_key(item: Inbound) -> str:

@@ -1,18 +1,25 @@
-"""Per-sensor tracks, fused persons, and the clock-offset estimate of a client.
+"""The tracking layer: which sensor views are which person.
 
-State only: the engine thread owns every object here.
+``Track`` is one sensor's view of one user; ``Person`` a fused person with the
+views bound to it; ``Tracker`` decides the binding -- association against
+the predicted person with hysteresis, merging of two persons no sensor sees
+together, expiry after a grace period, and person ids. ``OffsetEstimator``
+follows a client's clock. The engine thread owns every object here.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..joints import N_JOINTS, TORSO, HandState
+from ..settings import FusionSettings, KalmanSettings
 from .kalman import JointKalman
-from ..settings import KalmanSettings
+
+log = logging.getLogger("stage.engine")
 
 
 _TORSO_MASK = np.zeros(N_JOINTS, dtype=bool)
@@ -106,3 +113,103 @@ class Person:
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
+
+
+class Tracker:
+    """Binds sensor views (``Track``) to fused persons (``Person``).
+
+    A bound view stays with its person until it is beyond ``release_m`` for
+    ``release_frames`` frames in a row (hysteresis); an unbound view joins the
+    nearest person within ``associate_m`` that no view of the same sensor is
+    bound to, else starts a new person. Two persons closer than ``merge_m``
+    for ``merge_s`` that no sensor sees together are one. A person with no
+    views is kept ``lost_grace_s`` before it is lost.
+    """
+
+    def __init__(self, fusion: FusionSettings, smoothing: KalmanSettings) -> None:
+        self.fusion, self.smoothing = fusion, smoothing
+        self.persons: dict[int, Person] = {}
+        self._next_id = 1
+        self._close_since: dict[tuple[int, int], float] = {}
+
+    def associate(self, track: Track, t: float) -> Person:
+        """The person ``track`` (a view with fresh joints at time ``t``) belongs to."""
+        fs = self.fusion
+        if track.person is not None:
+            person = self.persons[track.person]
+            d = person.distance(track.joints, track.conf, t)
+            if d is None or d <= fs.release_m or len(person.tracks) == 1:
+                track.far_frames = 0
+                return person
+            track.far_frames += 1
+            if track.far_frames < fs.release_frames:
+                return person
+            log.info("sensor %s user %d left person %d (%.2f m away)", track.client, track.user,
+                     person.id, d)
+            self.unbind(track, t)
+        best, best_d = None, fs.associate_m
+        for person in self.persons.values():
+            if any(other.client == track.client for other in person.tracks):
+                continue  # one sensor never sees one person twice
+            d = person.distance(track.joints, track.conf, t)
+            if d is not None and d <= best_d:
+                best, best_d = person, d
+        if best is None:
+            best = Person.new(self._next_id, t, self.smoothing)
+            self._next_id += 1
+            self.persons[best.id] = best
+        elif best.orphan_since is not None:
+            log.info("person %d picked up again by sensor %s", best.id, track.client)
+        best.tracks.add(track)
+        best.orphan_since = None
+        track.person, track.far_frames = best.id, 0
+        return best
+
+    def unbind(self, track: Track, t: float) -> int | None:
+        """Detach ``track`` from its person; returns that person's id (None if unbound)."""
+        pid = track.person
+        person = self.persons.get(pid) if pid is not None else None
+        track.person = None
+        if person is not None:
+            person.tracks.discard(track)
+            if not person.tracks:
+                person.orphan_since = t
+        return pid
+
+    def merge_close(self, now: float) -> None:
+        """Merge persons that stayed within ``merge_m`` for ``merge_s`` and share no sensor."""
+        fs = self.fusion
+        live = [p for p in self.persons.values() if p.centre is not None and p.tracks]
+        close_now: set[tuple[int, int]] = set()
+        for i, a in enumerate(live):
+            for b in live[i + 1:]:
+                if np.linalg.norm(a.centre - b.centre) > fs.merge_m:
+                    continue
+                if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
+                    continue  # one sensor sees both: two people
+                key = (min(a.id, b.id), max(a.id, b.id))
+                close_now.add(key)
+                since = self._close_since.setdefault(key, now)
+                if now - since >= fs.merge_s:
+                    keep, gone = (a, b) if a.id < b.id else (b, a)
+                    log.info("person %d and %d are one person: keeping %d", keep.id, gone.id,
+                             keep.id)
+                    for track in list(gone.tracks):
+                        track.person = keep.id
+                        keep.tracks.add(track)
+                    gone.tracks.clear()
+                    gone.orphan_since = now - fs.lost_grace_s  # lost at once
+                    close_now.discard(key)
+        self._close_since = {k: v for k, v in self._close_since.items() if k in close_now}
+
+    def expire(self, now: float) -> list[int]:
+        """Forget persons without views for ``lost_grace_s``; returns the announced ones."""
+        grace = self.fusion.lost_grace_s
+        lost = []
+        for pid, person in list(self.persons.items()):
+            if person.orphan_since is not None and now - person.orphan_since >= grace:
+                del self.persons[pid]
+                if person.announced:
+                    log.info("person %d lost", pid)
+                    lost.append(pid)
+        return lost

@@ -117,6 +117,16 @@ Message = Union[ClientMessage, RegisterView, StatsQuery]
 
 
 @dataclass(slots=True)
+class Inbound:
+    """A decoded message as a receiver hands it to the engine (the sensors -> engine contract)."""
+
+    message: Message
+    arrival: float              # engine clock, when the datagram was read
+    source: tuple[str, int]     # sender address
+    timetag: float | None = None  # capture time on the client's clock (Unix s), if bundled
+
+
+@dataclass(slots=True)
 class Decoded:
     """What one datagram held: messages with their timetag, and the drops."""
 

@@ -12,7 +12,8 @@ import socket
 import threading
 
 from ..clock import Clock, MonotonicClock
-from ..engine.engine import Engine, Inbound
+from ..engine.engine import Engine
+from .protocol import Inbound
 from ..errors import TransportError
 from .protocol import decode_datagram
 from ..rig import Rig

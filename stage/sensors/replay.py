@@ -30,7 +30,8 @@ from typing import Iterable, Iterator
 from pythonosc.parsing import ntp
 
 from ..clock import ManualClock
-from ..engine.engine import Engine, Inbound
+from ..engine.engine import Engine
+from .protocol import Inbound
 from ..errors import ConfigError
 from .protocol import decode_datagram
 from .recording import Record, read_recording
