@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchlib import machine_busy_s, proc_cpu_s, wait_idle  # noqa: E402
-from stage_plugins.midi.jack import start_dummy_jackd, stop_jackd  # noqa: E402
+from stage.testing.jack import start_dummy_jackd, stop_jackd  # noqa: E402
 
 TARGET_P99_MS = 2.0
 

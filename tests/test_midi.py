@@ -17,7 +17,7 @@ import time
 import mido
 import pytest
 
-from stage_plugins.midi.jack import start_dummy_jackd, stop_jackd
+from stage.testing.jack import start_dummy_jackd, stop_jackd
 
 import stage_plugins.midi as midi_view
 from stage_plugins.midi.ports import PortSink, choose_api, jack_server_running, match_port
