@@ -14,13 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import StageError
+from ..errors import CalibrationError, StageError
 from ..joints import JOINT_INDEX
 from .fitness import per_frame_fitness
 from ..geometry import apply
 from .methods import METHODS, calibrate
 from .offline import RigCalibration
-from .pairs import CalibrationError, pair_streams
+from .pairs import pair_streams
 from .streams import Stream
 
 _COLOURS = {"rigid": "#1b6ca8", "regression": "#d1495b", "ga": "#2e933c", "ga3d": "#7a9e3c",
