@@ -2,7 +2,7 @@
 
 Install the Azure Kinect Sensor SDK and Body Tracking SDK (for an Orbbec
 Femto: Orbbec's K4A wrapper, which the same Body Tracking SDK drives), then
-``pip install 'stage[azure]'`` and run ``stage client azure --to
+``pip install 'stage-kuatro[azure]'`` and run ``stage client azure --to
 SERVER:7770 --id femto-a``.
 
 The body tracker reports 32 joints in millimetres in the depth camera's
@@ -65,8 +65,8 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
         import pykinect_azure as pykinect
     except ImportError:
         raise StageError("the Azure Kinect / Orbbec client needs the Azure Kinect Sensor and "
-                         "Body Tracking SDKs and pip install 'stage[azure]' (pykinect_azure)"
-                         ) from None
+                         "Body Tracking SDKs and pip install 'stage-kuatro[azure]' "
+                         "(pykinect_azure; in a checkout: pip install -e '.[azure]')") from None
     pykinect.initialize_libraries(track_body=True)
     config = pykinect.default_configuration
     config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
