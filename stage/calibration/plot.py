@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import install_hint
 from ..errors import CalibrationError, StageError
 from ..joints import JOINT_INDEX
 from .fitness import per_frame_fitness
@@ -36,8 +37,7 @@ def plot_calibration(path: str, result: RigCalibration, streams: dict[str, Strea
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise StageError("--plot needs matplotlib: pip install 'stage-kuatro[plot]' "
-                         "(in a checkout: pip install -e '.[plot]')") from None
+        raise StageError(f"--plot needs matplotlib: {install_hint('plot')}") from None
     ref = result.reference
     rows = [s for s, c in result.sensors.items() if s != ref and c.matrix is not None]
     rows = rows[:max_sensors]

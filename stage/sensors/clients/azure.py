@@ -59,14 +59,15 @@ def azure_body(body_id: int, positions_mm: np.ndarray, confidence_levels: np.nda
 
 def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
     """Read the body tracker and send until ``stop`` is set (needs the device and SDKs)."""
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
         import pykinect_azure as pykinect
     except ImportError:
         raise StageError("the Azure Kinect / Orbbec client needs the Azure Kinect Sensor and "
-                         "Body Tracking SDKs and pip install 'stage-kuatro[azure]' "
-                         "(pykinect_azure; in a checkout: pip install -e '.[azure]')") from None
+                         f"Body Tracking SDKs and pykinect_azure: {install_hint('azure')}"
+                         ) from None
     pykinect.initialize_libraries(track_body=True)
     config = pykinect.default_configuration
     config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF

@@ -66,14 +66,14 @@ class RelativeClock:
 
 def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
     """Read body frames from the Kinect and send them until ``stop`` is set (Windows only)."""
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
         from pykinect2 import PyKinectRuntime, PyKinectV2
     except ImportError:
         raise StageError("the Kinect v2 client needs Windows, the Kinect for Windows SDK 2.0 and "
-                         "pip install 'stage-kuatro[kinect2]' (PyKinect2; in a checkout: "
-                         "pip install -e '.[kinect2]')") from None
+                         f"PyKinect2: {install_hint('kinect2')}") from None
     kinect = PyKinectRuntime.PyKinectRuntime(PyKinectV2.FrameSourceTypes_Body)
     encoder, sender = ClientEncoder(client_id, "kinect2"), UdpSender(target)
     clock = RelativeClock()

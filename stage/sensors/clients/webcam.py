@@ -152,6 +152,7 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
     when present, else the Tasks API with the ``pose_landmarker`` model file
     given as ``model`` (download it once; nothing is downloaded at run time).
     """
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
@@ -159,8 +160,7 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
         import mediapipe as mp
     except ImportError as exc:
         raise StageError(f"the webcam client needs mediapipe and opencv-python ({exc.name} is "
-                         "missing): pip install 'stage-kuatro[webcam]' (in a checkout: "
-                         "pip install -e '.[webcam]')") from None
+                         f"missing): {install_hint('webcam')}") from None
     cap = cv2.VideoCapture(camera_index)
     if not cap.isOpened():
         raise StageError(f"cannot open camera {camera_index}")
