@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchlib import machine_busy_s, proc_cpu_s, wait_idle  # noqa: E402
-from plugins.midi.jack import start_dummy_jackd, stop_jackd  # noqa: E402
+from stage.testing.jack import start_dummy_jackd, stop_jackd  # noqa: E402
 
 TARGET_P99_MS = 2.0
 
@@ -71,7 +71,7 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
     from stage.clock import MonotonicClock
     from stage.events import Note, OutputDecl
     from stage.views import ViewHost
-    import plugins.midi.ports as ports
+    import stage_plugins.midi.ports as ports
 
     server = "stage-bench"   # a fixed name: a killed server's registry entry is reclaimed
     os.environ["JACK_DEFAULT_SERVER"] = server

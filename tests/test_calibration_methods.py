@@ -16,10 +16,11 @@ import pytest
 from stage.calibration.fitness import Moments, evaluate_points, fitness_from_mse, per_frame_fitness
 from stage.geometry import (apply, euler_matrices, invert, level_matrix, matrix, rot_x, rot_y,
                             rot_z, transform_error)
-from stage.calibration.methods import METHODS, CalibrationError, calibrate
+from stage.calibration.methods import METHODS, calibrate
 from stage.calibration.methods.ga import GAConfig, run_ga
 from stage.calibration.methods.rigid import kabsch
 from stage.calibration.pairs import pair_streams
+from stage.errors import CalibrationError
 from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
 
 #: method -> (max rotation error deg, max translation error mm, max RMS error mm over the

@@ -9,7 +9,8 @@ import pytest
 
 from stage.calibration.methods import calibrate
 from stage.geometry import transform_error
-from stage.calibration.pairs import CalibrationError, find_lag, pair_streams
+from stage.calibration.pairs import find_lag, pair_streams
+from stage.errors import CalibrationError
 from stage.calibration.streams import Stream, find_identical_streams, streams_from_datagrams
 from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
 from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message

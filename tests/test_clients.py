@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import importlib
 import math
+import re
+import sys
 import time
 
 import numpy as np
@@ -10,6 +13,7 @@ import pytest
 from helpers import query_stats
 
 from stage.body import pose
+from stage.errors import StageError
 from stage.sensors.clients.azure import AZURE_INDEX, K4ABT_JOINTS, azure_body
 from stage.sensors.clients.kinect2 import RelativeClock, floor_plane, kinect2_body
 from stage.sensors.clients.osc import BodyFrame, ClientEncoder, UdpSender, UserSlots
@@ -219,3 +223,15 @@ def test_azure_32_joints_map_onto_the_25_in_kinect_axes():
     assert (np.delete(b.conf, [J["HandTipLeft"], J["FootRight"]]) == 1.0).all()
     assert K4ABT_JOINTS[AZURE_INDEX[J["SpineShoulder"]]] == "SPINE_CHEST"
     assert b.hands is None
+
+
+@pytest.mark.parametrize("client, module, extra", [("webcam", "cv2", "webcam"),
+                                                   ("kinect2", "pykinect2", "kinect2"),
+                                                   ("azure", "pykinect_azure", "azure")])
+def test_a_client_without_its_extra_says_how_to_install_it(monkeypatch, client, module, extra):
+    """The hint names this project's distribution, not the unrelated 'stage' on PyPI."""
+    monkeypatch.setitem(sys.modules, module, None)      # importing it now fails
+    run = importlib.import_module(f"stage.sensors.clients.{client}").run
+    hint = f"pip install 'stage-kuatro[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
+    with pytest.raises(StageError, match=re.escape(hint)):
+        run(("127.0.0.1", 9), "test")

@@ -17,12 +17,12 @@ import time
 import mido
 import pytest
 
-from plugins.midi.jack import start_dummy_jackd, stop_jackd
+from stage.testing.jack import start_dummy_jackd, stop_jackd
 
-import plugins.midi as midi_view
-from plugins.midi.ports import PortSink, choose_api, jack_server_running, match_port
-from plugins.midi.schedule import MidiScheduler
-from plugins.midi.smf import TICKS_PER_S, SmfWriter, varlen
+import stage_plugins.midi as midi_view
+from stage_plugins.midi.ports import PortSink, choose_api, jack_server_running, match_port
+from stage_plugins.midi.schedule import MidiScheduler
+from stage_plugins.midi.smf import TICKS_PER_S, SmfWriter, varlen
 from stage.clock import ManualClock
 from stage.errors import ConfigError, TransportError
 from stage.events import AllNotesOff, ControlChange, MappingValue, Note, OutputDecl, ProgramChange

@@ -18,7 +18,7 @@ import urllib.request
 import numpy as np
 import pytest
 
-from plugins.monitor.state import event_text, frame_json, normalise_zone, status_json
+from stage_plugins.monitor.state import event_text, frame_json, normalise_zone, status_json
 from stage.clock import ManualClock
 from stage.events import (AllNotesOff, MappingValue, Note, OscOut, SectionChange, TriggerFired,
                           ZoneState)

@@ -17,7 +17,7 @@ import pytest
 from pythonosc import osc_bundle, osc_message
 
 from helpers import LOCALHOST, TIMEOUT_S, Peer, Sensor, free_udp_port, sync
-from plugins.osc.encode import (FrameEncoder, bundles, osc_out_message, piece_event_message)
+from stage_plugins.osc.encode import (FrameEncoder, bundles, osc_out_message, piece_event_message)
 from stage.body import pose
 from stage.clock import ManualClock
 from stage.errors import ConfigError

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from stage.errors import ConfigError
+from stage.errors import ConfigError, MusicError
 from stage.piece import load_piece, loads_piece
-from stage.piece.music import MusicError, parse_chord, parse_pitch, phrase_notes
+from stage.piece.music import parse_chord, parse_pitch, phrase_notes
 from stage.piece.schema import PACKAGE_COPY, PIECES_COPY, main as schema_main, schema_text
 
 REPO = Path(__file__).resolve().parents[1]

@@ -14,11 +14,14 @@ import os
 import re
 import subprocess
 import sys
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import stage
+from stage import DISTRIBUTION
 from stage.body import pose
 from stage.clock import ManualClock
 from stage.frames import FusedFrame
@@ -76,11 +79,12 @@ def site(tmp_path, monkeypatch):
 
 def test_the_built_in_views_are_found_through_entry_points_like_any_plugin():
     found = discover_views()
-    for name, value in (("midi", "plugins.midi:MidiView"), ("osc", "plugins.osc:OscView"),
-                        ("relay", "plugins.relay:RelayView"),
-                        ("monitor", "plugins.monitor:MonitorView")):
+    for name, value in (("midi", "stage_plugins.midi:MidiView"),
+                        ("osc", "stage_plugins.osc:OscView"),
+                        ("relay", "stage_plugins.relay:RelayView"),
+                        ("monitor", "stage_plugins.monitor:MonitorView")):
         info = found[name]
-        assert info.value == value and info.distribution == "stage" and info.loaded, info
+        assert info.value == value and info.distribution == DISTRIBUTION and info.loaded, info
         assert issubclass(info.obj, View) and info.obj.autostart is False
 
 
@@ -89,9 +93,21 @@ def test_pyproject_declares_what_the_installed_metadata_says():
     table = text.split('[project.entry-points."stage.views.v1"]', 1)[1].split("\n[", 1)[0]
     declared = dict(re.findall(r'^(\S+) = "([^"]+)"', table, re.M))
     installed = {name: info.value for name, info in discover_views(load_them=False).items()
-                 if info.distribution == "stage"}
+                 if info.distribution == DISTRIBUTION}
     assert declared == installed, "reinstall (pip install -e .) after editing entry points"
-    assert '"plugins*"' in text.split("[tool.setuptools.packages.find]", 1)[1].split("\n[", 1)[0]
+    # the name importlib.metadata knows stage by ("stage" on PyPI is another project)
+    assert re.search(r'^name = "([^"]+)"', text, re.M).group(1) == DISTRIBUTION != "stage"
+    assert metadata.version(DISTRIBUTION) == stage.__version__
+    # every folder of code or data is installed (scenarios/ has no __init__.py but is read
+    # with importlib.resources), plugins/ under its namespaced name stage_plugins
+    table = text.split("\n[tool.setuptools]\n", 1)[1].split("\n[", 1)[0]
+    listed = set(re.findall(r'"([\w.]+)"', table.split("packages = [", 1)[1].split("]", 1)[0]))
+    folders = {str(p.parent.relative_to(ROOT)).replace(os.sep, ".")
+               for top in ("stage", "plugins") for p in (ROOT / top).rglob("*")
+               if p.is_file() and "__pycache__" not in p.parts}
+    assert listed == {re.sub(r"^plugins\b", "stage_plugins", f) for f in folders}
+    assert re.search(r'^stage_plugins = "plugins"$',
+                     text.split("[tool.setuptools.package-dir]", 1)[1].split("\n[", 1)[0], re.M)
 
 
 def test_third_party_views_load_and_broken_ones_are_reported(site):
@@ -100,7 +116,7 @@ def test_third_party_views_load_and_broken_ones_are_reported(site):
     assert found["wave"].description == "waves at everybody"
     assert found["typo"].error == "ModuleNotFoundError: No module named 'numpyy'"
     assert "is neither a View subclass nor a callable" in found["not-a-view"].error
-    assert found["midi"].distribution == "stage"          # a built-in keeps its name
+    assert found["midi"].distribution == DISTRIBUTION     # a built-in keeps its name
 
 
 def test_a_show_runs_autostart_views_and_goes_on_past_broken_ones(site, caplog, capfd):
@@ -141,11 +157,11 @@ def test_stage_plugins_lists_views_and_sources_with_origin_and_load_state(site):
     assert re.search(r"wave\s+loaded\s+auto\s+stage-wave 0\.1\s+stage_wave:Wave\s+waves at",
                      rows["wave"])
     assert re.search(r"quiet\s+loaded\s+on request\s+stage-wave 0\.1", rows["quiet"])
-    assert re.search(r"midi\s+loaded\s+on request\s+stage 0\.1\.0\s+plugins\.midi:MidiView",
-                     rows["midi"])
+    assert re.search(r"midi\s+loaded\s+on request\s+stage-kuatro 0\.1\.0\s+"
+                     r"stage_plugins\.midi:MidiView", rows["midi"])
     assert re.search(r"typo\s+FAILED\s+stage-broken 0\.1\s+stage_typo:Typo\s+"
                      r"ModuleNotFoundError: No module named 'numpyy'", rows["typo"])
-    assert "name 'midi' is already taken by plugins.midi:MidiView (stage)" in out
+    assert "name 'midi' is already taken by stage_plugins.midi:MidiView (stage-kuatro)" in out
     assert "3 plugin(s) failed to load" in done.stderr     # typo, not-a-view, the second 'midi'
     assert _stage("plugins", "--check", site=site).returncode == 1
     data = json.loads(_stage("plugins", "--json", site=site).stdout)

@@ -9,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from stage.sensors.recording import MAGIC, Record, RecordingError, RecordingWriter, read_recording
+from stage.errors import RecordingError
+from stage.sensors.recording import MAGIC, Record, RecordingWriter, read_recording
 
 
 def _records(n: int, seed: int = 3) -> list[Record]:

@@ -15,11 +15,11 @@ from .healing import LiveCalibrator, LiveEvent, attach_live
 from .live import LiveSettings
 from .methods import METHODS, CalibrationResult, calibrate
 from .offline import RigCalibration, SensorCalibration, calibrate_streams
-from .pairs import CalibrationError, PairSet, find_lag, pair_streams
+from .pairs import PairSet, find_lag, pair_streams
 from .streams import Stream, find_identical_streams, load_recording, streams_from_datagrams
 
 __all__ = ["SIGMA_M", "Evaluation", "evaluate_points", "fitness_from_mse", "LiveCalibrator",
            "LiveEvent", "attach_live", "LiveSettings", "METHODS", "CalibrationResult",
            "calibrate", "RigCalibration", "SensorCalibration", "calibrate_streams",
-           "CalibrationError", "PairSet", "find_lag", "pair_streams", "Stream",
+           "PairSet", "find_lag", "pair_streams", "Stream",
            "find_identical_streams", "load_recording", "streams_from_datagrams"]

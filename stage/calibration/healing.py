@@ -39,13 +39,13 @@ import numpy as np
 
 from ..engine.engine import Engine
 from ..frames import SensorFrame
-from ..errors import StageError
+from ..errors import CalibrationError
 from .fitness import fitness_from_mse
 from .gate import CopyDetector, JumpGate
 from .live import LiveSettings, View, new_pairs, torso_centre
 from .methods import CalibrationResult, calibrate
 from .scoring import grid, score
-from .pairs import CalibrationError, PairSet
+from .pairs import PairSet
 from .worker import EngineWorker
 
 log = logging.getLogger("stage.calibration")

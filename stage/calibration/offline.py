@@ -15,10 +15,11 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..errors import CalibrationError
 from .fitness import fitness_from_mse
 from .graph import Edge, SensorGraph
 from .methods import DEFAULT_PAIRS, calibrate
-from .pairs import CalibrationError, LagSearch, PairSet, find_lag, pair_streams
+from .pairs import LagSearch, PairSet, find_lag, pair_streams
 from .streams import Stream, find_identical_streams
 
 log = logging.getLogger("stage.calibration")

@@ -12,16 +12,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..errors import StageError
+from ..errors import CalibrationError
 from ..joints import JOINT_INDEX, N_JOINTS
 from .fitness import Moments
 from .streams import Stream
 
 SPINE_BASE = JOINT_INDEX["SpineBase"]
-
-
-class CalibrationError(StageError):
-    """Calibration could not produce a transform (too few pairs, degenerate data)."""
 
 
 @dataclass

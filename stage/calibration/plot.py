@@ -5,7 +5,7 @@ the side (z-y), the reference's points, the sensor's raw points (in its own
 space) and the same points calibrated into the reference's space; then the
 fitness of every method on that sensor's pairs over time, as the paper's
 Figure 5 (time in frames of 1/30 s). matplotlib is optional: imported here,
-with a one-line error when it is missing (pip install stage[plot]).
+with a one-line error when it is missing (pip install 'stage-kuatro[plot]').
 """
 
 from __future__ import annotations
@@ -14,13 +14,14 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import StageError
+from .. import install_hint
+from ..errors import CalibrationError, StageError
 from ..joints import JOINT_INDEX
 from .fitness import per_frame_fitness
 from ..geometry import apply
 from .methods import METHODS, calibrate
 from .offline import RigCalibration
-from .pairs import CalibrationError, pair_streams
+from .pairs import pair_streams
 from .streams import Stream
 
 _COLOURS = {"rigid": "#1b6ca8", "regression": "#d1495b", "ga": "#2e933c", "ga3d": "#7a9e3c",
@@ -36,7 +37,7 @@ def plot_calibration(path: str, result: RigCalibration, streams: dict[str, Strea
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise StageError("--plot needs matplotlib (pip install 'stage[plot]')") from None
+        raise StageError(f"--plot needs matplotlib: {install_hint('plot')}") from None
     ref = result.reference
     rows = [s for s, c in result.sensors.items() if s != ref and c.matrix is not None]
     rows = rows[:max_sensors]

@@ -29,7 +29,6 @@ from ..rig import Rig, SensorConfig, load_rig
 from ..geometry import invert
 from ..calibration.methods import DEFAULT_PAIRS, METHODS
 from ..calibration.offline import RigCalibration, calibrate_streams
-from ..calibration.pairs import CalibrationError
 from ..rig import store_reference_transform
 
 log = logging.getLogger("stage.calibration")
@@ -113,13 +112,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         options["seed"] = args.seed
     if args.method == "rigid":
         options.update(robust=args.robust, seed=args.seed)
-    try:
-        result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
-                                   args.max_lag, min_fitness=args.min_fitness,
-                                   refine=not args.no_refine, options=options,
-                                   progress=lambda text: log.info("%s", text))
-    except CalibrationError as exc:
-        raise StageError(str(exc)) from None
+    # a CalibrationError (the data give no transform) leaves as a run-time failure, exit 1
+    result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
+                               args.max_lag, min_fitness=args.min_fitness,
+                               refine=not args.no_refine, options=options,
+                               progress=lambda text: log.info("%s", text))
     for warning in result.warnings:
         log.warning("%s", warning)
     if args.rig:

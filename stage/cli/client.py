@@ -5,13 +5,17 @@ from __future__ import annotations
 import argparse
 import socket
 
+from .. import install_hint
+
 
 def register(sub) -> dict:
     from .main import _hostport, _positive
+    # the description is laid out by hand: argparse would wrap 'stage-kuatro' at its hyphen
     p = sub.add_parser("client", help="run a real sensor (webcam, Kinect v2, Azure Kinect/Orbbec) "
-                       "as a client", description="Send a real sensor's skeletons to a stage "
-                       "server with the Client-to-Server OSC API. Each needs an optional extra: "
-                       "pip install 'stage[webcam]' / 'stage[kinect2]' / 'stage[azure]'.")
+                       "as a client", formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Send a real sensor's skeletons to a stage server with the "
+                       "Client-to-Server OSC API.\nEach sensor needs the optional extra of its "
+                       f"name (likewise kinect2, azure):\n  {install_hint('webcam')}")
     p.add_argument("sensor", choices=("webcam", "kinect2", "azure"))
     p.add_argument("--to", type=_hostport, default=("127.0.0.1", 7770), metavar="HOST:PORT",
                    help="the server (default 127.0.0.1:7770)")

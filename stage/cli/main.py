@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 from pythonosc.osc_message import OscMessage
 
 from .. import __version__
-from ..errors import ConfigError, StageError
+from ..errors import BadInput, StageError
 from ..sensors.protocol import encode_message
 from ..rig import DEFAULT_PORT, Rig, load_rig
 from .args import hostport as _hostport, positive as _positive
@@ -92,7 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"stage: {exc}", file=sys.stderr)
-        return Exit.BAD_INPUT if isinstance(exc, ConfigError) else Exit.FAILURE
+        # the error's class says whose fault it is (stage.errors): the user's input, or the run
+        return Exit.BAD_INPUT if isinstance(exc, BadInput) else Exit.FAILURE
     except KeyboardInterrupt:
         return Exit.INTERRUPTED
     except BrokenPipeError:  # `stage ... | head` closed the pipe: not an error worth a traceback

@@ -33,8 +33,7 @@ def register(sub) -> dict:
     pace.add_argument("--max-speed", action="store_true", help="send as fast as possible")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--list", action="store_true", help="list the built-in scenarios and exit")
-    from ..sensors.recording import as_bad_input
-    return {"sim": as_bad_input(cmd_sim)}
+    return {"sim": cmd_sim}
 
 
 def cmd_sim(args: argparse.Namespace) -> int:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from ..errors import ConfigError
+from ..errors import ConfigError, MusicError
 from ..events import OutputDecl
 from ..joints import GROUPS, JOINT_INDEX, JOINTS, parse_hand_state, suggest_joint
 from ..rig import parse_hostport
@@ -19,7 +19,7 @@ from . import language as L
 from .model import (BODY, Action, Condition, Defaults, Goto, Mapping, Phrase, Piece, Play,
                     PlayNote, Safety, Section, SendCC, SendOsc, SendProgram, Silence, Trigger,
                     Zone, curve_function)
-from .music import MusicError, parse_chord, phrase_notes
+from .music import parse_chord, phrase_notes
 from .spec import did_you_mean
 
 _DIRECTIONS = {"up": (0.0, 1.0, 0.0), "down": (0.0, -1.0, 0.0), "downstage": (0.0, 0.0, 1.0),

@@ -13,15 +13,13 @@ import re
 from dataclasses import dataclass
 from fractions import Fraction
 
+from ..errors import MusicError
+
 _STEPS = {"C": 0, "D": 2, "E": 4, "F": 5, "G": 7, "A": 9, "B": 11}
 _ACCIDENTALS = {"": 0, "#": 1, "##": 2, "b": -1, "bb": -2}
 _PITCH = re.compile(r"([A-Ga-g])(##|#|bb|b)?(-?\d)")
 _DURATION = re.compile(r"(\d+(?:\.\d*)?|\.\d+)(?:/(\d+))?")
 _NAMES = ("C", "C#", "D", "Eb", "E", "F", "F#", "G", "Ab", "A", "Bb", "B")
-
-
-class MusicError(ValueError):
-    """A note or phrase is written wrongly; the message says what was expected."""
 
 
 def parse_pitch(text: str | int) -> int:

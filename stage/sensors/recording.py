@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Callable, Iterator
 
-from ..errors import ConfigError
+from ..errors import ConfigError, RecordingError
 
 log = logging.getLogger("stage.recording")
 
@@ -61,10 +61,6 @@ _CRC = struct.Struct(">I")
 _MAX_RECORD = 1 << 20  # a UDP datagram is at most 64 KiB; anything larger is damage
 RECORD_LAYOUT = ("marker 2s=a5 52, length u32, arrival f64, capture f64 (NaN unknown), "
                  "port u16, hostlen u8, host utf-8, data, crc32 u32 of length..data; big-endian")
-
-
-class RecordingError(ConfigError):
-    """A file is not a stage recording, or cannot be read or written (bad input: exit 2)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -331,23 +327,6 @@ def read_recording(path: str | os.PathLike) -> Recording:
     return Recording(path)
 
 
-def as_bad_input(fn):
-    """Command wrapper: a RecordingError leaves as a plain ConfigError (exit status 2).
-
-    stage.cli maps exactly ConfigError (by class name) to "bad input"; recordings
-    the user names are input like rig and piece files.
-    """
-    import functools
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except RecordingError as exc:
-            raise ConfigError(str(exc)) from None
-    return wrapper
-
-
 def check_output_path(path: str, overwrite: bool = True) -> None:
     """Fail early, with one line, when a recording cannot be written at ``path``."""
     p = Path(path)
@@ -359,5 +338,5 @@ def check_output_path(path: str, overwrite: bool = True) -> None:
         raise ConfigError(f"{path}: exists; choose another name")
 
 
-__all__ = ["Record", "Recording", "RecordingError", "RecordingWriter", "read_recording",
-           "check_output_path", "as_bad_input", "MAGIC", "VERSION"]
+__all__ = ["Record", "Recording", "RecordingWriter", "read_recording", "check_output_path",
+           "MAGIC", "VERSION"]

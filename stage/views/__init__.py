@@ -8,9 +8,9 @@
 
 A view receives fused frames, piece events and engine status on its own
 thread; the host keeps slow or broken views away from the engine. Views are
-installed through the entry-point group ``stage.views.v1`` (built-in ones in
-``plugins/`` exactly like third-party ones). Reference and tutorial:
-docs/views.md.
+installed through the entry-point group ``stage.views.v1`` (the built-in ones,
+in the folder ``plugins/`` installed as ``stage_plugins``, exactly like
+third-party ones). Reference and tutorial: docs/views.md.
 """
 
 from .base import API_VERSION, GROUP, Scene, SensorStatus, Status, View, ViewContext

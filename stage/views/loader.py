@@ -9,10 +9,12 @@ reason and skipped, never fatal.
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Callable
 
+from .. import DISTRIBUTION
 from .base import GROUP, View
 
 log = logging.getLogger("stage.views")
@@ -63,7 +65,7 @@ def entry_points(group: str) -> list[PluginInfo]:
     found: dict[str, PluginInfo] = {}
     duplicates: list[PluginInfo] = []
     points = list(metadata.entry_points(group=group))
-    points.sort(key=lambda e: (e.name, getattr(getattr(e, "dist", None), "name", None) != "stage"))
+    points.sort(key=lambda e: (e.name, not _is_ours(getattr(e, "dist", None))))
     for ep in points:
         dist = getattr(ep, "dist", None)
         info = PluginInfo(group, ep.name, ep.value, dist.name if dist else None,
@@ -76,6 +78,12 @@ def entry_points(group: str) -> list[PluginInfo]:
             continue
         found[ep.name] = info
     return [*found.values(), *duplicates]
+
+
+def _is_ours(dist: metadata.Distribution | None) -> bool:
+    """Whether ``dist`` is stage's own distribution, however its name is spelled (PEP 503)."""
+    name = getattr(dist, "name", None)
+    return name is not None and re.sub(r"[-_.]+", "-", name).lower() == DISTRIBUTION
 
 
 def load(info: PluginInfo, check: Callable[[Any], str | None] | None = None) -> PluginInfo:

@@ -21,8 +21,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ..fitness import evaluate_points
-from ..pairs import CalibrationError, PairSet
+from ..pairs import PairSet
 from .floor import fit_floor
 from .ga import fit_ga, fit_ga3d
 from .regression import fit_regression
@@ -78,4 +79,4 @@ def calibrate(pairs: PairSet, method: str = "rigid", **options: Any) -> Calibrat
                              details, weight)
 
 
-__all__ = ["CalibrationResult", "CalibrationError", "METHODS", "DEFAULT_PAIRS", "calibrate"]
+__all__ = ["CalibrationResult", "METHODS", "DEFAULT_PAIRS", "calibrate"]

@@ -18,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ..fitness import Moments
 from ...geometry import apply, invert, level_matrix, matrix
-from ..pairs import CalibrationError, PairSet
+from ..pairs import PairSet
 from .rigid import kabsch
 
 

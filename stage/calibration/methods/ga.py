@@ -31,9 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ..fitness import Moments, fitness_from_mse
 from ...geometry import apply, euler_matrices, invert, level_matrix, matrix, yaw_matrices
-from ..pairs import CalibrationError, PairSet
+from ..pairs import PairSet
 
 
 @dataclass(frozen=True)

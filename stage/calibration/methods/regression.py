@@ -23,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ...geometry import matrix
-from ..pairs import CalibrationError, PairSet
+from ..pairs import PairSet
 
 
 def fit_regression(pairs: PairSet, reject_m: float = 0.10, rounds: int = 3, min_joints: int = 6,

@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ..fitness import Moments
 from ...geometry import matrix
-from ..pairs import CalibrationError, PairSet
+from ..pairs import PairSet
 
 
 def kabsch(m: Moments, planar: bool = False) -> np.ndarray:

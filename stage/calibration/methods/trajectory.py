@@ -29,8 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from ...errors import CalibrationError
 from ...geometry import matrix, rot_x, rot_y
-from ..pairs import SPINE_BASE, CalibrationError, PairSet
+from ..pairs import SPINE_BASE, PairSet
 
 
 def fit_trajectory(pairs: PairSet, samples: int = 500, min_step_m: float = 0.10,

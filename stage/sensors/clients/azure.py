@@ -2,7 +2,7 @@
 
 Install the Azure Kinect Sensor SDK and Body Tracking SDK (for an Orbbec
 Femto: Orbbec's K4A wrapper, which the same Body Tracking SDK drives), then
-``pip install 'stage[azure]'`` and run ``stage client azure --to
+``pip install 'stage-kuatro[azure]'`` and run ``stage client azure --to
 SERVER:7770 --id femto-a``.
 
 The body tracker reports 32 joints in millimetres in the depth camera's
@@ -59,13 +59,14 @@ def azure_body(body_id: int, positions_mm: np.ndarray, confidence_levels: np.nda
 
 def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
     """Read the body tracker and send until ``stop`` is set (needs the device and SDKs)."""
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
         import pykinect_azure as pykinect
     except ImportError:
         raise StageError("the Azure Kinect / Orbbec client needs the Azure Kinect Sensor and "
-                         "Body Tracking SDKs and pip install 'stage[azure]' (pykinect_azure)"
+                         f"Body Tracking SDKs and pykinect_azure: {install_hint('azure')}"
                          ) from None
     pykinect.initialize_libraries(track_body=True)
     config = pykinect.default_configuration

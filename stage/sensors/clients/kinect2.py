@@ -1,7 +1,7 @@
 """Kinect v2 client (Windows, Kinect for Windows SDK 2.0, through PyKinect2).
 
 Install on the Windows machine the Kinect is plugged into: the Kinect for
-Windows SDK 2.0, then ``pip install 'stage[kinect2]'`` (``pykinect2024``, the
+Windows SDK 2.0, then ``pip install 'stage-kuatro[kinect2]'`` (``pykinect2024``, the
 maintained fork of Microsoft's PyKinect2, imported as ``pykinect2``). Run
 ``stage client kinect2 --to SERVER:7770 --id kinect-a``.
 
@@ -66,13 +66,14 @@ class RelativeClock:
 
 def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
     """Read body frames from the Kinect and send them until ``stop`` is set (Windows only)."""
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
         from pykinect2 import PyKinectRuntime, PyKinectV2
     except ImportError:
         raise StageError("the Kinect v2 client needs Windows, the Kinect for Windows SDK 2.0 and "
-                         "pip install 'stage[kinect2]' (PyKinect2)") from None
+                         f"PyKinect2: {install_hint('kinect2')}") from None
     kinect = PyKinectRuntime.PyKinectRuntime(PyKinectV2.FrameSourceTypes_Body)
     encoder, sender = ClientEncoder(client_id, "kinect2"), UdpSender(target)
     clock = RelativeClock()

@@ -1,7 +1,8 @@
 """Webcam client: MediaPipe pose landmarks mapped onto the 25 Kinect joints.
 
-Anyone with a laptop can be a sensor: ``pip install 'stage[webcam]'`` then
-``stage client webcam --to HOST:7770``. MediaPipe gives 33 landmarks twice:
+Anyone with a laptop can be a sensor: ``pip install 'stage-kuatro[webcam]'``
+(in a checkout: ``pip install -e '.[webcam]'``) then ``stage client webcam
+--to HOST:7770``. MediaPipe gives 33 landmarks twice:
 normalised image coordinates, and "world" coordinates in metres centred on
 the hips (x to the image's right, y down, z away from the camera). A single
 camera has no depth, so the hips' distance is estimated with the pinhole
@@ -146,11 +147,12 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
         model: str | None = None, show: bool = False, stop=None) -> None:  # pragma: no cover
     """Capture from a webcam and send the Client-to-Server API until ``stop`` is set.
 
-    Needs ``mediapipe`` and ``opencv-python`` (``pip install 'stage[webcam]'``).
+    Needs ``mediapipe`` and ``opencv-python`` (``pip install 'stage-kuatro[webcam]'``).
     Uses MediaPipe's legacy ``solutions.pose`` (model inside the package)
     when present, else the Tasks API with the ``pose_landmarker`` model file
     given as ``model`` (download it once; nothing is downloaded at run time).
     """
+    from ... import install_hint
     from ...errors import StageError
     from .osc import ClientEncoder, UdpSender
     try:
@@ -158,7 +160,7 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
         import mediapipe as mp
     except ImportError as exc:
         raise StageError(f"the webcam client needs mediapipe and opencv-python ({exc.name} is "
-                         "missing): pip install 'stage[webcam]'") from None
+                         f"missing): {install_hint('webcam')}") from None
     cap = cv2.VideoCapture(camera_index)
     if not cap.isOpened():
         raise StageError(f"cannot open camera {camera_index}")

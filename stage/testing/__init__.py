@@ -1,0 +1,1 @@
+"""Helpers for tests and benchmarks (dummy JACK servers, scripted bodies); never used by a show."""
