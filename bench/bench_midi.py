@@ -144,7 +144,7 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
 def _start_demo(host):
     """The demo engine (3 virtual Kinects, real UDP) in this process, feeding the host."""
     from stage.demo import DemoSource, demo_rig
-    from stage.sensors.receiver import Server
+    from stage.app.server import Server
     rig, sensors = demo_rig(3)
     server = Server(rig, host="127.0.0.1").start()
     host.attach(server.engine)

@@ -2,7 +2,7 @@
 
 Makes a recording of D seconds with the simulator (3 sensors x 1 person, the
 default scenario; and 6 x 6, the crowd scenario, for information), then
-replays it R times with `stage.replay.replay_offline` into a fresh Engine
+replays it R times with `stage.app.offline.replay_offline` into a fresh Engine
 with the recording's exact rig: decode, clock-offset estimation, calibration,
 association, fusion with outlier rejection, Kalman smoothing, hand votes and
 the per-tick housekeeping. No network, no sleeping. Prints per configuration
@@ -28,7 +28,8 @@ import statistics
 import tempfile
 import time
 
-from stage.sensors.replay import fused_json, offline_engine, replay_offline
+from stage.app.offline import offline_engine, replay_offline
+from stage.frames import fused_json
 from stage.sensors.sim import Simulator
 
 CONFIGS = {"3x1": "default", "6x6": "crowd"}

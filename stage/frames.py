@@ -48,3 +48,13 @@ class FusedFrame:
     updated: tuple[int, ...]
     new: tuple[int, ...]
     lost: tuple[int, ...]
+
+
+def fused_json(frame) -> dict:
+    """A FusedFrame as plain JSON (floats kept exact: json writes the shortest repr)."""
+    return {"t": frame.t, "updated": list(frame.updated), "new": list(frame.new),
+            "lost": list(frame.lost),
+            "bodies": {str(pid): {"joints": b.joints.tolist(), "conf": b.conf.tolist(),
+                                  "hands": [int(b.hands[0]), int(b.hands[1])],
+                                  "position": b.position.tolist(), "sensors": list(b.sensors)}
+                       for pid, b in sorted(frame.bodies.items())}}

@@ -30,6 +30,7 @@ import yaml
 
 from .errors import ConfigError
 from .geometry import invert
+from .network import parse_hostport
 from .settings import ClientSettings, FusionSettings, KalmanSettings
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
@@ -115,14 +116,6 @@ def set_calibration(rig: Rig, sensor: str, matrix: np.ndarray, method: str,
     now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
     config = rig.sensors.setdefault(sensor, SensorConfig(sensor))
     config.calibration = Calibration(np.asarray(matrix, dtype=float), method, fitness, rms_m, now)
-
-
-def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
-    """'host:port' or 'port' -> (host, port); ValueError with a readable message."""
-    host, _, port = str(text).rpartition(":")
-    if not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise ValueError(f"'{text}' is not HOST:PORT with a port from 1 to 65535")
-    return host or default_host, int(port)
 
 
 def load_rig(path: str) -> Rig:

@@ -12,6 +12,7 @@ import threading
 import numpy as np
 import pytest
 
+from stage.app.offline import feed
 from stage.body import SensorPose, observe_with_errors, ring_of_sensors
 from stage.geometry import invert, transform_error
 from stage.calibration.healing import attach_live
@@ -316,7 +317,7 @@ def _sim_run(bump_deg: float | None):
                                                             axis=1).mean()), body.sensors))
     engine.listeners.append(listen)
     cal = attach_live(engine, None, threaded=False)
-    sim.feed(engine, clock, 16.0)
+    feed(engine, clock, sim.stream(16.0), until=16.0)
     return sim, cal, fused
 
 

@@ -23,7 +23,7 @@ from stage.joints import HandState
 from stage.sensors.protocol import (FloorPlane, JointCoordinates, LostUser, NewUser,
                                     RegisterDevice, decode_datagram)
 from stage.rig import Rig
-from stage.sensors.receiver import Server
+from stage.app.server import Server
 
 
 def body(key, x=0.0, z=3.0) -> BodyFrame:

@@ -20,7 +20,7 @@ from helpers import LOCALHOST, TIMEOUT_S, Peer, free_udp_port, query_stats
 from stage.body import pose
 from stage.joints import JOINT_INDEX
 from stage.rig import Rig
-from stage.sensors.receiver import Server
+from stage.app.server import Server
 
 pytestmark = pytest.mark.integration
 

@@ -25,7 +25,7 @@ from stage.events import (MappingValue, Note, OscOut, OutputDecl, SectionChange,
                           ZoneState)
 from stage.joints import HandState
 from stage.rig import Rig
-from stage.sensors.receiver import Server
+from stage.app.server import Server
 from stage.views import Status, ViewHost
 from test_views import make_body, make_frame
 

@@ -24,7 +24,7 @@ from stage.joints import JOINT_INDEX
 from stage.sensors.protocol import (HandStateMsg, JointCoordinates, LostUser, NewUser,
                                     RegisterDevice, decode_datagram)
 from stage.rig import Rig
-from stage.sensors.receiver import Server
+from stage.app.server import Server
 from stage.views import Status, ViewHost
 from test_views import make_body, make_frame
 

@@ -5,21 +5,24 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
 import pytest
 from helpers import free_udp_port, query_stats
 
-from stage.clock import ManualClock, MonotonicClock
+from stage.clock import ManualClock
 from stage.engine.engine import Engine
 from stage.sensors.protocol import JointCoordinates, decode_datagram, encode_bundle, encode_message
 from stage.sensors.recording import RecordingWriter, read_recording
-from stage.sensors.replay import (ReplaySource, _retimed, fused_json, offline_engine,
-                                  replay_offline, rig_from_meta)
-from stage.sensors.receiver import Server
+from stage.app.offline import feed, offline_engine, replay_offline
+from stage.app.server import Server
+from stage.frames import fused_json
+from stage.sensors.replay import ReplaySource, _retimed, rig_from_meta
 from stage.sensors.sim import Simulator
 
 
@@ -38,7 +41,7 @@ def live_run(tmp_path_factory):
     engine = Engine(sim.rig(), clock)
     log = fused_log(engine)
     with RecordingWriter(path, sim.meta()) as writer:
-        sim.feed(engine, clock, 12.0, recorder=writer)
+        feed(engine, clock, sim.stream(12.0), until=12.0, recorder=writer)
     return path, log, engine
 
 
@@ -98,24 +101,43 @@ def test_retiming_moves_bundle_timetags_only():
     assert _retimed(immediate, lambda t: t + 1) == immediate
 
 
-def test_looping_in_process_keeps_sensor_clocks_going_forward(live_run):
-    engine = Engine(clock=MonotonicClock())
-    source = ReplaySource(live_run[0], engine=engine, speed=float("inf"), loop=True).start()
+@pytest.mark.integration
+def test_looping_keeps_sensor_clocks_going_forward(live_run):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(0.5)
+    got: list[bytes] = []
+    done = threading.Event()
+
+    def receive() -> None:  # a real UDP peer reading everything the replay sends
+        while not done.is_set():
+            try:
+                got.append(sock.recvfrom(65536)[0])
+            except socket.timeout:
+                continue
+    reader = threading.Thread(target=receive, daemon=True)
+    reader.start()
+    source = ReplaySource(live_run[0], speed=float("inf"), loop=True).start(sock.getsockname())
     deadline = time.monotonic() + 10.0
     while source.loops < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
     source.stop()
+    time.sleep(0.2)
+    done.set()
+    reader.join(2.0)
+    sock.close()
     assert source.loops >= 2
     last: dict[str, float] = {}
     n = 0
-    while not engine.queue.empty():
-        item = engine.queue.get_nowait()
-        client = getattr(item.message, "client", None)
-        if item.timetag is None or client is None:
-            continue
-        assert item.timetag >= last.get(client, -1.0), client
-        last[client] = item.timetag
-        n += 1
+    for data in got:
+        for message, timetag in decode_datagram(data).messages:
+            client = getattr(message, "client", None)
+            if timetag is None or client is None:
+                continue
+            assert timetag >= last.get(client, -1.0), client
+            last[client] = timetag
+            n += 1
     assert n > 2 * 1000
 
 
@@ -126,7 +148,7 @@ def test_real_time_replay_over_udp_reaches_a_server(live_run):
     rig.port = 0
     with Server(rig, host="127.0.0.1") as server:
         started = time.monotonic()
-        source = ReplaySource(path, target=server.address, speed=6.0).start()
+        source = ReplaySource(path, speed=6.0).start(server.address)
         assert source.wait(10.0)
         elapsed = time.monotonic() - started
         stats = query_stats(server.address)
@@ -152,7 +174,6 @@ def test_stage_record_killed_loses_at_most_the_last_second(tmp_path):
     try:
         line = proc.stdout.readline().decode()
         assert "stage record" in line, line + proc.stderr.read().decode()
-        import socket
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sent = []
         for k in range(40):

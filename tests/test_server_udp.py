@@ -17,7 +17,7 @@ from stage.joints import JOINTS, TORSO
 from stage.sensors.protocol import encode_client_joints, encode_message
 from stage.settings import ClientSettings, FusionSettings
 from stage.rig import Rig, set_calibration
-from stage.sensors.receiver import Server
+from stage.app.server import Server
 
 pytestmark = pytest.mark.integration
 

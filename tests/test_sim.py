@@ -8,6 +8,7 @@ import textwrap
 import numpy as np
 import pytest
 
+from stage.app.offline import feed
 from stage.clock import ManualClock
 from stage.engine.engine import Engine
 from stage.joints import JOINT_INDEX as J
@@ -321,7 +322,7 @@ def test_the_exact_rig_puts_every_sensor_on_the_truth():
     rig.smoothing_enabled = False
     clock = ManualClock(0.0)
     engine = Engine(rig, clock)
-    sim.feed(engine, clock, 2.0)
+    feed(engine, clock, sim.stream(2.0), until=2.0)
     body = next(iter(engine.bodies().values()))
     assert len(body.sensors) == 3
     truth = sim.truth(2.0)["p"][0]

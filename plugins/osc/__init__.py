@@ -30,7 +30,7 @@ from typing import Any, Sequence
 from stage.frames import FusedFrame
 from stage.errors import ConfigError
 from stage.events import Event, OscOut, OutputDecl
-from stage.rig import parse_hostport
+from stage.network import parse_hostport
 from stage.views import Status, View, ViewContext
 
 from .encode import FrameEncoder, bundles, event_json_message, osc_out_message, piece_event_message

@@ -26,7 +26,7 @@ from typing import Any
 from stage.frames import FusedFrame
 from stage.errors import ConfigError
 from stage.sensors.protocol import MAX_USER_ID, encode_bundle, encode_client_joints, encode_message
-from stage.rig import parse_hostport
+from stage.network import parse_hostport
 from stage.views import Status, View, ViewContext
 
 SENSOR_TYPE = "stage-relay"

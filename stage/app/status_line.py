@@ -12,7 +12,7 @@ from ..joints import JOINT_INDEX
 _HEAD = JOINT_INDEX["Head"]
 
 
-class ConsoleStatus:
+class StatusLine:
     """Engine listener printing a status line at most every ``every_s`` seconds."""
 
     def __init__(self, engine: Engine, every_s: float = 1.0, out: TextIO | None = None,
@@ -50,6 +50,6 @@ class ConsoleStatus:
 
 
 def attach(engine: Engine, **kwargs) -> Callable[[FusedFrame], None]:
-    status = ConsoleStatus(engine, **kwargs)
+    status = StatusLine(engine, **kwargs)
     engine.listeners.append(status)
     return status

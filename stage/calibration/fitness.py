@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import matrix
+
 #: Scale of the fitness map, metres (see module docstring).
 SIGMA_M = 0.10
 
@@ -120,3 +122,20 @@ class Moments:
 
     def mse_of(self, m: np.ndarray) -> float:
         return float(self.mse(m[:3, :3], m[:3, 3]))
+
+
+def kabsch(m: Moments, planar: bool = False) -> np.ndarray:
+    """The rigid 4x4 minimising the weighted squared error of the moments' pairs.
+
+    planar: rotation about y only (sensors already level); the vertical
+    offset is still solved.
+    """
+    if planar:
+        yaw = np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2])
+        c, s = np.cos(yaw), np.sin(yaw)
+        r = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+    else:
+        u, _, vt = np.linalg.svd(m.C)
+        d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a reflection is never a sensor pose
+        r = u @ np.diag([1.0, 1.0, d]) @ vt
+    return matrix(r, m.qbar - r @ m.pbar)

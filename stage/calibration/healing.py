@@ -155,6 +155,12 @@ class LiveCalibrator(EngineWorker):
         self._send()
         return seen
 
+    @property
+    def reference(self) -> str | None:
+        """The engine's reference sensor, as last seen on the engine thread (any thread)."""
+        with self._lock:
+            return self._reference
+
     def states(self) -> dict[str, dict]:
         """sensor -> {state, fitness, reason, progress} (a copy, any thread)."""
         with self._lock:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import CalibrationError
 from ..joints import JOINT_INDEX, N_JOINTS
-from .fitness import Moments
+from .fitness import Moments, kabsch
 from .streams import Stream
 
 SPINE_BASE = JOINT_INDEX["SpineBase"]
@@ -168,7 +168,6 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
     more than ``prefer_zero`` (2 %). ``max_frames`` reference frames, spread
     over the stream, keep the search fast.
     """
-    from .methods.rigid import kabsch  # here to keep pairs free of method imports
 
     usable = np.flatnonzero(ref.finite() & ref.single_user())
     if len(usable) > max_frames:

@@ -30,12 +30,12 @@ from ..geometry import invert
 from ..calibration.methods import DEFAULT_PAIRS, METHODS
 from ..calibration.offline import RigCalibration, calibrate_streams
 from ..rig import store_reference_transform
+from .common import Exit, port as _port, positive as _positive
 
 log = logging.getLogger("stage.calibration")
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
-    from .main import _positive
     p = sub.add_parser(
         "calibrate", help="calibrate the sensors from a recording (or live) into the rig",
         description="Find each sensor's transform into the reference sensor's space from "
@@ -71,14 +71,13 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     p.add_argument("--sensor", action="append", default=[], metavar="ID",
                    help="--live: only these sensors (repeatable; default all but the reference)")
     p.add_argument("--host", help="--live: address to listen on (default: the rig's)")
-    p.add_argument("--port", type=int, help="--live: UDP port (default: the rig's, else 7770)")
+    p.add_argument("--port", type=_port, help="--live: UDP port (default: the rig's, else 7770)")
     p.add_argument("--timeout", type=_positive, default=120.0, metavar="S",
                    help="--live: give up after S seconds (default 120)")
     return {"calibrate": cmd_calibrate}
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .main import Exit
     if args.live:
         if args.recording:
             raise ConfigError("give a recording or --live, not both")
@@ -201,35 +200,36 @@ def _print_table(result: RigCalibration) -> None:
 
 
 def _live(args: argparse.Namespace) -> int:
-    from .main import Exit, StopSignals
-    from ..sensors.receiver import Server
-    from ..calibration.healing import attach_live
+    from ..app.show import Show, ShowOptions
+    from ..app.signals import StopSignals
     from ..calibration.live import LiveSettings
-    rig = _load_rig(args.rig) or Rig(path=args.rig)
+    _load_rig(args.rig)  # a rig file that cannot be written fails now, with one line
     pairs = args.pairs or DEFAULT_PAIRS.get(args.method, 300)
-    try:
-        server = Server(rig, host=args.host, port=args.port)
-    except TransportError as exc:
-        raise StageError(f"{exc} (is `stage serve` running? stop it, or use --port)") from None
     settings = LiveSettings(method=args.method, pairs=pairs)
-    calibrator = attach_live(server.engine, args.rig, settings)
-    calibrator.request(args.sensor or None, pairs)
-    print(f"stage calibrate: listening on udp {server.address[0]}:{server.address[1]}; walk "
-          f"where the sensors overlap, one person at a time. Ctrl-C stops.", file=sys.stderr,
-          flush=True)
-    done: dict[str, Any] = {}
-    with StopSignals() as stop:
-        server.start()
+    opts = ShowOptions(rig=args.rig, create_rig=True, host=args.host, port=args.port,
+                       calibration=settings, plugins=False)
+    with StopSignals() as signals:
+        show = Show(opts, stop_event=signals.event)
+        try:
+            show.start()
+        except TransportError as exc:
+            raise StageError(f"{exc} (is `stage serve` running? stop it, or use --port)") from None
+        calibrator = show.calibrator
+        assert calibrator is not None and show.address is not None
+        calibrator.request(args.sensor or None, pairs)
+        print(f"stage calibrate: listening on udp {show.address[0]}:{show.address[1]}; walk "
+              f"where the sensors overlap, one person at a time. Ctrl-C stops.", file=sys.stderr,
+              flush=True)
+        done: dict[str, Any] = {}
         deadline = time.monotonic() + args.timeout
         try:
-            while not stop.event.is_set() and time.monotonic() < deadline:
-                stop.wait(1.0)
+            while not signals.event.is_set() and time.monotonic() < deadline:
+                signals.wait(1.0)
                 for event in list(calibrator.events):
                     if event.kind == "calibrated" and event.sensor not in done:
                         done[event.sensor] = event
                 states = calibrator.states()
-                reference = server.engine.reference
-                wanted = args.sensor or [s for s in states if s != reference]
+                wanted = args.sensor or [s for s in states if s != calibrator.reference]
                 line = "; ".join(f"{s}: {states[s].get('state')} "
                                  f"{states[s].get('progress', '')}".strip()
                                  for s in wanted if s in states)
@@ -238,9 +238,10 @@ def _live(args: argparse.Namespace) -> int:
                 if wanted and all(s in done for s in wanted):
                     break
         finally:
-            calibrator.stop()
-            server.stop()
-    reference = server.engine.reference
+            show.stop()
+    # the show has stopped: the engine thread no longer owns the rig, we may read it
+    rig = show.rig
+    reference = rig.reference if rig.reference is not None else show.engine.reference
     frame = rig.stage_frame
     out = {}
     for sid, event in done.items():
@@ -260,6 +261,8 @@ def _live(args: argparse.Namespace) -> int:
         for sid, entry in out.items():
             print(f"{sid}: fitness {entry['fitness']}, written to {args.rig or '(no rig file)'}")
     missing = [s for s in wanted if s not in done]
+    if signals.received:
+        return Exit.INTERRUPTED
     if missing or not wanted:
         print(f"stage: not calibrated: {', '.join(missing) or 'no sensor besides the reference'}"
               " (was one person visible to it and a calibrated sensor?)", file=sys.stderr)

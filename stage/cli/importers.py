@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 
 from ..errors import ConfigError
+from .common import Exit, positive as _positive
 
 
 def register(sub) -> dict:
-    from .main import _positive
     p = sub.add_parser("import", help="turn dataset files (NTU RGB+D, N-UCLA, BVH) into a "
                        "recording", description="Import skeleton data into a stage recording; "
                        "several cameras of one take become one multi-sensor recording.")
@@ -28,7 +28,6 @@ def register(sub) -> dict:
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from .main import Exit
     from ..sensors.recording import read_recording
     if args.format == "ntu":
         from ..sensors.importers.ntu import import_ntu

@@ -8,13 +8,7 @@ import sys
 from typing import Callable
 
 from ..errors import ConfigError
-from .args import hostport as _hostport, positive as _positive
-
-
-def _port(text: str) -> int:
-    if not text.isdigit() or not 0 <= int(text) <= 65535:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a UDP port (0-65535)")
-    return int(text)
+from .common import Exit, hostport as _hostport, port as _port, positive as _positive
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
@@ -54,6 +48,14 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     play.add_argument("--offline", action="store_true",
                       help="--sim/--replay: run ahead of time on a manual clock (no waiting); "
                            "with --midi-file renders the rehearsal")
+    play.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+                      help="also send fused bodies to this view (Server-to-View OSC, repeatable)")
+    play.add_argument("--no-self-healing", action="store_true",
+                      help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
+    play.add_argument("--no-plugins", action="store_true",
+                      help="do not run the installed third-party views")
+    play.add_argument("--fused", metavar="OUT.jsonl",
+                      help="write every fused frame as a JSON line (exact floats)")
     return {"check": cmd_check, "play": cmd_play}
 
 
@@ -78,13 +80,15 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_play(args: argparse.Namespace) -> int:
-    from .main import StopSignals
     from ..app.play import PlayOptions, Player
+    from ..app.signals import StopSignals
     opts = PlayOptions(piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
                        host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
                        osc=list(args.osc), seed=args.seed, duration=args.duration,
                        events=args.events, monitor=args.monitor, offline=args.offline,
-                       speed=args.speed)
-    with StopSignals() as stop:
-        Player(opts, stop_event=stop.event).run()
-    return 0
+                       speed=args.speed, views=list(args.view),
+                       self_healing=not args.no_self_healing, plugins=not args.no_plugins,
+                       fused=args.fused)
+    with StopSignals() as signals:
+        Player(opts, stop_event=signals.event).run()
+    return Exit.INTERRUPTED if signals.received else Exit.OK

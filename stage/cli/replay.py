@@ -8,19 +8,17 @@ import socket
 import time
 
 from ..errors import ConfigError
-from ..rig import load_rig
-from ..sensors.recording import read_recording
-from ..sensors.replay import ReplaySource, fused_json, offline_engine, replay_offline
+from ..sensors.replay import ReplaySource
+from .common import Exit, hostport as _hostport, port as _port, positive as _positive
 
 log = logging.getLogger("stage.replay")
 
 
 def register(sub) -> dict:
     """``stage record`` and ``stage replay``."""
-    from .main import _hostport, _positive
     rec = sub.add_parser("record", help="record every sensor datagram to a file (crash-safe)")
     rec.add_argument("--out", required=True, metavar="FILE", help="the recording to write")
-    rec.add_argument("--port", type=int, default=7770, help="UDP port to listen on (default 7770)")
+    rec.add_argument("--port", type=_port, default=7770, help="UDP port to listen on (default 7770)")
     rec.add_argument("--host", default="0.0.0.0", help="address to listen on (default 0.0.0.0)")
     rec.add_argument("--forward", type=_hostport, metavar="HOST:PORT",
                      help="also pass every datagram on to a server (one socket per sensor)")
@@ -40,11 +38,13 @@ def register(sub) -> dict:
     rep.add_argument("--rig", help="rig for --offline (default: the one stored in the recording)")
     rep.add_argument("--fused", metavar="OUT", help="with --offline: write the fused frames as "
                      "JSON lines (exact floats) to OUT")
+    rep.add_argument("--no-self-healing", action="store_true",
+                     help="with --offline: no live calibration (as `stage serve --no-self-healing`)")
     return {"record": cmd_record, "replay": cmd_replay}
 
 
 def cmd_record(args) -> int:
-    from .main import Exit, StopSignals
+    from ..app.signals import StopSignals
     from ..sensors.recording import RecordingWriter, check_output_path
     from ..sensors.receiver import open_udp
     check_output_path(args.out)
@@ -86,55 +86,49 @@ def cmd_record(args) -> int:
                 out.close()
     print(f"stage record: {n} datagram(s) from {len(senders)} sender(s) written to {args.out}",
           flush=True)
-    return Exit.OK
+    return Exit.INTERRUPTED if stop.received else Exit.OK
 
 
 def cmd_replay(args) -> int:
-    from .main import Exit, StopSignals
+    from ..app.signals import StopSignals
     speed = math.inf if args.max_speed else args.speed
     if args.offline:
         if args.to is not None or args.loop:
             raise ConfigError("--offline runs the engine here: it takes no --to or --loop")
         return _replay_offline_cmd(args)
-    if args.rig or args.fused:
-        raise ConfigError("--rig and --fused go with --offline")
+    if args.rig or args.fused or args.no_self_healing:
+        raise ConfigError("--rig, --fused and --no-self-healing go with --offline")
     target = args.to or ("127.0.0.1", 7770)
-    source = ReplaySource(args.file, target=target, speed=speed, loop=args.loop)
-    info = source.recording.scan()
+    source = ReplaySource(args.file, speed=speed, loop=args.loop)
+    info = source.info()
     print(f"stage replay: {args.file}: {info['records']} datagram(s), {info['duration_s']:.1f} s, "
           f"{len(info['sources'])} sender(s) -> udp {target[0]}:{target[1]} at "
           f"{'max speed' if args.max_speed else f'{speed:g}x'}"
           f"{', looping' if args.loop else ''}; Ctrl-C stops", flush=True)
     with StopSignals() as stop:
-        source.start()
+        source.start(target)
         while not stop.event.is_set() and not source.done.is_set():
             stop.event.wait(0.2)
         source.stop()
     print(f"stage replay: sent {source.sent} datagram(s)"
           + (f", {source.loops} loop(s)" if args.loop else ""), flush=True)
-    return Exit.OK
+    return Exit.INTERRUPTED if stop.received else Exit.OK
 
 
 def _replay_offline_cmd(args) -> int:
-    import json
-    from .main import Exit, _summary
-    rig = load_rig(args.rig) if args.rig else None
-    engine, clock = offline_engine(args.file, rig)
-    out = open(args.fused, "w", encoding="utf-8") if args.fused else None
-    if out is not None:
-        engine.listeners.append(lambda frame: out.write(json.dumps(fused_json(frame)) + "\n"))
+    """The engine here on a manual clock: the same show `stage play --replay --offline` runs."""
+    from ..app.show import Show, ShowOptions, summary
+    opts = ShowOptions(replay=args.file, offline=True, rig=args.rig, fused=args.fused,
+                       self_healing=not args.no_self_healing, plugins=False)
+    show = Show(opts)
+    info = show.source.info()  # type: ignore[union-attr]
     started = time.perf_counter()
-    try:
-        n = replay_offline(args.file, engine, clock)
-    finally:
-        if out is not None:
-            out.close()
+    result = show.run()
     elapsed = time.perf_counter() - started
-    info = read_recording(args.file).scan()
     ratio = info["duration_s"] / elapsed if elapsed > 0 else math.inf
-    print(f"stage replay: {n} datagram(s), {info['duration_s']:.1f} s of recording in "
-          f"{elapsed:.2f} s ({ratio:.0f}x real time); {_summary(engine.stats())}; "
-          f"{len(engine.persons)} person(s) at the end", flush=True)
+    print(f"stage replay: {result.datagrams_fed} datagram(s), {info['duration_s']:.1f} s of "
+          f"recording in {elapsed:.2f} s ({ratio:.0f}x real time); {summary(result.stats)}; "
+          f"{len(show.engine.persons)} person(s) at the end", flush=True)  # type: ignore[union-attr]
     if info["ignored_bytes"]:
         print(f"stage replay: {info['ignored_bytes']} byte(s) after the last whole record "
               "ignored (a cut recording)", flush=True)

@@ -7,10 +7,10 @@ import math
 import time
 
 from ..errors import ConfigError
+from .common import Exit, hostport as _hostport, positive as _positive
 
 
 def register(sub) -> dict:
-    from .main import _hostport, _positive
     p = sub.add_parser("sim", help="virtual Kinects watching scripted performers (UDP or recording)",
                        description="Run a simulator scenario. Without --out it sends to a server "
                        "over UDP (default 127.0.0.1:7770) in real time; with --out alone it writes "
@@ -37,7 +37,7 @@ def register(sub) -> dict:
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from .main import Exit, StopSignals
+    from ..app.signals import StopSignals
     from ..sensors.recording import RecordingWriter, check_output_path
     from ..sensors.sim.scenario import builtin_names, load_scenario
     from ..sensors.sim.simulator import Simulator
@@ -91,4 +91,4 @@ def cmd_sim(args: argparse.Namespace) -> int:
             writer.close()
     print(f"stage sim: sent {n} datagram(s)" + (f", recorded to {args.out}" if args.out else ""),
           flush=True)
-    return Exit.OK
+    return Exit.INTERRUPTED if stop.received else Exit.OK

@@ -16,14 +16,15 @@ from typing import Callable
 
 from ..errors import StageError
 from ..views.base import GROUP
-from ..views.host import MONITOR_PORT, ViewHost
+from ..views.host import MONITOR_PORT
 from ..views.loader import GROUPS, PluginInfo, discover_all
+from .common import Exit, hostport, port
 
 log = logging.getLogger("stage.views")
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
-    from .main import _hostport, _positive  # the CLI's own argument types
+    from .serve import add_show_options
     plugins = sub.add_parser("plugins", help="list installed views and sources and whether they load")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     plugins.add_argument("--check", action="store_true",
@@ -32,8 +33,8 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     mon = sub.add_parser("monitor", help="the server with the live web monitor (and installed views)")
     mon.add_argument("--rig", help="rig file (sensors, calibration, views, settings)")
     mon.add_argument("--host", help="address to listen on for sensors (default: rig's)")
-    mon.add_argument("--port", type=int, help="UDP port for sensors (default: rig's, else 7770)")
-    mon.add_argument("--http", type=int, default=MONITOR_PORT, metavar="PORT",
+    mon.add_argument("--port", type=port, help="UDP port for sensors (default: rig's, else 7770)")
+    mon.add_argument("--http", type=port, default=MONITOR_PORT, metavar="PORT",
                      help=f"the monitor's web port on localhost (default {MONITOR_PORT}; 0: any)")
     mon.add_argument("--bind", default="127.0.0.1", metavar="ADDRESS",
                      help="serve the page on this address (default 127.0.0.1; 0.0.0.0 shows it "
@@ -41,15 +42,11 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     mon.add_argument("--demo", type=int, nargs="?", const=3, choices=range(1, 7), metavar="N",
                      help="feed the engine with N virtual Kinects around one dancer (default 3)")
     mon.add_argument("--seed", type=int, default=1, help="the demo's seed")
-    mon.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
-                     help="also stream fused bodies to this OSC view (repeatable)")
-    mon.add_argument("--osc", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+    mon.add_argument("--osc", action="append", type=hostport, default=[], metavar="HOST:PORT",
                      help="the OSC view: bodies and piece events to this target (repeatable)")
-    mon.add_argument("--relay", action="append", type=_hostport, default=[], metavar="HOST:PORT",
+    mon.add_argument("--relay", action="append", type=hostport, default=[], metavar="HOST:PORT",
                      help="relay fused bodies to another stage server (repeatable)")
-    mon.add_argument("--no-plugins", action="store_true",
-                     help="do not run the installed third-party views")
-    mon.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
+    add_show_options(mon)
     return {"plugins": cmd_plugins, "monitor": cmd_monitor}
 
 
@@ -59,7 +56,6 @@ def _origin(info: PluginInfo) -> str:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from .main import Exit
     found = discover_all()
     failed = [i for infos in found.values() for i in infos if not i.loaded]
     if args.json:
@@ -95,50 +91,35 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-    from .main import Exit, StopSignals, _summary
-    from ..rig import Rig, load_rig
-    from ..sensors.receiver import Server
-    source = None
+    from ..app.show import Show, summary
+    from ..app.signals import StopSignals
+    from .serve import show_options
+    fields: dict = {"monitor": args.http, "monitor_bind": args.bind, "osc": list(args.osc),
+                    "relay": list(args.relay)}
     if args.demo:
-        from ..demo import DemoSource, demo_rig
-        rig, sensors = demo_rig(args.demo, args.port or 0)
-        server = Server(rig, host="127.0.0.1")
+        fields.update(sim="demo", source_options={"sensors": args.demo}, seed=args.seed,
+                      host="127.0.0.1", port=args.port or 0)
     else:
-        rig = load_rig(args.rig) if args.rig else Rig()
-        server = Server(rig, host=args.host, port=args.port)
-    for view in args.view:
-        if view not in server.engine.views:
-            server.engine.views.append(view)
-    try:
-        host = ViewHost.for_play([], osc=args.osc, monitor=args.http, relay=args.relay,
-                                 plugins=not args.no_plugins, monitor_host=args.bind,
-                                 clock=server.clock)
-    except BaseException:
-        server.sock.close()
-        raise
-    host.attach(server.engine)
-    with StopSignals() as stop:
-        server.start()
-        host.start()
+        fields.update(rig=args.rig, host=args.host, port=args.port)
+    with StopSignals() as signals:
+        show = Show(show_options(args, **fields), stop_event=signals.event)
+        show.start()
         try:
-            if host.monitor_url is None:
-                slot = next((s for s in host.slots if s.name == "monitor"), None)
+            host = show.host
+            url = host.monitor_url if host is not None else None
+            if url is None:
+                slot = next((s for s in host.slots if s.name == "monitor"), None) if host else None
                 why = (slot.error or "").split(": ", 2)[-1] if slot is not None else (
                     "the monitor plugin is not installed (see `stage plugins`)")
                 raise StageError(f"the monitor did not start: {why}")
-            address = f"{server.address[0]}:{server.address[1]}"
-            print(f"stage monitor: open {host.monitor_url} in a browser; sensors and views on "
-                  f"udp {address}. Ctrl-C stops.", flush=True)
+            address = f"{show.address[0]}:{show.address[1]}"
+            print(f"stage monitor: open {url} in a browser; sensors and views on udp "
+                  f"{address}. Ctrl-C stops.", flush=True)
             for line in host.summary():
                 if not line.startswith("monitor"):
                     log.info("view %s", line)
-            if args.demo:
-                source = DemoSource(server.address, sensors, seed=args.seed).start()
-            stop.wait(args.duration)
+            show.wait()
         finally:
-            if source is not None:
-                source.stop()
-            host.stop()
-            server.stop()
-            print(f"stage monitor: done; {_summary(server.engine.stats())}", flush=True)
-    return Exit.OK
+            result = show.stop()
+        print(f"stage monitor: done; {summary(result.stats)}", flush=True)
+    return Exit.INTERRUPTED if signals.received else Exit.OK

@@ -46,6 +46,10 @@ from .tracking import OffsetEstimator, Person, Track, Tracker
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
 
+#: seconds between the engine thread's ticks (timeouts, expiry, merging); offline
+#: runs tick on the same grid so they give what a live run gives
+TICK_S = 0.02
+
 
 @dataclass(slots=True)
 class Call:
@@ -479,7 +483,7 @@ class Engine:
                 self._dirty.setdefault(pid, arrival)
 
     # ------------------------------------------------------------ thread
-    def run(self, stop: threading.Event, tick_s: float = 0.02) -> None:
+    def run(self, stop: threading.Event, tick_s: float = TICK_S) -> None:
         """The engine thread: drain the queue in batches, tick between them."""
         while not stop.is_set():
             try:

@@ -13,7 +13,7 @@ from typing import Any
 from ..errors import ConfigError, MusicError
 from ..events import OutputDecl
 from ..joints import GROUPS, JOINT_INDEX, JOINTS, parse_hand_state, suggest_joint
-from ..rig import parse_hostport
+from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
 from .model import (BODY, Action, Condition, Defaults, Goto, Mapping, Phrase, Piece, Play,

@@ -59,8 +59,8 @@ def _rules(triggers, mappings) -> list[str]:
     return out
 
 
-class Console:
-    """The narrator of `stage play`: lines queued from the engine thread, printed elsewhere.
+class Narrator:
+    """The narrator of a piece: lines queued from the engine thread, printed elsewhere.
 
     ``__call__`` (the runtime's narrator) only enqueues; ``print_pending`` runs on
     the main thread, so a slow terminal never holds up the engine.

@@ -1,8 +1,8 @@
-"""UDP edges of the engine: a receiver thread that decodes and enqueues, and
-the socket the engine sends Server-to-View datagrams from.
+"""The UDP edge of the engine: a receiver thread that decodes and hands items on.
 
-The receiver never touches engine state: it only decodes, rate-limits per
-source, counts drops and enqueues ``Inbound`` items.
+The receiver never touches engine state: it reads datagrams, rate-limits per
+source, decodes them (``protocol.decode_datagram``), counts drops and hands
+each decoded message to a sink (the engine's ``submit``) as an ``Inbound``.
 """
 
 from __future__ import annotations
@@ -10,13 +10,12 @@ from __future__ import annotations
 import logging
 import socket
 import threading
+from typing import Callable
 
-from ..clock import Clock, MonotonicClock
-from ..engine.engine import Engine
-from .protocol import Inbound
+from ..clock import Clock
 from ..errors import TransportError
-from .protocol import decode_datagram
-from ..rig import Rig
+from ..stats import DropCounter
+from .protocol import Inbound, decode_datagram
 
 log = logging.getLogger("stage.server")
 
@@ -50,85 +49,66 @@ class UdpTransport:
 
 
 def open_udp(host: str, port: int) -> socket.socket:
+    """A bound UDP socket with a large receive buffer; TransportError with one line if not."""
+    if not 0 <= port <= 65535:
+        raise TransportError(f"cannot listen for OSC on udp {host}:{port}: a UDP port is 0-65535")
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         sock.bind((host, port))
     except OSError as exc:
         sock.close()
-        raise TransportError(f"cannot listen for OSC on udp {host}:{port}: {exc.strerror}") from None
+        why = exc.strerror or str(exc)
+        raise TransportError(f"cannot listen for OSC on udp {host}:{port}: {why}") from None
     return sock
 
 
-class Server:
-    """``stage serve``: the engine fed by a UDP socket, two threads."""
+class Receiver:
+    """Reads ``sock`` on its own thread and hands every decoded message to ``submit``."""
 
-    def __init__(self, rig: Rig | None = None, host: str | None = None, port: int | None = None,
-                 clock: Clock | None = None) -> None:
-        self.rig = rig or Rig()
-        self.clock = clock or MonotonicClock()
-        self.sock = open_udp(host or self.rig.host, self.rig.port if port is None else port)
-        self.engine = Engine(self.rig, self.clock, UdpTransport(self.sock))
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
+    def __init__(self, sock: socket.socket, submit: Callable[[Inbound], bool], drops: DropCounter,
+                 clock: Clock, max_messages_per_s: float) -> None:
+        self.sock, self.submit, self.drops, self.clock = sock, submit, drops, clock
+        self.rate = max_messages_per_s
         self._buckets: dict[tuple[str, int], TokenBucket] = {}
         self._client_of: dict[tuple[str, int], str] = {}
+        #: every datagram read, before any check: (arrival, source, data) -> None (recording)
+        self.taps: list[Callable[[float, tuple[str, int], bytes], None]] = []
 
-    @property
-    def address(self) -> tuple[str, int]:
-        return self.sock.getsockname()[:2]
-
-    def start(self) -> "Server":
-        self._threads = [threading.Thread(target=self._receive, name="stage-receiver", daemon=True),
-                         threading.Thread(target=self.engine.run, args=(self._stop,),
-                                          name="stage-engine", daemon=True)]
-        for thread in self._threads:
-            thread.start()
-        log.info("listening for sensors and views on udp %s:%d", *self.address)
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=2.0)
-        self.sock.close()
-
-    def __enter__(self) -> "Server":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def _receive(self) -> None:
-        sock, engine, clock = self.sock, self.engine, self.clock
-        rate = self.rig.clients.max_messages_per_s
+    def run(self, stop: threading.Event) -> None:
+        sock, clock = self.sock, self.clock
         sock.settimeout(0.2)
-        while not self._stop.is_set():
+        while not stop.is_set():
             try:
                 data, source = sock.recvfrom(65536)
             except socket.timeout:
                 continue
             except OSError as exc:
-                if self._stop.is_set():
+                if stop.is_set():
                     return
                 # ICMP port-unreachable from a vanished view surfaces here on some systems
                 log.debug("recvfrom: %s", exc)
                 continue
             arrival = clock.now()
-            bucket = self._buckets.get(source)
-            if bucket is None:
-                if len(self._buckets) > 4096:  # spoofed source ports must not grow memory
-                    self._buckets.clear()
-                    self._client_of.clear()
-                bucket = self._buckets[source] = TokenBucket(rate, arrival)
-            if not bucket.take(arrival):
-                engine.drops.add(self._client_of.get(source, f"{source[0]}:{source[1]}"), "flood")
-                continue
-            decoded = decode_datagram(data, f"{source[0]}:{source[1]}")
-            for client, reason in decoded.drops:
-                engine.drops.add(client, reason)
-            for message, timetag in decoded.messages:
-                client = getattr(message, "client", None)
-                if client is not None:
-                    self._client_of[source] = client
-                engine.submit(Inbound(message, arrival, source, timetag))
+            for tap in self.taps:
+                tap(arrival, source, data)
+            self.handle(data, source, arrival)
+
+    def handle(self, data: bytes, source: tuple[str, int], arrival: float) -> None:
+        bucket = self._buckets.get(source)
+        if bucket is None:
+            if len(self._buckets) > 4096:  # spoofed source ports must not grow memory
+                self._buckets.clear()
+                self._client_of.clear()
+            bucket = self._buckets[source] = TokenBucket(self.rate, arrival)
+        if not bucket.take(arrival):
+            self.drops.add(self._client_of.get(source, f"{source[0]}:{source[1]}"), "flood")
+            return
+        decoded = decode_datagram(data, f"{source[0]}:{source[1]}")
+        for client, reason in decoded.drops:
+            self.drops.add(client, reason)
+        for message, timetag in decoded.messages:
+            client = getattr(message, "client", None)
+            if client is not None:
+                self._client_of[source] = client
+            self.submit(Inbound(message, arrival, source, timetag))

@@ -37,6 +37,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
+import errno
 import math
 import os
 import struct
@@ -170,7 +171,7 @@ class RecordingWriter:
             self._closed = True
             try:
                 self._file.flush()
-                os.fsync(self._file.fileno())
+                _fsync(self._file.fileno())
             finally:
                 self._file.close()
         if self._timer is not None and self._timer is not threading.current_thread():
@@ -340,3 +341,12 @@ def check_output_path(path: str, overwrite: bool = True) -> None:
 
 __all__ = ["Record", "Recording", "RecordingWriter", "read_recording", "check_output_path",
            "MAGIC", "VERSION"]
+
+
+def _fsync(fd: int) -> None:
+    """fsync, except where the target cannot be synced (/dev/null, a pipe): nothing to lose."""
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EROFS):
+            raise

@@ -17,10 +17,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Sequence, TYPE_CHECKING
 
 from ..clock import Clock, MonotonicClock
-from ..engine.engine import Engine
 from ..frames import FusedFrame
 from ..errors import ConfigError
 from ..events import Event, OutputDecl
@@ -28,6 +27,9 @@ from .base import Scene, Status, View, ViewContext
 from .loader import PluginInfo, discover_views, make_view
 from .slot import Slot, wait_started
 from .status import StatusCollector
+
+if TYPE_CHECKING:  # the engine is duck-typed here: views import no engine code
+    from ..engine import Engine
 
 log = logging.getLogger("stage.views")
 

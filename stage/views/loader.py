@@ -1,20 +1,16 @@
-"""Finding plugins through entry points (``stage.views.v1``, ``stage.sources.v1``).
+"""Finding view plugins (``stage.views.v1``) and listing every plugin group.
 
-Built-in views are found exactly like third-party ones: through the metadata
-of installed distributions. Loading imports the module; a plugin that fails
-to import, or does not provide what the group expects, is reported with the
-reason and skipped, never fatal.
+The entry-point machinery is ``stage.registry``; this module adds what a view
+plugin must provide and how a view is made from it.
 """
 
 from __future__ import annotations
 
 import logging
-import re
-from dataclasses import dataclass, field
-from importlib import metadata
-from typing import Any, Callable
+from typing import Any
 
-from .. import DISTRIBUTION
+from ..registry import PluginInfo, entry_points, load
+from ..sensors.source import GROUP as SOURCES_GROUP, check_source_factory
 from .base import GROUP, View
 
 log = logging.getLogger("stage.views")
@@ -22,89 +18,8 @@ log = logging.getLogger("stage.views")
 #: Every plugin group `stage plugins` lists, with what each entry point must give.
 GROUPS: dict[str, str] = {
     GROUP: "views",
-    "stage.sources.v1": "sources",
+    SOURCES_GROUP: "sources",
 }
-
-
-@dataclass
-class PluginInfo:
-    """One entry point and what became of loading it."""
-
-    group: str
-    name: str
-    value: str                  # "module:attribute"
-    distribution: str | None    # the installed distribution that declares it
-    version: str | None
-    loaded: bool = False
-    error: str | None = None    # why it did not load (one line)
-    obj: Any = field(default=None, repr=False)
-
-    @property
-    def module(self) -> str:
-        return self.value.split(":", 1)[0].strip()
-
-    @property
-    def description(self) -> str:
-        text = getattr(self.obj, "description", None) or (getattr(self.obj, "__doc__", None) or "")
-        return text.strip().splitlines()[0] if isinstance(text, str) and text.strip() else ""
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"group": self.group, "name": self.name, "value": self.value,
-                "module": self.module, "distribution": self.distribution,
-                "version": self.version, "loaded": self.loaded, "error": self.error,
-                "description": self.description if self.loaded else ""}
-
-
-def entry_points(group: str) -> list[PluginInfo]:
-    """The entry points of ``group`` (not loaded), one per name.
-
-    When two distributions declare the same name, stage's own keeps it (a plugin
-    cannot silently replace a built-in view), otherwise the first on ``sys.path``;
-    the other is listed with an error saying so.
-    """
-    found: dict[str, PluginInfo] = {}
-    duplicates: list[PluginInfo] = []
-    points = list(metadata.entry_points(group=group))
-    points.sort(key=lambda e: (e.name, not _is_ours(getattr(e, "dist", None))))
-    for ep in points:
-        dist = getattr(ep, "dist", None)
-        info = PluginInfo(group, ep.name, ep.value, dist.name if dist else None,
-                          dist.version if dist else None)
-        if ep.name in found:
-            if found[ep.name].value != ep.value or found[ep.name].distribution != info.distribution:
-                info.error = (f"name '{ep.name}' is already taken by {found[ep.name].value} "
-                              f"({found[ep.name].distribution}); this one is ignored")
-                duplicates.append(info)
-            continue
-        found[ep.name] = info
-    return [*found.values(), *duplicates]
-
-
-def _is_ours(dist: metadata.Distribution | None) -> bool:
-    """Whether ``dist`` is stage's own distribution, however its name is spelled (PEP 503)."""
-    name = getattr(dist, "name", None)
-    return name is not None and re.sub(r"[-_.]+", "-", name).lower() == DISTRIBUTION
-
-
-def load(info: PluginInfo, check: Callable[[Any], str | None] | None = None) -> PluginInfo:
-    """Import ``info``'s object; on failure set ``error`` (one line). Never raises."""
-    if info.error is not None:
-        return info
-    try:
-        module, _, attr = info.value.partition(":")
-        obj = __import__(module.strip(), fromlist=["_"])
-        for part in filter(None, attr.strip().split(".")):
-            obj = getattr(obj, part)
-    except Exception as exc:  # a broken plugin is reported, whatever it raised
-        info.error = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
-        log.debug("plugin %s (%s) failed to import", info.name, info.value, exc_info=True)
-        return info
-    problem = check(obj) if check else None
-    if problem:
-        info.error = problem
-        return info
-    info.obj, info.loaded = obj, True
-    return info
 
 
 def check_view_factory(obj: Any) -> str | None:
@@ -127,8 +42,8 @@ def discover_views(load_them: bool = True) -> dict[str, PluginInfo]:
 
 def discover_all() -> dict[str, list[PluginInfo]]:
     """Every group `stage plugins` shows, each entry point loaded (imported, not started)."""
-    return {group: [load(info, check_view_factory if group == GROUP else None)
-                    for info in entry_points(group)]
+    checks = {GROUP: check_view_factory, SOURCES_GROUP: check_source_factory}
+    return {group: [load(info, checks.get(group)) for info in entry_points(group)]
             for group in GROUPS}
 
 

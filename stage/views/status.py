@@ -6,10 +6,12 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
-from ..engine.engine import Engine
 from .base import SensorStatus, Status
+
+if TYPE_CHECKING:  # the engine is duck-typed here: views import no engine code
+    from ..engine import Engine
 
 #: Calibration states that mean "fine". The live calibrator (stage.calibration)
 #: writes ok | suspect | recalibrating | uncalibrated with a reason; anything

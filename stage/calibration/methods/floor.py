@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 
 from ...errors import CalibrationError
-from ..fitness import Moments
+from ..fitness import Moments, kabsch
 from ...geometry import apply, invert, level_matrix, matrix
 from ..pairs import PairSet
-from .rigid import kabsch
 
 
 def fit_floor(pairs: PairSet, reject_m: float = 0.10,

@@ -15,26 +15,9 @@ from typing import Any
 import numpy as np
 
 from ...errors import CalibrationError
-from ..fitness import Moments
+from ..fitness import kabsch
 from ...geometry import matrix
 from ..pairs import PairSet
-
-
-def kabsch(m: Moments, planar: bool = False) -> np.ndarray:
-    """The rigid 4x4 minimising the weighted squared error of the moments' pairs.
-
-    planar: rotation about y only (sensors already level); the vertical
-    offset is still solved.
-    """
-    if planar:
-        yaw = np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        r = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
-    else:
-        u, _, vt = np.linalg.svd(m.C)
-        d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a reflection is never a sensor pose
-        r = u @ np.diag([1.0, 1.0, d]) @ vt
-    return matrix(r, m.qbar - r @ m.pbar)
 
 
 def _batched_kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

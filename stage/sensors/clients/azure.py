@@ -24,6 +24,7 @@ import numpy as np
 
 from ...joints import JOINT_INDEX
 from .osc import BodyFrame
+from ..source import ThreadedSource
 
 log = logging.getLogger("stage.clients.azure")
 
@@ -92,3 +93,17 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
                 sender.send(data)
     finally:
         sender.close()
+
+
+class AzureSource(ThreadedSource):
+    """The ``azure`` source: an Azure Kinect or Orbbec Femto through the body tracking SDK; ``stage client azure``."""
+
+    name = "azure"
+    description = "an Azure Kinect or Orbbec Femto through the body tracking SDK (extra: azure)"
+
+    def __init__(self, client_id: str = "azure") -> None:
+        super().__init__()
+        self.client_id = client_id
+
+    def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs hardware
+        run(target, self.client_id, stop)

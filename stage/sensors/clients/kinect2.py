@@ -22,6 +22,7 @@ import numpy as np
 
 from ...joints import N_JOINTS, HandState
 from .osc import BodyFrame
+from ..source import ThreadedSource
 
 log = logging.getLogger("stage.clients.kinect2")
 
@@ -103,3 +104,17 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
     finally:
         kinect.close()
         sender.close()
+
+
+class Kinect2Source(ThreadedSource):
+    """The ``kinect2`` source: a Kinect v2 through the Kinect for Windows SDK 2.0; ``stage client kinect2``."""
+
+    name = "kinect2"
+    description = "a Kinect v2 through the Kinect for Windows SDK 2.0 (extra: kinect2)"
+
+    def __init__(self, client_id: str = "kinect2") -> None:
+        super().__init__()
+        self.client_id = client_id
+
+    def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs hardware
+        run(target, self.client_id, stop)

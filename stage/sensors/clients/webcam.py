@@ -31,6 +31,7 @@ import numpy as np
 from ...joints import JOINT_INDEX as J
 from ...joints import N_JOINTS
 from .osc import BodyFrame
+from ..source import ThreadedSource
 
 log = logging.getLogger("stage.clients.webcam")
 
@@ -228,3 +229,19 @@ def _detector(mp, model: str | None):  # pragma: no cover - needs mediapipe
         return (np.array([[p.x, p.y, p.z] for p in w]), np.array([[p.x, p.y, p.z] for p in i]),
                 np.array([p.visibility for p in i]))
     return tasks
+
+
+class WebcamSource(ThreadedSource):
+    """The ``webcam`` source: a webcam or camera through MediaPipe pose estimation; ``stage client webcam``."""
+
+    name = "webcam"
+    description = "a webcam or camera through MediaPipe pose estimation (extra: webcam)"
+
+    def __init__(self, client_id: str = "webcam", camera: int = 0, fov: float = 60.0,
+                 model: str | None = None, show: bool = False) -> None:
+        super().__init__()
+        self.client_id, self.camera, self.fov = client_id, camera, fov
+        self.model, self.show = model, show
+
+    def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs hardware
+        run(target, self.client_id, self.camera, self.fov, self.model, self.show, stop)

@@ -4,7 +4,7 @@
     sim = Simulator(load_scenario("default"), seed=4)
     rig = sim.rig()                      # exact calibrations (or rig(calibrated=False))
     for capture, sensor, datagram in sim.datagrams(10.0): ...
-    sim.feed(engine, clock, 10.0)        # offline into an in-process Engine (ManualClock)
+    stage.app.offline.feed(engine, clock, sim.stream(10.0), until=10.0)  # an in-process engine
     sim.run_realtime(("127.0.0.1", 7770), duration=30)   # over UDP
 
 Scenario files (YAML) describe the rig, the performers' timelines and

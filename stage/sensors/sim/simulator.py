@@ -2,8 +2,10 @@
 
 ``Simulator(scenario, seed)`` is deterministic: the same scenario and seed
 give the same datagrams, byte for byte, however they are consumed
-(``datagrams`` for the raw stream, ``feed`` into an in-process engine,
-``record`` to a recording file, ``run_realtime`` over UDP).
+(``stream`` for the datagrams with their times, ``record`` to a recording
+file, ``run_realtime`` over UDP; ``stage.app.offline.feed`` runs them through
+an in-process engine). ``SimSource`` is the simulator as a ``stage.sources.v1``
+source.
 
 Times: simulation seconds from 0. A sensor's bundles carry its own clock as
 timetag (an offset of up to +-2 s and a drift of up to +-20 ppm unless the
@@ -23,7 +25,9 @@ from typing import Iterator
 
 import numpy as np
 
+from ...errors import ConfigError
 from ..clients.osc import BodyFrame, ClientEncoder, UserSlots
+from ..source import ThreadedSource
 from ...joints import JOINT_INDEX, HandState
 from ...rig import Rig, SensorConfig, set_calibration
 from .kinect import (KinectModel, UserTrack, VirtualPose, body_visible, faces_away, measure,
@@ -291,28 +295,6 @@ class Simulator:
             yield heapq.heappop(pending)[2]
 
     # ------------------------------------------------------------ consumers
-    def feed(self, engine, clock, duration: float, *, recorder=None, tick_s: float = 0.02,
-             ) -> int:
-        """Run the scenario through an in-process engine, offline and deterministic.
-
-        Every datagram is handed to ``engine.handle_datagram`` at its arrival
-        time on ``clock`` (a ManualClock; simulation time 0 is the clock's
-        reading when called), and the engine ticks every ``tick_s``. With a
-        ``recorder`` (RecordingWriter) every datagram is recorded on the way,
-        so replaying the recording reproduces this run exactly. Returns the
-        number of datagrams fed.
-        """
-        from ..replay import drive
-        t0 = clock.now()
-
-        def items():
-            for d in self.stream(duration):
-                arrival = t0 + d.arrival
-                if recorder is not None:
-                    recorder.write(arrival, d.source, d.data, t0 + d.capture)
-                yield arrival, d.source, d.data
-        return drive(engine, clock, items(), tick_s=tick_s, until=t0 + duration)
-
     def record(self, path: str, duration: float, truth_path: str | None = None,
                meta: dict | None = None) -> int:
         """Write ``duration`` seconds of the scenario to a recording (and the truth)."""
@@ -370,30 +352,42 @@ class Simulator:
         return sent
 
 
-class SimSource:
-    """``run_realtime`` on its own thread, for commands that run a server next to it."""
+class SimSource(ThreadedSource):
+    """The built-in simulator as a source: virtual Kinects watching scripted performers.
 
-    def __init__(self, sim: Simulator, target: tuple[str, int], duration: float | None = None,
-                 speed: float = 1.0) -> None:
-        self.sim, self.target, self.duration, self.speed = sim, target, duration, speed
-        self.stop_event = threading.Event()
-        self.done = threading.Event()
-        self.sent = 0
-        self._thread = threading.Thread(target=self._run, name="stage-sim", daemon=True)
+    ``scenario``: a built-in name, a YAML path, a ``Scenario`` or None (the
+    default scenario); ``duration``: seconds to run (default: the scenario's
+    own, else until stopped); ``speed``: x real time live (``math.inf``: as
+    fast as possible).
+    """
 
-    def _run(self) -> None:
-        try:
-            self.sent = self.sim.run_realtime(self.target, self.duration, self.speed,
-                                              self.stop_event)
-        except Exception:  # never let the show's process die with the source
-            log.exception("simulator stopped")
-        finally:
-            self.done.set()
+    name = "sim"
+    description = "the built-in simulator: virtual Kinects watching scripted performers"
+    offline = True
 
-    def start(self) -> "SimSource":
-        self._thread.start()
-        return self
+    def __init__(self, scenario: "str | Scenario | None" = None, seed: int = 1,
+                 duration: float | None = None, speed: float = 1.0,
+                 sim: Simulator | None = None) -> None:
+        super().__init__()
+        self.sim = sim or Simulator(scenario or None, seed)
+        self._duration = duration if duration is not None else self.sim.scenario.duration
+        self.speed = speed
 
-    def stop(self) -> None:
-        self.stop_event.set()
-        self._thread.join(timeout=2.0)
+    def describe(self) -> str:
+        return f"simulator (scenario '{self.sim.scenario.name}', seed {self.sim.seed})"
+
+    def rig(self) -> Rig:
+        return self.sim.rig()
+
+    @property
+    def duration(self) -> float | None:
+        return self._duration
+
+    def items(self) -> Iterator[tuple[float, tuple[str, int], bytes]]:
+        if not self._duration:
+            raise ConfigError("an offline simulation needs a duration (the scenario has no end)")
+        for d in self.sim.stream(self._duration):
+            yield d.arrival, d.source, d.data
+
+    def _run(self, target: tuple[str, int], stop: threading.Event) -> None:
+        self.sent = self.sim.run_realtime(target, self._duration, self.speed, stop)
