@@ -128,3 +128,70 @@ def test_demo_runs_and_reports():
                         r"out, 0 dropped, latency p50 .+ ms p99 .+ ms", summary), summary
     frames_in = int(re.search(r"(\d+) sensor frames in", summary).group(1))
     assert frames_in > 0
+
+
+# ---------------------------------------------------------------- issue 9: one-line errors
+
+@pytest.mark.parametrize("command", ["serve", "monitor", "demo", "record"])
+def test_a_port_out_of_range_is_one_line_of_bad_input(command, tmp_path):
+    extra = ["--out", str(tmp_path / "x.rec")] if command == "record" else []
+    done = run(command, "--port", "99999", *extra)
+    assert done.returncode == 2
+    assert "Traceback" not in done.stderr and "OverflowError" not in done.stderr
+    assert "'99999' is not a port (0-65535)" in done.stderr
+
+
+def test_stats_with_a_host_that_does_not_exist_is_one_line():
+    done = run("stats", "--host", "nonsense.invalid", "--timeout", "0.5")
+    assert done.returncode == 2
+    assert one_line_error(done.stderr) == "stage: --host nonsense.invalid: no such host"
+
+
+def test_sim_can_write_its_rig_and_a_recording_to_dev_null(tmp_path):
+    rig = tmp_path / "sim-rig.yaml"
+    done = run("sim", "--rig-out", str(rig), "--duration", "1", "--out", "/dev/null")
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert rig.exists()
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_global_options_go_before_or_after_the_subcommand(where, tmp_path):
+    missing = tmp_path / "missing.yaml"
+    args = ["--debug", "serve", "--rig", str(missing)] if where == "before" else [
+        "serve", "--rig", str(missing), "--debug"]
+    done = run(*args)
+    assert done.returncode != 0
+    assert "Traceback" in done.stderr  # --debug shows the traceback, wherever it was given
+    quiet = run("sim", "--list", "--quiet") if where == "after" else run("--quiet", "sim", "--list")
+    assert quiet.returncode == 0, quiet.stderr
+    assert "default" in quiet.stdout
+
+
+def test_sigterm_ends_a_show_with_status_130():
+    port = free_udp_port()
+    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20.0
+        while True:
+            assert proc.poll() is None, proc.communicate()
+            try:
+                query_stats((LOCALHOST, port), timeout=0.2)
+                break
+            except AssertionError:
+                assert time.monotonic() < deadline
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, err
+
+
+def test_the_install_hint_names_a_distribution_that_is_ours():
+    done = run("client", "--help")
+    assert done.returncode == 0
+    assert "pip install 'stage[" not in done.stdout
+    assert f"pip install '{stage.DISTRIBUTION}[webcam]'" in done.stdout
