@@ -10,44 +10,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .joints import JOINT_INDEX, JOINTS, N_JOINTS, HandState
+from .joints import JOINT_INDEX, N_JOINTS, HandState
 
-_REST = {
-    "SpineBase": (0.0, 0.95, 0.0), "SpineMid": (0.0, 1.20, 0.0), "Neck": (0.0, 1.50, 0.0),
-    "Head": (0.0, 1.65, 0.02), "SpineShoulder": (0.0, 1.42, 0.0),
-    "ShoulderLeft": (0.18, 1.40, 0.0), "ElbowLeft": (0.22, 1.12, 0.0),
-    "WristLeft": (0.24, 0.88, 0.02), "HandLeft": (0.24, 0.80, 0.03),
-    "HandTipLeft": (0.24, 0.72, 0.04), "ThumbLeft": (0.21, 0.80, 0.06),
-    "HipLeft": (0.09, 0.92, 0.0), "KneeLeft": (0.10, 0.50, 0.02),
-    "AnkleLeft": (0.10, 0.08, 0.0), "FootLeft": (0.10, 0.02, 0.10),
-}
-for _name, (_x, _y, _z) in list(_REST.items()):
-    if _name.endswith("Left"):
-        _REST[_name[:-4] + "Right"] = (-_x, _y, _z)
-
-#: (25, 3) rest pose of a 1.75 m performer in the body frame.
-REST_POSE = np.array([_REST[name] for name in JOINTS])
+from .geometry import rot_x as _rot_x
+from .geometry import rot_y
+from .geometry import rot_z as _rot_z
+from .sensors.sim.kinematics import REST_POSE
 
 _ARM = {side: [JOINT_INDEX[n + side] for n in ("Elbow", "Wrist", "Hand", "HandTip", "Thumb")]
         for side in ("Left", "Right")}
 _LEG = {side: [JOINT_INDEX[n + side] for n in ("Knee", "Ankle", "Foot")]
         for side in ("Left", "Right")}
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    """Rotation about the vertical axis by ``a`` radians (yaw)."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
 def pose(position: np.ndarray, heading: float, left_arm: float = 0.0, right_arm: float = 0.0,

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..fitness import Moments
-from ...geometry import matrix
+from ...geometry import matrix, rot_y, yaw_matrices
 from ..pairs import CalibrationError, PairSet
 
 
@@ -26,9 +26,7 @@ def kabsch(m: Moments, planar: bool = False) -> np.ndarray:
     offset is still solved.
     """
     if planar:
-        yaw = np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        r = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+        r = rot_y(np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2]))
     else:
         u, _, vt = np.linalg.svd(m.C)
         d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a reflection is never a sensor pose
@@ -104,10 +102,7 @@ def _ransac_inliers(p: np.ndarray, q: np.ndarray, w: np.ndarray, iterations: int
         raise CalibrationError("the joints are (nearly) collinear: rotation is undetermined")
     r, t = _batched_kabsch(ps[keep], qs[keep])
     if planar:  # project each hypothesis on a yaw (the data are level)
-        yaw = np.arctan2(r[:, 0, 2] - r[:, 2, 0], r[:, 0, 0] + r[:, 2, 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        r = np.zeros_like(r)
-        r[:, 0, 0], r[:, 0, 2], r[:, 1, 1], r[:, 2, 0], r[:, 2, 2] = c, s, 1.0, -s, c
+        r = yaw_matrices(np.arctan2(r[:, 0, 2] - r[:, 2, 0], r[:, 0, 0] + r[:, 2, 2]))
         t = qs[keep].mean(axis=1) - np.einsum("kij,kj->ki", r, ps[keep].mean(axis=1))
     best_score, best = -1.0, None
     for k in range(len(r)):  # one (n,3) product per hypothesis keeps memory flat

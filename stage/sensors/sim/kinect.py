@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from ...body import rot_y
+from ...geometry import rot_x, rot_y, rot_z
 from ...joints import JOINT_INDEX as J
 from ...joints import N_JOINTS, HandState
 
@@ -94,16 +94,6 @@ class KinectModel:
         return f
 
 
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 @dataclass(frozen=True)
 class VirtualPose:
     """Where a virtual sensor stands and how it is turned (stage space).
@@ -111,7 +101,6 @@ class VirtualPose:
     Camera space is the Kinect's: x to the sensor's left, y up, z out of the
     lens. ``yaw``: radians about y (0 looks along +z); ``pitch``: radians the
     sensor is tilted down; ``roll``: radians about its optical axis.
-    Duck-compatible with ``stage.body.SensorPose``.
     """
 
     position: np.ndarray
@@ -128,7 +117,7 @@ class VirtualPose:
     @property
     def rotation(self) -> np.ndarray:
         """3x3 camera -> stage."""
-        return rot_y(self.yaw) @ _rot_x(self.pitch) @ _rot_z(self.roll)
+        return rot_y(self.yaw) @ rot_x(self.pitch) @ rot_z(self.roll)
 
     @property
     def to_stage(self) -> np.ndarray:
