@@ -232,6 +232,33 @@ def _ground_shift(state: BodyState, props: Proportions,
     return props.ankle_y - lowest + state.lift
 
 
+@lru_cache(maxsize=64)
+def proportions(height: float = 1.75) -> Proportions:
+    """The (shared, read-only) proportions of a performer ``height`` metres tall."""
+    return Proportions(height)
+
+
+def standing_pose(position: tuple[float, float] | np.ndarray = (0.0, 0.0), heading: float = 0.0,
+                  left_arm: float = 0.0, right_arm: float = 0.0, *, height: float = 1.75,
+                  stride_phase: float = 0.0, stride_amp: float = 0.0) -> np.ndarray:
+    """(25, 3) joints, stage space, metres: an upright performer with straight arms.
+
+    position: (x, z) on the floor, metres. heading: radians (0 faces +z,
+    positive turns to the performer's left). left_arm/right_arm: radians the
+    straight arm is raised sideways (0 hanging, pi/2 horizontal, pi overhead).
+    stride_phase/stride_amp: the legs in a walking stride (phase in cycles,
+    1 = two steps; amplitude 0 standing still, 1 a normal walk; hanging arms
+    swing with it). The simple posed skeleton for tests and benchmarks; for
+    crouching, jumping, reaching or bent elbows pose a ``BodyState`` with
+    ``skeleton``.
+    """
+    x, z = (float(v) for v in position)
+    state = BodyState(np.array([x, z]), float(heading),
+                      (ArmPose(float(left_arm)), ArmPose(float(right_arm))),
+                      stride_phase=float(stride_phase), stride_amp=float(stride_amp))
+    return skeleton(state, proportions(float(height)))
+
+
 def skeleton(state: BodyState, props: Proportions) -> np.ndarray:
     """(25, 3) joint positions in stage space, metres."""
     joints = props.rest.copy()

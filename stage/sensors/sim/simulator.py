@@ -67,7 +67,8 @@ class _SensorRun:
                       float(rng_setup.uniform(-20.0, 20.0))) * 1e-6
         lo, hi = scenario.latency_range
         self.latency = spec.latency if spec.latency is not None else float(rng_setup.uniform(lo, hi))
-        self.phase = float(rng_setup.uniform(0.0, 1.0 / self.model.fps))
+        self.phase = spec.phase if spec.phase is not None else \
+            float(rng_setup.uniform(0.0, 1.0 / self.model.fps))
         self.source = ("sim", index + 1)
         self.poses: list[tuple[float, VirtualPose]] = [(0.0, spec.pose)]
         self.plugged: list[tuple[float, bool]] = [(0.0, True)]
