@@ -165,9 +165,11 @@ def cmd_serve(args: argparse.Namespace) -> Exit:
 
 def cmd_demo(args: argparse.Namespace) -> Exit:
     from ..app.status_line import attach
-    from ..demo import DemoSource, demo_rig
     from ..sensors.receiver import Server
-    rig, sensors = demo_rig(args.sensors, args.port)
+    from ..sensors.sim import SimSource, Simulator, demo_scenario
+    sim = Simulator(demo_scenario(args.sensors), args.seed)
+    rig, sensors = sim.rig(), sim.scenario.sensors  # an exact rig: no calibration step
+    rig.port = args.port
     rig.views.extend(args.view)
     server = Server(rig, host="127.0.0.1")
     attach(server.engine)
@@ -176,7 +178,7 @@ def cmd_demo(args: argparse.Namespace) -> Exit:
         print(f"stage demo: {len(sensors)} virtual Kinects -> engine on udp {server.address[0]}:"
               f"{server.address[1]}; one dancer walking a circle, arms rising in turn. "
               f"Ctrl-C stops.", flush=True)
-        source = DemoSource(server.address, sensors, seed=args.seed).start()
+        source = SimSource(sim, server.address).start()
         try:
             stop.wait(args.duration)
         finally:

@@ -100,8 +100,10 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     from ..sensors.receiver import Server
     source = None
     if args.demo:
-        from ..demo import DemoSource, demo_rig
-        rig, sensors = demo_rig(args.demo, args.port or 0)
+        from ..sensors.sim import SimSource, Simulator, demo_scenario
+        sim = Simulator(demo_scenario(args.demo), args.seed)
+        rig = sim.rig()  # an exact rig: no calibration step
+        rig.port = args.port or 0
         server = Server(rig, host="127.0.0.1")
     else:
         rig = load_rig(args.rig) if args.rig else Rig()
@@ -133,7 +135,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
                 if not line.startswith("monitor"):
                     log.info("view %s", line)
             if args.demo:
-                source = DemoSource(server.address, sensors, seed=args.seed).start()
+                source = SimSource(sim, server.address).start()
             stop.wait(args.duration)
         finally:
             if source is not None:
