@@ -1,6 +1,8 @@
 """Helpers for stage's tests and benchmarks; never used by the product at run time.
 
-``script``: scripted fused frames (``ScriptedStage``) for piece tests. It
-builds its bodies with the simulator's kinematics (``stage.sensors.sim``),
-the one synthetic body and sensor model of stage.
+``script``: scripted fused frames (``ScriptedStage``) for piece tests.
+``simdata``: simulated sensor streams with known calibrations, for the
+calibration tests and benchmark. Both build their bodies and sensors with
+the simulator (``stage.sensors.sim``), the one synthetic body and sensor
+model of stage.
 """
