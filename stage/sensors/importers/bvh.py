@@ -326,8 +326,8 @@ def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | No
     if spine_shoulder is not None:
         out[:, JOINT_INDEX["SpineShoulder"]] = world[spine_shoulder]
         conf[JOINT_INDEX["SpineShoulder"]] = 1.0
-        # Kinect proportions (stage.body.REST_POSE): SpineBase 3 cm above the hip joints,
-        # SpineMid 53 % of the way from SpineBase to SpineShoulder
+        # Kinect proportions (the simulator's kinematics.REST_POSE): SpineBase 3 cm above the
+        # hip joints, SpineMid 53 % of the way from SpineBase to SpineShoulder
         hips = 0.5 * (out[:, JOINT_INDEX["HipLeft"]] + out[:, JOINT_INDEX["HipRight"]])
         base = hips + 0.06 * (world[spine_shoulder] - hips)
         out[:, JOINT_INDEX["SpineBase"]] = base
