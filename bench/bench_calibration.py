@@ -5,11 +5,11 @@ the chain refinement gain, the lag search and the live calibrator's cost.
     python bench/bench_calibration.py --quick    # fewer repeats and runs
     python bench/bench_calibration.py --json
 
-Data: two Kinect-like sensors 100 degrees apart around a 2.4 m x 1.6 m figure
-of eight, the second 0.7 m higher and tilted down 8 degrees (both report their
-floor plane), 1 cm noise per axis, far-side joints inferred and pulled 3 cm
-towards the sensor, 40 s at 30 Hz; 300 paired frames per method (trajectory:
-500, as in seed 002). Errors against ground truth: rotation (degrees),
+Data: the simulator (``stage.testing.simdata``): two Kinect v2 sensors 100
+degrees apart around a 2.4 m x 1.6 m figure of eight, the second 0.7 m higher
+and tilted down 8 degrees (both report their floor plane), 1 cm noise per axis,
+occluded joints inferred and pulled 3 cm towards the sensor, 40 s at 30 Hz;
+300 paired frames per method (trajectory: 500, as in seed 002). Errors against ground truth: rotation (degrees),
 translation (mm, the sensor's position), and RMS (mm) of where the estimate
 and the truth put the sensor's points. Target: the GA in the paper's
 configuration (200 x 250) under 0.5 s. Prints PASS/FAIL; always exits 0.
@@ -18,7 +18,6 @@ configuration (200 x 250) under 0.5 s. Prints PASS/FAIL; always exits 0.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import sys
@@ -35,7 +34,8 @@ from stage.calibration.methods.ga import run_ga  # noqa: E402
 from stage.calibration.methods.rigid import kabsch  # noqa: E402
 from stage.calibration.offline import calibrate_streams  # noqa: E402
 from stage.calibration.pairs import find_lag, pair_streams  # noqa: E402
-from stage.calibration.synth import SimSensor, relative, simulate, two_sensor_rig, walk_line, wander
+from stage.sensors.sim import Simulator  # noqa: E402
+from stage.testing import simdata  # noqa: E402
 
 GA_TARGET_S = 0.5
 CURVE_EPOCHS = (0, 1, 2, 5, 10, 25, 50, 100, 150, 200, 250)
@@ -51,10 +51,10 @@ def _timed(fn, repeats: int) -> tuple[list[float], object]:
 
 
 def methods_table(repeats: int) -> dict:
-    rig = two_sensor_rig(8.0)
-    streams = simulate(rig, wander(), 40.0, seed=11)
+    sim = Simulator(simdata.two_sensors(8.0), seed=11)
+    streams = simdata.streams(sim, 40.0)
     pairs = pair_streams(streams["kinect-a"], streams["kinect-b"])
-    truth = relative(rig[0], rig[1])
+    truth = simdata.true_transform(sim, "kinect-b")
     rows = {}
     for method in METHODS:
         used = pairs.evenly(500 if method == "trajectory" else 300)
@@ -76,8 +76,7 @@ def methods_table(repeats: int) -> dict:
 
 
 def ga_figures(runs: int, timing_runs: int, points: bool) -> dict:
-    rig = two_sensor_rig(8.0)
-    streams = simulate(rig, wander(), 40.0, seed=11)
+    streams = simdata.streams(Simulator(simdata.two_sensors(8.0), seed=11), 40.0)
     pairs = pair_streams(streams["kinect-a"], streams["kinect-b"]).evenly(300)
     moments = pairs.moments()
     optimum = moments.mse_of(kabsch(moments))
@@ -112,17 +111,15 @@ def ga_figures(runs: int, timing_runs: int, points: bool) -> dict:
 def chain_gain() -> dict:
     out = {}
     for label, spacing in (("neighbours only (a tree)", 2.5), ("every other overlaps too (loops)", 1.6)):
-        sensors = [SimSensor.looking_at(f"k{i}", (i * spacing, 1.0, 0.0), (i * spacing, 0.8, 3.0))
-                   for i in range(4)]
-        walk = walk_line((-1.0, 2.5), (3 * spacing + 1.0, 2.5), period_s=40.0)
-        streams = simulate(sensors, walk, 80.0, seed=0)
+        sim = Simulator(simdata.row_of_sensors(4, spacing), seed=0)
+        streams = simdata.streams(sim, 80.0)
         t = time.perf_counter()
         composed = calibrate_streams(streams, "k0", refine=False, progress=lambda _: None)
         refined = calibrate_streams(streams, "k0", progress=lambda _: None)
         seconds = time.perf_counter() - t
         rows = {}
         for sid in ("k1", "k2", "k3"):
-            truth = relative(sensors[0], sensors[int(sid[1])])
+            truth = simdata.true_transform(sim, sid)
             pts = streams[sid].joints[::5]
             b = transform_error(composed.sensors[sid].matrix, truth, pts)
             a = transform_error(refined.sensors[sid].matrix, truth, pts)
@@ -135,9 +132,8 @@ def chain_gain() -> dict:
 
 
 def lag_search() -> dict:
-    rig = two_sensor_rig(8.0)
-    rig[1] = dataclasses.replace(rig[1], clock_offset_s=0.37, phase_s=0.013)
-    streams = simulate(rig, wander(), 30.0, seed=12)
+    sim = Simulator(simdata.two_sensors(8.0, offset_s=0.37, phase_s=0.013), seed=12)
+    streams = simdata.streams(sim, 30.0, clocks="sensor")
     t = time.perf_counter()
     found = find_lag(streams["kinect-a"], streams["kinect-b"])
     return {"true_s": 0.37, "found_s": found.lag_s, "seconds": time.perf_counter() - t,
@@ -147,17 +143,18 @@ def lag_search() -> dict:
 def live_costs() -> dict:
     """The live calibrator's cost: its observer on the engine thread (per frame) and its
     polls (worker thread), for 3 sensors x 1 dancer with a bump, and 6 sensors x 6 people."""
-    from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors
     from stage.geometry import invert
     from stage.calibration.healing import attach_live
     from stage.clock import ManualClock
-    from stage.demo import dancer
     from stage.engine.engine import Engine
     from stage.sensors.protocol import encode_client_joints
+    from stage.sensors.sim import VirtualKinect, demo_scenario, ring_poses, standing_pose
     from stage.rig import Rig, set_calibration
 
+    dancer = demo_scenario(1).performers[0]
+
     def episode(n_sensors: int, n_people: int, seconds: float, bump: bool) -> dict:
-        poses = ring_of_sensors(n_sensors, radius=2.5 if n_people == 1 else 4.0)
+        poses = ring_poses(n_sensors, radius=2.5 if n_people == 1 else 4.0)
         ids = [f"s{k}" for k in range(n_sensors)]
         rig = Rig(reference="s0")
         rig.stage_frame = poses[0].to_stage
@@ -182,23 +179,24 @@ def live_costs() -> dict:
         cal._poll = timed_poll
         engine.frame_observers[:] = [timed_observe]
         rng = np.random.default_rng(3)
-        actual = list(poses)
+        kinects = [VirtualKinect(p, simdata.calibration_kinect(), rng) for p in poses]
         frames = []
         for k in range(int(seconds * 30)):
             t = k / 30
             if bump and k == 5 * 30:
-                actual[1] = SensorPose(poses[1].position, poses[1].yaw + np.radians(10.0))
+                kinects[1].pose = poses[1].moved(yaw=np.radians(10.0))
             for u in range(n_people):
                 if n_people == 1:
-                    truth = dancer(t)[0]
+                    truth = dancer.state(t)[0]
                 else:
                     a = 2 * np.pi * u / n_people
-                    truth = pose(np.array([1.5 * np.cos(a) + 0.3 * np.sin(t), 1.5 * np.sin(a)]),
-                                 a + t)
+                    truth = standing_pose((1.5 * np.cos(a) + 0.3 * np.sin(t), 1.5 * np.sin(a)),
+                                          a + t)
                 for i, sid in enumerate(ids):
-                    joints, conf = observe_with_errors(actual[i], truth, rng)
-                    frames.append((t + 0.002 * i, encode_client_joints(sid, u, joints, conf),
-                                   ("127.0.0.1", 9000 + i)))
+                    seen = kinects[i].observe(truth, user=u)   # people observed one by one
+                    if seen is not None:                       # (out of range: not sent)
+                        frames.append((t + 0.002 * i, encode_client_joints(sid, u, *seen),
+                                       ("127.0.0.1", 9000 + i)))
         frames.sort(key=lambda f: f[0])
         for t, data, source in frames:
             clock.set(max(clock.now(), t))

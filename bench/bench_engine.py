@@ -7,7 +7,10 @@ generator here plays S Kinect clients at 30 Hz real time: one socket per
 sensor, one OSC bundle per frame (capture-time timetag) holding
 ``/jointCoordinates`` for each of the P people plus ``/handState`` for each
 hand. People stand on a grid 1.5 m apart and sway slowly; the sensors stand on
-a ring around them. Sensors are staggered across the frame period, as
+a ring around them and see each person as the simulator's Kinect model does
+(``VirtualKinect``: occlusion by their own limbs, inferred joints; range
+widened to the ring and each person observed on their own, so every sensor
+reports every person every frame). Sensors are staggered across the frame period, as
 free-running Kinects are (``--aligned`` sends them all at the same instant).
 
 Figures, over a steady window after a warm-up (2 s + 10 s by default):
@@ -61,12 +64,13 @@ from benchlib import machine_busy_s, proc_cpu_s, wait_idle  # noqa: E402
 from pythonosc.osc_message import OscMessage  # noqa: E402
 from pythonosc.parsing import ntp  # noqa: E402
 
-from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors  # noqa: E402
 from stage.engine.fusion import apply_transform  # noqa: E402
 from stage.joints import HAND_STATE_NAMES, HandState  # noqa: E402
 from stage.sensors.protocol import (JointCoordinates, decode_datagram, encode_bundle,
                                     encode_client_joints, encode_message)
 from stage.rig import Rig, set_calibration  # noqa: E402
+from stage.sensors.sim import (KinectModel, VirtualKinect, VirtualPose, ring_poses,  # noqa: E402
+                               standing_pose)
 
 FPS = 30.0
 LATENCY_P99_TARGET_MS = 2.0
@@ -77,6 +81,9 @@ GRID_M = 1.5                 # people stand this far apart
 RING_M = 4.5                 # sensor ring radius around the grid
 SWAY_M, SWAY_S = 0.15, 8.0   # each person walks a small circle: radius, period
 NOISE_M = 0.005              # per-axis joint noise, from a pre-drawn table
+#: the rest observation of each person: no noise or fit error (NOISE_M is added per frame),
+#: range widened so the farthest corner of the grid is still seen from across the ring
+REST_KINECT = KinectModel(noise_m=0.0, noise_per_m=0.0, fit_bias_m=0.0, far=7.0)
 NOISE_FRAMES = 64
 HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
 HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s
@@ -93,8 +100,8 @@ def grid_positions(people: int) -> np.ndarray:
     return np.array(out, dtype=float)
 
 
-def sensor_poses(sensors: int) -> list[SensorPose]:
-    return ring_of_sensors(sensors, radius=RING_M)
+def sensor_poses(sensors: int) -> list[VirtualPose]:
+    return ring_poses(sensors, radius=RING_M)
 
 
 def sensor_ids(sensors: int) -> list[str]:
@@ -102,7 +109,7 @@ def sensor_ids(sensors: int) -> list[str]:
 
 
 def build_rig(sensors: int, port: int, view: tuple[str, int]) -> Rig:
-    """Sensor 0 is the reference and stage space is the floor at the grid centre (as demo_rig)."""
+    """Sensor 0 is the reference and stage space is the floor at the grid centre."""
     poses, ids = sensor_poses(sensors), sensor_ids(sensors)
     rig = Rig(host="127.0.0.1", port=port, reference=ids[0])
     rig.stage_frame = poses[0].to_stage
@@ -144,23 +151,28 @@ class SensorLoad:
     observation plus that translation turned into this sensor's axes.
     """
 
-    def __init__(self, sid: str, sensor: SensorPose, scene: Scene, seed: int) -> None:
+    def __init__(self, sid: str, sensor: VirtualPose, scene: Scene, seed: int) -> None:
         self.id = sid
         self.scene = scene
         rng = np.random.default_rng(seed)   # this sensor's own noise only
         people = len(scene.floor)
-        truth = [pose(scene.floor[u], scene.headings[u], 0.4, 0.2, 0.0) for u in range(people)]
-        base, conf = zip(*(observe_with_errors(sensor, t, rng, noise_m=0.0) for t in truth))
+        truth = [standing_pose(scene.floor[u], scene.headings[u], 0.4, 0.2) for u in range(people)]
+        kinect = VirtualKinect(sensor, REST_KINECT, rng)
+        seen = [kinect.observe(t, user=u) for u, t in enumerate(truth)]
+        if any(v is None for v in seen):
+            raise RuntimeError(f"bench scene: {sid} cannot see every person")
+        base, conf = zip(*seen)
         self.base = np.array(base)                      # (P, 25, 3) sensor space
-        self.conf = np.array(conf)                      # (P, 25) 1 tracked, 0.5 inferred
+        self.conf = np.array(conf)                      # (P, 25) 1 tracked, 0.5 inferred, 0 not
         self.R = sensor.observe(np.eye(3)) - sensor.observe(np.zeros(3))  # stage dir -> sensor dir
         self.noise = rng.normal(0.0, NOISE_M, (NOISE_FRAMES, people, 25, 3))
         self.hello = [encode_message("/registerDevice", sid, "kinect2-bench")] + [
             encode_message("/newUser", sid, u, *map(float, self.base[u, 0])) for u in range(people)]
-        # every joint has conf > 0 (tracked or inferred), so all 25 are on the wire
+        # all 25 joints on the wire, untracked ones too (conf 0), so every bundle has one layout
         messages, joint_at, hand_at = [], [], []
+        every = np.ones(25, dtype=bool)
         for u in range(people):
-            messages.append(encode_client_joints(sid, u, self.base[u], self.conf[u]))
+            messages.append(encode_client_joints(sid, u, self.base[u], self.conf[u], every))
             for hand in ("left", "right"):
                 messages.append(encode_message("/handState", sid, u, hand, "open"))
         offset = 16  # "#bundle\0" + timetag

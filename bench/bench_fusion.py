@@ -1,8 +1,11 @@
 """Fusion quality through the whole engine, in-process with an injected clock.
 
 Prints, for sensors that are not synchronised with each other (each has its own
-frame phase) and see a performer moving at constant velocity:
-  - lag of the fused, smoothed output behind the truth, in frames (target < 1);
+frame phase) and see a performer moving at constant speed (round a 1.2 m circle
+inside their ring, so they can see it: the simulator's Kinect model has a field
+of view and a range):
+  - lag of the fused, smoothed output behind the truth along the path, in frames
+    (target < 1);
   - mean joint error of the fused output vs each single sensor (after calibration);
   - the same without smoothing and without the per-view time compensation,
     to show what each stage contributes;
@@ -22,15 +25,16 @@ import time
 
 import numpy as np
 
-from stage.body import observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
 from stage.engine.engine import Engine
 from stage.sensors.protocol import Inbound
 from stage.sensors.protocol import JointCoordinates
 from stage.settings import FusionSettings
 from stage.rig import Rig, set_calibration
+from stage.sensors.sim import VirtualKinect, ring_poses, standing_pose
 
 FPS = 30.0
+CIRCLE_M = 1.2   # radius of the performer's path, inside the 2.5 m ring of sensors
 
 
 def make_rig(poses, smoothing: bool) -> Rig:
@@ -46,7 +50,8 @@ def make_rig(poses, smoothing: bool) -> Rig:
 def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, compensate: bool,
         occlude_p: float, seed: int) -> dict:
     rng = np.random.default_rng(seed)
-    poses = ring_of_sensors(n_sensors)
+    poses = ring_poses(n_sensors)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
     clock = ManualClock(0.0)
     engine = Engine(make_rig(poses, smoothing), clock)
     if not compensate:
@@ -54,17 +59,20 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, compensat
     phases = rng.uniform(0, 1 / FPS, size=n_sensors)
     events = sorted((k / FPS + phases[s] + rng.uniform(-0.003, 0.003), s)
                     for k in range(int(seconds * FPS)) for s in range(n_sensors))
-    direction = np.array([1.0, 0.0])
-    start = np.array([-speed * seconds / 2, 0.0])
     along, errors, single = [], [], {s: [] for s in range(n_sensors)}
     cost = []
     frames = []
     engine.listeners.append(frames.append)
     for t, s in events:
         clock.set(max(clock.now(), t + 0.002))
-        where = start + direction * speed * t
-        truth = pose(where, np.pi / 2)
-        joints, conf = observe_with_errors(poses[s], truth, rng)
+        a = speed * t / CIRCLE_M                                  # radians round the circle
+        where = CIRCLE_M * np.array([np.sin(a), np.cos(a)])        # (x, z)
+        tangent = np.array([np.cos(a), 0.0, -np.sin(a)])           # the way the performer goes
+        truth = standing_pose(where, np.arctan2(tangent[0], tangent[2]))
+        seen = kinects[s].observe(truth)
+        if seen is None:
+            continue
+        joints, conf = seen
         conf = np.where(rng.random(25) < occlude_p, 0.0, conf)
         msg = JointCoordinates(f"s{s}", 0, joints, conf)
         emitted = len(frames)
@@ -82,7 +90,7 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, compensat
         body = frames[-1].bodies[1]
         seen = body.conf > 0
         err = body.joints - truth
-        along.append(float(err[0] @ np.array([1.0, 0.0, 0.0])))  # SpineBase, along the path
+        along.append(float(err[0] @ tangent))  # SpineBase, along the path
         errors.append(float(np.linalg.norm(err[seen], axis=1).mean()))
     per_frame = speed / FPS
     cost_us = np.array(cost) * 1e6
@@ -126,8 +134,8 @@ def main() -> int:
         json.dump(rows, sys.stdout, indent=2)
         print()
         return 0
-    print("3 unsynchronised sensors at 30 Hz, +-3 ms jitter, 20% joints occluded per view, "
-          f"{args.seconds:g} s, first 2 s dropped")
+    print("3 unsynchronised simulated Kinects at 30 Hz, +-3 ms jitter, 20% joints occluded per "
+          f"view, a performer round a {CIRCLE_M:g} m circle, {args.seconds:g} s, first 2 s dropped")
     print(f"{'speed':>6} {'pipeline':<25} {'lag fr':>7} {'fused mm':>9} {'best 1 mm':>10} "
           f"{'cost p50 us':>12} {'p99 us':>8}")
     for r in rows:

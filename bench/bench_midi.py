@@ -142,13 +142,16 @@ def run_period(period: int, rate: int, notes: int, seed: int, engine_load: bool)
 
 
 def _start_demo(host):
-    """The demo engine (3 virtual Kinects, real UDP) in this process, feeding the host."""
-    from stage.demo import DemoSource, demo_rig
+    """The demo engine (the simulator's demo scenario: 3 virtual Kinects, real UDP) in this
+    process, feeding the host."""
     from stage.app.server import Server
-    rig, sensors = demo_rig(3)
+    from stage.sensors.sim import SimSource, Simulator, demo_scenario
+    sim = Simulator(demo_scenario(3), seed=1)
+    rig = sim.rig()
+    rig.port = 0
     server = Server(rig, host="127.0.0.1").start()
     host.attach(server.engine)
-    source = DemoSource(server.address, sensors).start()
+    source = SimSource(sim=sim).start(server.address)
     return source, server
 
 

@@ -38,10 +38,10 @@ from benchlib import machine_busy_s
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from stage.body import pose  # noqa: E402
 from stage.frames import Body, FusedFrame  # noqa: E402
 from stage.joints import JOINT_INDEX, TORSO, HandState  # noqa: E402
 from stage.piece import PieceRuntime, load_piece  # noqa: E402
+from stage.sensors.sim import standing_pose  # noqa: E402
 
 TARGET_P99_MS = 0.3
 FPS = 30.0
@@ -74,8 +74,9 @@ def frames(people: int, seconds: float, seed: int = 1) -> list[FusedFrame]:
             x, z = radius * math.sin(a), radius * math.cos(a)
             left = math.pi * (0.5 + 0.5 * math.sin(2 * math.pi * t / (3.0 + 0.4 * i) + phase[i, 1]))
             right = math.pi * (0.5 + 0.5 * math.sin(2 * math.pi * t / (2.2 + 0.3 * i) + phase[i, 2]))
-            stride = 0.35 * math.sin(2 * math.pi * t / 1.1 + phase[i, 3])
-            joints = pose(np.array([x, z]), a + math.pi / 2, left, right, stride)
+            stride = t / 1.1 + phase[i, 3] / (2 * math.pi)     # walking cycles, one per 1.1 s
+            joints = standing_pose((x, z), a + math.pi / 2, left, right, stride_phase=stride,
+                                   stride_amp=1.0)
             bow = max(0.0, math.sin(2 * math.pi * t / (6.0 + i) + phase[i, 3])) ** 4
             joints[[HEAD, 2, 20]] -= [0.0, 0.5 * bow, 0.0]       # head, neck, shoulders dip
             before = previous.get(pid)

@@ -1,31 +1,56 @@
-"""Small rigid-geometry helpers shared by the calibration methods.
+"""Rotations and rigid transforms: the one home for them in stage.
 
-Conventions: Kinect-style spaces, metres, y up. A 4x4 matrix ``M`` maps
-points of one space into another (``apply(M, p) = p @ M[:3,:3].T + M[:3,3]``).
-Angles in radians unless a name says ``_deg``.
+Used by the calibration methods, the simulator (sensor poses, the body's
+kinematics) and the importers. Conventions: Kinect-style spaces, metres,
+y up. A 4x4 matrix ``M`` maps points of one space into another
+(``apply(M, p) = p @ M[:3,:3].T + M[:3,3]``). Angles in radians unless a
+name says ``_deg``.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
+# math.cos, not np.cos: these take one angle, and the simulator builds them for every
+# sensor and body 30 times a second, where numpy's per-call overhead shows
 def rot_x(a: float) -> np.ndarray:
-    """Rotation about x (pitch for a Kinect: y up, z forward)."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    """(3, 3) rotation about x by ``a`` radians (pitch for a Kinect: y up, z forward)."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def rot_y(a: float) -> np.ndarray:
-    """Rotation about y, the vertical axis (yaw)."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+    """(3, 3) rotation about y, the vertical axis, by ``a`` radians (yaw; 0 keeps +z)."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def rot_z(a: float) -> np.ndarray:
-    """Rotation about z, the optical axis (roll)."""
+    """(3, 3) rotation about z, the optical axis, by ``a`` radians (roll)."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def axis_rotations(axis: str, angles: np.ndarray) -> np.ndarray:
+    """(...,) angles in radians -> (..., 3, 3) rotations about ``axis`` ('x', 'y' or 'z').
+
+    The vectorised ``rot_x``/``rot_y``/``rot_z`` (a BVH file's channels, a GA population).
+    """
+    a = np.asarray(angles, dtype=float)
     c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    if axis == "x":
+        rows = [[one, zero, zero], [zero, c, -s], [zero, s, c]]
+    elif axis == "y":
+        rows = [[c, zero, s], [zero, one, zero], [-s, zero, c]]
+    elif axis == "z":
+        rows = [[c, -s, zero], [s, c, zero], [zero, zero, one]]
+    else:
+        raise ValueError(f"axis must be 'x', 'y' or 'z', not {axis!r}")
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def euler_matrices(angles: np.ndarray) -> np.ndarray:
@@ -52,14 +77,7 @@ def euler_matrices(angles: np.ndarray) -> np.ndarray:
 
 def yaw_matrices(yaw: np.ndarray) -> np.ndarray:
     """(P,) yaw angles -> (P, 3, 3) rotations about y."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    out = np.zeros((len(yaw), 3, 3))
-    out[:, 0, 0] = c
-    out[:, 0, 2] = s
-    out[:, 1, 1] = 1.0
-    out[:, 2, 0] = -s
-    out[:, 2, 2] = c
-    return out
+    return axis_rotations("y", yaw)
 
 
 def matrix(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:

@@ -1,7 +1,8 @@
 """Live calibration and self-healing on an in-process engine (ManualClock, no sleeps).
 
-Frames: ``stage.body`` sensors on a ring around the demo dancer, 30 Hz, Kinect-like
-noise and back-side bias, sent as real ``/jointCoordinates`` datagrams.
+Frames: the simulator's Kinect model (``VirtualKinect``, with the calibration tests' error
+budget: 1 cm noise, hidden joints inferred and pulled 3 cm towards the sensor) on a ring
+around the demo scenario's dancer, 30 Hz, sent as real ``/jointCoordinates`` datagrams.
 """
 
 from __future__ import annotations
@@ -13,16 +14,22 @@ import numpy as np
 import pytest
 
 from stage.app.offline import feed
-from stage.body import SensorPose, observe_with_errors, ring_of_sensors
 from stage.geometry import invert, transform_error
 from stage.calibration.healing import attach_live
 from stage.clock import ManualClock
-from stage.demo import dancer
 from stage.engine.engine import Engine
 from stage.sensors.protocol import encode_client_joints
 from stage.rig import Rig, load_rig, set_calibration
+from stage.sensors.sim import VirtualKinect, demo_scenario, ring_poses
+from stage.testing.simdata import calibration_kinect
 
 FPS = 30.0
+_DANCER = demo_scenario(1).performers[0]
+
+
+def dancer(t: float):
+    """The demo dancer's (joints (25, 3) stage space, hands) at ``t``."""
+    return _DANCER.state(t)
 
 
 class Run:
@@ -30,7 +37,7 @@ class Run:
 
     def __init__(self, tmp_path, n: int = 2, calibrated: bool = True, threaded: bool = False,
                  seed: int = 1, **settings) -> None:
-        self.poses = ring_of_sensors(n)
+        self.poses = ring_poses(n)
         self.ids = [f"s{k}" for k in range(n)]
         self.rig = Rig(reference="s0")
         self.rig.stage_frame = self.poses[0].to_stage
@@ -46,7 +53,7 @@ class Run:
         self.engine.listeners.append(self._listen)
         self.cal = attach_live(self.engine, self.rig_path, threaded=threaded, **settings)
         self.rng = np.random.default_rng(seed)
-        self.actual = list(self.poses)   # where the sensors really are
+        self.kinects = [VirtualKinect(p, calibration_kinect(), self.rng) for p in self.poses]
         self.t = 0.0
 
     def _listen(self, frame) -> None:
@@ -58,8 +65,7 @@ class Run:
 
     def bump(self, sensor: str, degrees: float) -> None:
         k = self.ids.index(sensor)
-        p = self.actual[k]
-        self.actual[k] = SensorPose(p.position, p.yaw + np.radians(degrees))
+        self.kinects[k].pose = self.kinects[k].pose.moved(yaw=np.radians(degrees))
 
     def frame(self, sensor: str, joints: np.ndarray, conf: np.ndarray, t: float) -> None:
         self.clock.set(max(self.clock.now(), t))
@@ -71,8 +77,9 @@ class Run:
         while self.t < until - 1e-9:
             truth, _ = dancer(self.t)
             for k, sid in enumerate(self.ids):
-                joints, conf = observe_with_errors(self.actual[k], truth, self.rng)
-                self.frame(sid, joints, conf, self.t + 0.002 * k)
+                seen = self.kinects[k].observe(truth)
+                if seen is not None:
+                    self.frame(sid, *seen, self.t + 0.002 * k)
             self.engine.tick()
             if hook is not None:
                 hook(self)
@@ -82,7 +89,7 @@ class Run:
         return [e for e in self.cal.events if e.kind == kind and e.sensor == sensor]
 
     def truth_to_stage(self, sensor: str) -> np.ndarray:
-        return self.actual[self.ids.index(sensor)].to_stage
+        return self.kinects[self.ids.index(sensor)].pose.to_stage
 
 
 #: the fused skeleton's mean joint error (m) never exceeds this during a bump episode;
@@ -180,10 +187,9 @@ def test_a_glitch_is_restored_without_recalibration(tmp_path):
     run = Run(tmp_path, n=2)
     run.run_until(3.0)
     # for 4 frames s1 reports the dancer 0.6 m off (a tracking glitch), then is fine again
-    p = run.poses[1]
-    run.actual[1] = SensorPose(p.position + np.array([0.6, 0.0, 0.0]), p.yaw)
+    run.kinects[1].pose = run.poses[1].moved(move=np.array([0.6, 0.0, 0.0]))
     run.run_until(3.0 + 4 / FPS)
-    run.actual[1] = run.poses[1]
+    run.kinects[1].pose = run.poses[1]
     run.run_until(6.0)
     assert len(run.events("suspect")) == 1
     restored = run.events("restored")
@@ -213,9 +219,11 @@ def test_two_people_in_view_hold_the_calibration_back(tmp_path):
     run = Run(tmp_path, n=2, calibrated=False, pairs=60)
 
     def second_person(r):
-        truth = dancer(r.t + 7.0)[0] + np.array([2.0, 0.0, 0.0])
-        joints, conf = observe_with_errors(r.actual[1], truth, r.rng)
-        r.engine.handle_datagram(encode_client_joints("s1", 1, joints, conf), ("127.0.0.1", 9001))
+        # 1 m to the side of the dancer, inside s1's field of view
+        truth = dancer(r.t + 7.0)[0] + np.array([1.0, 0.0, 0.0])
+        seen = r.kinects[1].observe(truth, user=1)
+        if seen is not None:
+            r.engine.handle_datagram(encode_client_joints("s1", 1, *seen), ("127.0.0.1", 9001))
 
     run.run_until(4.0, hook=second_person)
     assert not run.events("calibrated")

@@ -1,11 +1,11 @@
 """Every calibration method against known ground truth (simulated sensors, seeded).
 
-The data: two Kinect-like sensors 100 degrees apart around a figure-of-eight
-walk, the second 0.7 m higher and tilted down 8 degrees, with 1 cm noise per
-axis and inferred far-side joints pulled 3 cm towards each sensor
-(``stage.body.observe_with_errors``). Tolerances are the stated accuracy of
-each method on such data (docs/calibration.md), about twice the worst of
-eight seeds.
+The data: the simulator (``stage.testing.simdata``): two Kinect v2 sensors 100
+degrees apart around a figure-of-eight walk, the second 0.7 m higher and
+tilted down 8 degrees, with 1 cm noise per axis and occluded joints inferred
+and pulled 3 cm towards each sensor (``simdata.CALIBRATION_NOISE``).
+Tolerances are the stated accuracy of each method on such data
+(docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from stage.calibration.methods.ga import GAConfig, run_ga
 from stage.calibration.methods.rigid import kabsch
 from stage.calibration.pairs import pair_streams
 from stage.errors import CalibrationError
-from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
+from stage.sensors.sim import Simulator
+from stage.testing import simdata
 
 #: method -> (max rotation error deg, max translation error mm, max RMS error mm over the
 #: sensor's points); regression is affine (the paper's), its scale error shows in translation
@@ -37,10 +38,10 @@ TOLERANCE = {
 
 def _pairs(tilt: float = 8.0, roll: float = 0.0, seed: int = 3, glitch_p: float = 0.0,
            duration: float = 20.0):
-    rig = two_sensor_rig(tilt, roll)
-    streams = simulate(rig, wander(), duration, seed=seed, glitch_p=glitch_p)
+    sim = Simulator(simdata.two_sensors(tilt, roll, kinect={"glitch_p": glitch_p}), seed)
+    streams = simdata.streams(sim, duration)
     pairs = pair_streams(streams["kinect-a"], streams["kinect-b"])
-    return pairs, relative(rig[0], rig[1])
+    return pairs, simdata.true_transform(sim, "kinect-b")
 
 
 @pytest.fixture(scope="module")
@@ -81,10 +82,10 @@ def test_trajectory_does_not_solve_roll():
 
 
 def test_noise_free_data_gives_exact_transforms():
-    rig = two_sensor_rig(8.0)
-    streams = simulate(rig, wander(), 10.0, seed=1, noise_m=0.0, back_bias_m=0.0)
+    sim = Simulator(simdata.two_sensors(8.0, kinect=simdata.IDEAL_KINECT), seed=1)
+    streams = simdata.streams(sim, 10.0)
     pairs = pair_streams(streams["kinect-a"], streams["kinect-b"], interpolate=False)
-    truth = relative(rig[0], rig[1])
+    truth = simdata.true_transform(sim, "kinect-b")
     for method in ("rigid", "regression", "floor"):
         result = calibrate(pairs, method)
         assert np.allclose(result.matrix, truth, atol=1e-6), method
@@ -196,8 +197,8 @@ def test_too_few_pairs_and_unknown_method_are_clear_errors(tilted):
 
 
 def test_trajectory_needs_a_walk():
-    rig = two_sensor_rig(0.0)
-    still = simulate(rig, lambda t: wander()(0.0), 20.0, seed=1)
+    sim = Simulator(simdata.two_sensors(0.0, performer=simdata.standing_still()), seed=1)
+    still = simdata.streams(sim, 20.0)
     pairs = pair_streams(still["kinect-a"], still["kinect-b"])
     with pytest.raises(CalibrationError, match="hardly moved"):
         calibrate(pairs, "trajectory")
@@ -208,9 +209,9 @@ def test_geometry_helpers():
     assert np.allclose(euler_matrices(angles)[0], rot_y(0.3) @ rot_x(-0.2) @ rot_z(0.1))
     m = matrix(rot_y(0.4) @ rot_x(0.1), np.array([1.0, 2.0, 3.0]))
     assert np.allclose(invert(m) @ m, np.eye(4))
-    rig = two_sensor_rig(12.0, 3.0)
-    level = level_matrix(rig[1].floor_plane())
-    floor_points = rig[1].observe(np.array([[1.0, 0.0, 2.0], [-1.0, 0.0, 0.5]]))
+    tilted = simdata.two_sensors(12.0, 3.0).sensors[1].pose
+    level = level_matrix(tilted.floor_plane())
+    floor_points = tilted.observe(np.array([[1.0, 0.0, 2.0], [-1.0, 0.0, 0.5]]))
     assert np.allclose(apply(level, floor_points)[:, 1], 0.0, atol=1e-12)
     err = transform_error(matrix(rot_y(np.radians(2.0)), np.zeros(3)), np.eye(4))
     assert err["rot_deg"] == pytest.approx(2.0)

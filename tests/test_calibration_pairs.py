@@ -12,14 +12,20 @@ from stage.geometry import transform_error
 from stage.calibration.pairs import find_lag, pair_streams
 from stage.errors import CalibrationError
 from stage.calibration.streams import Stream, find_identical_streams, streams_from_datagrams
-from stage.calibration.synth import relative, simulate, two_sensor_rig, wander
+from stage.sensors.sim import Simulator
+from stage.testing import simdata
 from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 
 
-def _streams(offset: float = 0.0, phase: float = 0.0, seed: int = 3, duration: float = 20.0):
-    rig = two_sensor_rig()
-    rig[1] = dataclasses.replace(rig[1], clock_offset_s=offset, phase_s=phase)
-    return rig, simulate(rig, wander(), duration, seed=seed)
+def _streams(offset: float = 0.0, phase: float = 0.0, seed: int = 3, duration: float = 20.0,
+             lockstep: bool = False):
+    """kinect-b's clock ``offset`` s ahead, its frames ``phase`` s into each period; times on
+    each sensor's own clock when there is an offset to find, else the capture times.
+    ``lockstep``: no frame-time jitter and no dropped frames, so the two sensors' frames
+    come at the very same instants."""
+    kinect = {"frame_jitter_s": 0.0, "drop_p": 0.0} if lockstep else None
+    sim = Simulator(simdata.two_sensors(offset_s=offset, phase_s=phase, kinect=kinect), seed)
+    return sim, simdata.streams(sim, duration, "sensor" if offset else "capture")
 
 
 @pytest.mark.parametrize("lag", [0.37, -0.25, 0.0])
@@ -33,8 +39,8 @@ def test_time_alignment_recovers_a_known_lag(lag):
 
 
 def test_lag_matters_for_the_calibration():
-    rig, s = _streams(offset=0.37)
-    truth = relative(rig[0], rig[1])
+    sim, s = _streams(offset=0.37)
+    truth = simdata.true_transform(sim, "kinect-b")
     aligned = calibrate(pair_streams(s["kinect-a"], s["kinect-b"], 0.37).evenly(300), "rigid")
     ignored = calibrate(pair_streams(s["kinect-a"], s["kinect-b"], 0.0).evenly(300), "rigid")
     good = transform_error(aligned.matrix, truth, s["kinect-b"].joints)["rms_mm"]
@@ -51,8 +57,8 @@ def test_lag_search_without_overlap_is_a_clear_error():
 
 
 def test_interpolation_removes_half_a_frame_of_motion():
-    rig, s = _streams(phase=1 / 60)  # frames exactly between the reference's
-    truth = relative(rig[0], rig[1])
+    sim, s = _streams(phase=1 / 60)  # frames exactly between the reference's
+    truth = simdata.true_transform(sim, "kinect-b")
     interp = pair_streams(s["kinect-a"], s["kinect-b"])
     nearest = pair_streams(s["kinect-a"], s["kinect-b"], interpolate=False)
     assert len(interp) > 500 and len(nearest) > 500
@@ -63,7 +69,7 @@ def test_interpolation_removes_half_a_frame_of_motion():
 
 
 def test_nan_frames_are_dropped_and_only_shared_joints_count():
-    _, s = _streams(duration=5.0)
+    _, s = _streams(duration=5.0, lockstep=True)
     b = s["kinect-b"]
     b.joints[10, 3] = np.nan       # one NaN joint spoils the whole frame (seed 002)
     b.conf[20, :12] = 0.0          # a half-tracked frame keeps its other joints

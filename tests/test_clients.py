@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from helpers import query_stats
 
-from stage.body import pose
 from stage.errors import StageError
+from stage.sensors.sim import standing_pose
 from stage.sensors.clients.azure import AZURE_INDEX, K4ABT_JOINTS, azure_body
 from stage.sensors.clients.kinect2 import RelativeClock, floor_plane, kinect2_body
 from stage.sensors.clients.osc import BodyFrame, ClientEncoder, UdpSender, UserSlots
@@ -28,7 +28,7 @@ from stage.app.server import Server
 
 def body(key, x=0.0, z=3.0) -> BodyFrame:
     """A person 3 m in front of a sensor, facing it, in Kinect camera space."""
-    j = pose(np.array([x, z]), math.pi)
+    j = standing_pose((x, z), math.pi)
     j[:, 1] -= 0.8  # the sensor is 0.8 m above the floor
     return BodyFrame(key, j, np.ones(25), (HandState.OPEN, HandState.LASSO))
 

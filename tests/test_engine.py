@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from pythonosc.osc_message import OscMessage
 
-from stage.body import SensorPose, observe_with_errors, pose, ring_of_sensors
 from stage.clock import ManualClock
 from stage.engine.engine import Engine
 from stage.joints import JOINTS, HandState
 from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
 from stage.settings import ClientSettings, FusionSettings
 from stage.rig import Rig, set_calibration
+from stage.sensors.sim import VirtualKinect, VirtualPose, ring_poses, standing_pose
 
 FPS = 30.0
 
@@ -38,7 +38,7 @@ class RecordingTransport:
 VIEW = ("127.0.0.1", 9001)
 
 
-def make_engine(poses: list[SensorPose] | None = None, **fusion) -> tuple[Engine, ManualClock,
+def make_engine(poses: list[VirtualPose] | None = None, **fusion) -> tuple[Engine, ManualClock,
                                                                           RecordingTransport]:
     """An engine whose rig knows the exact transform of each sensor pose."""
     poses = poses or []
@@ -75,7 +75,7 @@ def fused_ids(transport: RecordingTransport) -> set[int]:
 
 def test_one_sensor_skeleton_goes_out_as_paper_messages():
     engine, clock, out = make_engine()
-    body = pose((0.0, 2.5), np.pi)
+    body = standing_pose((0.0, 2.5), np.pi)
     send(engine, encode_message("/registerDevice", "kin", "kinect2"))
     send(engine, encode_message("/newUser", "kin", 4, 0.0, 1.0, 2.5))
     send(engine, frame("kin", 4, body, hands=("open", "lasso")))
@@ -94,8 +94,8 @@ def test_fused_ids_are_not_client_ids_and_are_stable_per_person():
     engine, clock, out = make_engine()
     for k in range(10):
         clock.advance(1 / FPS)
-        send(engine, frame("kin", 0, pose((0.5 + 0.01 * k, 2.0), 0.0)))
-        send(engine, frame("kin", 1, pose((-1.0, 3.0), 0.0)))
+        send(engine, frame("kin", 0, standing_pose((0.5 + 0.01 * k, 2.0), 0.0)))
+        send(engine, frame("kin", 1, standing_pose((-1.0, 3.0), 0.0)))
     ids = [p[0] for p in out.of("/jointCoordinates")]
     assert len(set(ids)) == 2
     assert ids[0::2] == [ids[0]] * 10 and ids[1::2] == [ids[1]] * 10
@@ -104,18 +104,19 @@ def test_fused_ids_are_not_client_ids_and_are_stable_per_person():
 def run_three_sensors(seed: int, occlude_p: float, frames: int = 150):
     """Three sensors around a performer who walks and waves; returns errors per source."""
     rng = np.random.default_rng(seed)
-    poses = ring_of_sensors(3)
+    poses = ring_poses(3)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
     engine, clock, out = make_engine(poses)
     errors = {"fused": [], **{f"s{k}": [] for k in range(3)}}
     truths = []
     for f in range(frames):
         t = f / FPS
-        truth = pose((0.5 * np.sin(t), 0.3 * np.cos(t)), 0.6 * t, 1.2 + np.sin(2 * t), 0.4,
-                     0.3 * np.sin(5 * t))
+        truth = standing_pose((0.5 * np.sin(t), 0.3 * np.cos(t)), 0.6 * t, 1.2 + np.sin(2 * t),
+                              0.4, stride_phase=5 * t / (2 * np.pi), stride_amp=0.85)
         truths.append(truth)
         for k, p in enumerate(poses):
             clock.advance(0.004)
-            joints, conf = observe_with_errors(p, truth, rng)
+            joints, conf = kinects[k].observe(truth)
             hidden = rng.random(25) < occlude_p
             conf = np.where(hidden, 0.0, conf)
             send(engine, frame(f"s{k}", k, joints, conf, hands=("open" if k < 2 else "closed",
@@ -149,9 +150,9 @@ def test_three_noisy_partly_occluded_sensors_fuse_closer_to_truth_than_any_one()
 
 
 def test_every_joint_seen_by_at_least_one_sensor_is_reported():
-    poses = ring_of_sensors(2)
+    poses = ring_poses(2)
     engine, clock, out = make_engine(poses)
-    truth = pose((0.0, 0.0), 0.0)
+    truth = standing_pose((0.0, 0.0), 0.0)
     conf_a = np.ones(25)
     conf_a[7] = 0.0           # sensor a cannot see HandLeft
     conf_b = np.zeros(25)
@@ -167,18 +168,19 @@ def test_every_joint_seen_by_at_least_one_sensor_is_reported():
 
 
 def test_ids_do_not_swap_when_two_people_pass_close():
-    poses = ring_of_sensors(3)
+    poses = ring_poses(3)
     engine, clock, out = make_engine(poses)
     rng = np.random.default_rng(5)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
     track_of: dict[int, list[float]] = {}
     for f in range(120):
         x = -1.5 + 3.0 * f / 119          # A walks +x, B walks -x, 0.25 m apart in z at the cross
-        people = [pose((x, 0.125), 0.0), pose((-x, -0.125), np.pi)]
-        for k, p in enumerate(poses):
+        people = [standing_pose((x, 0.125), 0.0), standing_pose((-x, -0.125), np.pi)]
+        for k, kinect in enumerate(kinects):
             clock.advance(0.003)
-            for user, truth in enumerate(people):
-                joints, conf = observe_with_errors(p, truth, rng)
-                send(engine, frame(f"s{k}", user, joints, conf))
+            for user, seen in enumerate(kinect.observe_all(people)):
+                if seen is not None:   # one can hide the other from this sensor
+                    send(engine, frame(f"s{k}", user, *seen))
         clock.advance(1 / FPS - 0.009)
         engine.tick()
     for params in out.of("/jointCoordinates"):
@@ -191,17 +193,18 @@ def test_ids_do_not_swap_when_two_people_pass_close():
 
 
 def test_person_handed_over_between_sensors_keeps_the_same_id():
-    poses = ring_of_sensors(3)
+    poses = ring_poses(3)
     engine, clock, out = make_engine(poses)
     rng = np.random.default_rng(2)
-    truth = pose((0.0, 0.0), 0.0)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
+    truth = standing_pose((0.0, 0.0), 0.0)
     schedule = [("s0",)] * 20 + [("s0", "s1")] * 10 + [("s1",)] * 20 + [()] * 6 + [("s2",)] * 20
     for f, visible in enumerate(schedule):
         for name in visible:
             k = int(name[1])
             if f and name not in schedule[f - 1]:  # a sensor acquiring someone says so
                 send(engine, encode_message("/newUser", name, 0, 0.0, 1.0, 2.0))
-            joints, conf = observe_with_errors(poses[k], truth, rng)
+            joints, conf = kinects[k].observe(truth)
             send(engine, frame(name, 0, joints, conf))
             clock.advance(0.002)
         for name in ("s0", "s1", "s2"):
@@ -224,7 +227,7 @@ def test_person_handed_over_between_sensors_keeps_the_same_id():
 def test_silent_client_loses_its_users_and_is_picked_up_when_it_returns(caplog):
     caplog.set_level(logging.INFO, logger="stage.engine")
     engine, clock, out = make_engine()
-    body = pose((0.0, 2.5), np.pi)
+    body = standing_pose((0.0, 2.5), np.pi)
     for _ in range(5):
         send(engine, frame("kin", 0, body))
         clock.advance(1 / FPS)
@@ -255,8 +258,8 @@ def test_clock_offset_is_estimated_and_frames_fused_in_capture_order():
     # deliver every two frames swapped: the second frame arrives first
     for k in range(0, 30, 2):
         (arr_a, cap_a), (arr_b, cap_b) = batch_times[k], batch_times[k + 1]
-        body_a = pose((0.01 * k, 2.5), 0.0)
-        body_b = pose((0.01 * (k + 1), 2.5), 0.0)
+        body_a = standing_pose((0.01 * k, 2.5), 0.0)
+        body_b = standing_pose((0.01 * (k + 1), 2.5), 0.0)
         clock.set(max(arr_a, arr_b))
         from stage.sensors.protocol import Inbound
         from stage.sensors.protocol import decode_datagram
@@ -276,7 +279,7 @@ def test_clock_offset_is_estimated_and_frames_fused_in_capture_order():
 
 def test_a_frame_older_than_the_last_fused_one_is_dropped_as_late():
     engine, clock, out = make_engine()
-    body = pose((0.0, 2.5), 0.0)
+    body = standing_pose((0.0, 2.5), 0.0)
     send(engine, frame("kin", 0, body, timetag=1_700_000_010.0))
     clock.advance(0.03)
     send(engine, frame("kin", 0, body, timetag=1_700_000_009.9))
@@ -285,7 +288,7 @@ def test_a_frame_older_than_the_last_fused_one_is_dropped_as_late():
 
 def test_bad_input_never_reaches_a_view_and_is_counted_per_client_and_reason():
     engine, clock, out = make_engine()
-    body = pose((0.0, 2.5), 0.0)
+    body = standing_pose((0.0, 2.5), 0.0)
     bad = body.copy()
     bad[3, 0] = np.nan
     send(engine, encode_client_joints("kin", 0, bad, np.ones(25)))
@@ -303,44 +306,44 @@ def test_bad_input_never_reaches_a_view_and_is_counted_per_client_and_reason():
 
 
 def test_uncalibrated_sensor_is_not_fused(caplog):
-    poses = ring_of_sensors(2)
+    poses = ring_poses(2)
     engine, clock, out = make_engine(poses)
-    body = pose((0.0, 0.0), 0.0)
+    body = standing_pose((0.0, 0.0), 0.0)
     send(engine, frame("stranger", 0, body))
     assert out.sent == [] and "no calibration" in caplog.text
     assert engine.clients["stranger"].frames == 1
 
 
 def test_allow_list_drops_unknown_sensors():
-    engine, clock, out = make_engine(ring_of_sensors(2))
+    engine, clock, out = make_engine(ring_poses(2))
     engine.rig.allow_unknown_sensors = False
-    send(engine, frame("intruder", 0, pose((0.0, 0.0), 0.0)))
+    send(engine, frame("intruder", 0, standing_pose((0.0, 0.0), 0.0)))
     assert engine.drops.snapshot() == {"intruder": {"not_allowed": 1}}
     assert "intruder" not in engine.clients
 
 
 def test_register_view_gets_current_people_and_unregister_stops_output():
     engine, clock, out = make_engine()
-    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    send(engine, frame("kin", 0, standing_pose((0.0, 2.5), 0.0)))
     out.clear()
     send(engine, encode_message("/registerView", "127.0.0.1", 9100))
     assert {a for a, m in out.sent} == {("127.0.0.1", 9100)}
     assert [m.address for _, m in out.sent] == ["/newUser", "/handState", "/handState"]
     out.clear()
     clock.advance(0.03)
-    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    send(engine, frame("kin", 0, standing_pose((0.0, 2.5), 0.0)))
     assert {a for a, _ in out.sent} == {VIEW, ("127.0.0.1", 9100)}
     send(engine, encode_message("/unregisterView", "127.0.0.1", 9100))
     out.clear()
     clock.advance(0.03)
-    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    send(engine, frame("kin", 0, standing_pose((0.0, 2.5), 0.0)))
     assert {a for a, _ in out.sent} == {VIEW}
 
 
 def test_stats_query_answers_the_sender_with_json():
     import json
     engine, clock, out = make_engine()
-    send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+    send(engine, frame("kin", 0, standing_pose((0.0, 2.5), 0.0)))
     send(engine, encode_message("/stage/stats"), source=("127.0.0.1", 4444))
     (addr, msg), = [(a, m) for a, m in out.sent if m.address == "/stage/stats"]
     assert addr == ("127.0.0.1", 4444)
@@ -371,7 +374,7 @@ def test_listener_that_raises_is_disabled_and_the_show_goes_on(caplog):
 
     engine.listeners += [broken, frames.append]
     for _ in range(3):
-        send(engine, frame("kin", 0, pose((0.0, 2.5), 0.0)))
+        send(engine, frame("kin", 0, standing_pose((0.0, 2.5), 0.0)))
         clock.advance(0.03)
     assert broken not in engine.listeners
     assert len(frames) == 3 and frames[0].new == (1,)
@@ -379,9 +382,9 @@ def test_listener_that_raises_is_disabled_and_the_show_goes_on(caplog):
 
 
 def test_two_persons_created_apart_then_seen_as_one_are_merged():
-    poses = ring_of_sensors(2)
+    poses = ring_poses(2)
     engine, clock, out = make_engine(poses, merge_s=0.3)
-    truth = pose((0.0, 0.0), 0.0)
+    truth = standing_pose((0.0, 0.0), 0.0)
     # sensor s1 is briefly miscalibrated by 0.7 m, so it creates a second person...
     shifted = truth + np.array([0.7, 0.0, 0.0])
     send(engine, frame("s0", 0, poses[0].observe(truth)))
@@ -402,9 +405,9 @@ def test_two_persons_created_apart_then_seen_as_one_are_merged():
 
 
 def test_hand_votes_can_be_weighted_by_hand_confidence():
-    poses = ring_of_sensors(3)
+    poses = ring_poses(3)
     engine, clock, out = make_engine(poses, hand_vote="confidence")
-    truth = pose((0.0, 0.0), 0.0)
+    truth = standing_pose((0.0, 0.0), 0.0)
     for k, state in enumerate(("open", "open", "closed")):
         conf = np.ones(25)
         conf[7] = 0.2 if state == "open" else 1.0
@@ -415,11 +418,11 @@ def test_hand_votes_can_be_weighted_by_hand_confidence():
 
 
 def test_call_soon_runs_on_the_engine_in_order_with_data():
-    poses = ring_of_sensors(2)
+    poses = ring_poses(2)
     engine, clock, out = make_engine(poses)
     seen = []
     engine.frame_observers.append(seen.append)
-    truth = pose((0.0, 0.0), 0.0)
+    truth = standing_pose((0.0, 0.0), 0.0)
     send(engine, frame("s1", 0, poses[1].observe(truth)))
     assert len(seen) == 1 and seen[0].sensor == "s1" and seen[0].transform is not None
     np.testing.assert_allclose(seen[0].joints, poses[1].observe(truth), atol=1e-6)  # sensor space

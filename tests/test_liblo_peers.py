@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from helpers import LOCALHOST, TIMEOUT_S, Peer, free_udp_port, query_stats
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.joints import JOINT_INDEX
 from stage.rig import Rig
 from stage.app.server import Server
@@ -166,7 +166,7 @@ def server():
 
 
 def _skeleton() -> dict[str, np.ndarray]:
-    joints = pose(np.array([0.4, 2.3]), 0.2, left_arm=1.0, right_arm=0.3)
+    joints = standing_pose((0.4, 2.3), 0.2, left_arm=1.0, right_arm=0.3)
     # three decimals: exact enough to survive oscsend's text -> float32 unchanged to 1e-6
     return {name: np.round(joints[JOINT_INDEX[name]], 3) for name in SENT_JOINTS}
 

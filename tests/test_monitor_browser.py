@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.clock import ManualClock
 from stage.frames import Body, FusedFrame
 from stage.events import SectionChange, ZoneState
@@ -175,7 +175,7 @@ def browser(tmp_path):
 
 
 def dancer(pid: int, x: float, z: float, arm: float = 0.3) -> Body:
-    joints = pose(np.array([x, z]), 0.0, left_arm=arm, right_arm=0.2)
+    joints = standing_pose((x, z), 0.0, left_arm=arm, right_arm=0.2)
     return Body(pid, joints, np.ones(25), np.zeros((25, 3)), (HandState.OPEN, HandState.CLOSED),
                 joints[[0, 1, 20, 12, 16]].mean(axis=0), ("kinect-a",))
 

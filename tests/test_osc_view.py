@@ -18,7 +18,7 @@ from pythonosc import osc_bundle, osc_message
 
 from helpers import LOCALHOST, TIMEOUT_S, Peer, Sensor, free_udp_port, sync
 from stage_plugins.osc.encode import (FrameEncoder, bundles, osc_out_message, piece_event_message)
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.clock import ManualClock
 from stage.errors import ConfigError
 from stage.events import (MappingValue, Note, OscOut, OutputDecl, SectionChange, TriggerFired,
@@ -258,7 +258,7 @@ def test_oscdump_receives_the_server_to_view_api_and_piece_events_in_bundles():
             try:
                 with Sensor("kinect-x", server.address) as sensor:
                     sensor.register()
-                    joints = pose(np.array([0.5, 2.0]), 0.0)
+                    joints = standing_pose((0.5, 2.0), 0.0)
                     for k in range(3):   # three frames at the sensor's 30 Hz: three fusions
                         sensor.frame(0, joints + 0.01 * k)
                         sensor.hand(0, "left", "open")

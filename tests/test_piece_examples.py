@@ -8,7 +8,7 @@ from pathlib import Path
 from stage.events import AllNotesOff, ControlChange, Note, OscOut, SectionChange, TriggerFired
 from stage.joints import HandState
 from stage.piece import PieceRuntime, RecordingSink, load_piece
-from stage.piece.script import ScriptedStage, standing
+from stage.testing.script import ScriptedStage, standing
 
 REPO = Path(__file__).resolve().parents[1]
 OPEN, CLOSED = HandState.OPEN, HandState.CLOSED

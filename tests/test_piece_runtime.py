@@ -14,7 +14,7 @@ from stage.events import (AllNotesOff, ControlChange, MappingValue, Note, OscOut
                           SectionChange, TriggerFired, ZoneState)
 from stage.joints import JOINT_INDEX
 from stage.piece import PieceRuntime, RecordingSink, loads_piece
-from stage.piece.script import ScriptedStage, standing
+from stage.testing.script import ScriptedStage, standing
 from stage.sensors.protocol import encode_client_joints, encode_message
 
 HEAD = """

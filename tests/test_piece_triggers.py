@@ -1,6 +1,6 @@
 """Each trigger kind on scripted skeleton streams with an injected clock.
 
-Frames come from ``stage.piece.script.ScriptedStage`` at 30 Hz with exact,
+Frames come from ``stage.testing.script.ScriptedStage`` at 30 Hz with exact,
 scripted times; the runtime's events go to a RecordingSink.
 """
 
@@ -14,7 +14,7 @@ import pytest
 from stage.events import SectionChange, TriggerFired
 from stage.joints import JOINT_INDEX, HandState
 from stage.piece import PieceRuntime, RecordingSink, loads_piece
-from stage.piece.script import ScriptedStage, standing, with_joint
+from stage.testing.script import ScriptedStage, standing, with_joint
 
 FPS = 30.0
 OPEN, CLOSED, LASSO, UNKNOWN = HandState.OPEN, HandState.CLOSED, HandState.LASSO, HandState.UNKNOWN

@@ -208,7 +208,7 @@ def test_sigterm_stops_cleanly_with_note_offs(tmp_path):
 @pytest.mark.integration
 def test_play_listens_for_real_sensors_and_sends_osc(tmp_path):
     from helpers import Peer, Sensor, free_udp_port
-    from stage.piece.script import standing
+    from stage.testing.script import standing
     piece = tmp_path / "hit.yaml"
     piece.write_text("""
 piece: hit

@@ -22,7 +22,7 @@ import pytest
 
 import stage
 from stage import DISTRIBUTION
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.clock import ManualClock
 from stage.frames import FusedFrame
 from stage.views import GROUP, View, ViewHost, discover_views
@@ -201,7 +201,7 @@ def test_the_tutorial_view_is_at_most_30_lines_installs_and_prints_raised_hands(
     body = make_body(1)
     for k, (left, right) in enumerate([(0.2, 0.2), (3.0, 0.2), (3.0, 0.2), (0.2, 3.0),
                                        (0.2, 0.2), (3.0, 0.2)]):
-        body.joints = pose(np.array([0.0, 1.0]), 0.0, left_arm=left, right_arm=right)
+        body.joints = standing_pose((0.0, 1.0), 0.0, left_arm=left, right_arm=right)
         host._on_frame(FusedFrame(0.1 * k, {1: body}, (1,), (1,) if k == 0 else (), ()))
         host.pump()
     host.stop()

@@ -17,7 +17,7 @@ import pytest
 
 from helpers import (LOCALHOST, TIMEOUT_S, Peer, Sensor, free_udp_port, joint_groups,
                      query_stats, register_view, sync)
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.clock import ManualClock
 from stage.frames import FusedFrame
 from stage.joints import JOINT_INDEX
@@ -80,7 +80,7 @@ def test_a_person_in_room_a_appears_moves_and_leaves_in_room_b(room_b):
             with Sensor("kinect-a", room_a.address) as kinect:
                 kinect.register()
                 kinect.new_user(0, np.array([0.5, 1.0, 2.0]))
-                joints = pose(np.array([0.5, 2.0]), 0.3, left_arm=1.2)
+                joints = standing_pose((0.5, 2.0), 0.3, left_arm=1.2)
                 for _ in range(5):
                     kinect.frame(0, joints)
                     kinect.hand(0, "left", "lasso")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from helpers import LOCALHOST, Msg, Peer, Sensor, joint_groups, query_stats, register_view, sync
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.joints import JOINTS, TORSO
 from stage.sensors.protocol import encode_client_joints, encode_message
 from stage.settings import ClientSettings, FusionSettings
@@ -55,7 +55,7 @@ def peers():
 def body(position, heading=0.0, rng: np.random.Generator | None = None,
          jitter_m: float = 0.003) -> np.ndarray:
     """A standing performer at ``position`` (x, z), with bounded seeded jitter."""
-    joints = pose(np.asarray(position, float), heading, left_arm=0.4, right_arm=1.2)
+    joints = standing_pose(np.asarray(position, float), heading, left_arm=0.4, right_arm=1.2)
     if rng is not None:
         joints = joints + rng.uniform(-jitter_m, jitter_m, size=joints.shape)
     return joints

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from stage.body import pose
+from stage.sensors.sim import standing_pose
 from stage.clock import ManualClock
 from stage.frames import Body, FusedFrame
 from stage.engine.engine import Engine
@@ -27,7 +27,7 @@ from stage.views.base import overrides
 
 
 def make_body(pid: int = 1, x: float = 0.0, z: float = 0.0) -> Body:
-    joints = pose(np.array([x, z]), 0.0)
+    joints = standing_pose((x, z), 0.0)
     return Body(pid, joints, np.ones(25), np.zeros((25, 3)), (HandState.OPEN, HandState.CLOSED),
                 joints[[0, 1, 20, 12, 16]].mean(axis=0), ("kinect-a",))
 
@@ -261,7 +261,7 @@ def _engine_with_two_sensors(clock: ManualClock) -> Engine:
     set_calibration(rig, "kinect-b", offset, "manual", fitness=0.95)
     set_calibration(rig, "kinect-c", np.eye(4), "manual")
     engine = Engine(rig, clock)
-    joints = pose(np.array([0.0, 2.0]), 0.0)
+    joints = standing_pose((0.0, 2.0), 0.0)
     for k in range(10):
         clock.advance(1 / 30)
         for sensor in ("kinect-a", "kinect-b"):
@@ -278,7 +278,7 @@ def test_status_has_sensor_positions_rates_and_health():
     host.collect_status()                 # the first status gives the baseline for rates
     for _ in range(15):
         clock.advance(1 / 30)
-        engine.handle_datagram(encode_client_joints("kinect-a", 0, pose(np.array([0.0, 2.0]), 0.0),
+        engine.handle_datagram(encode_client_joints("kinect-a", 0, standing_pose((0.0, 2.0)),
                                                     np.ones(25)))
     engine.sensor_notes["kinect-b"] = {"fitness": 0.41, "state": "degraded",
                                        "reason": "moved 12 cm since calibration"}
@@ -307,7 +307,7 @@ def test_frames_from_a_real_engine_reach_views_and_status_follows_at_its_interva
     host = ViewHost(threaded=False, clock=clock, status_interval_s=0.5)
     view = host.add(Recorder())
     host.attach(engine).start()
-    joints = pose(np.array([0.5, 1.0]), 0.0)
+    joints = standing_pose((0.5, 1.0), 0.0)
     engine.handle_datagram(encode_message("/registerDevice", "k", "kinect2"))
     for _ in range(30):
         clock.advance(1 / 30)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import matrix
+from ..geometry import matrix, rot_y
 
 #: Scale of the fitness map, metres (see module docstring).
 SIGMA_M = 0.10
@@ -131,9 +131,7 @@ def kabsch(m: Moments, planar: bool = False) -> np.ndarray:
     offset is still solved.
     """
     if planar:
-        yaw = np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        r = np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+        r = rot_y(np.arctan2(m.C[0, 2] - m.C[2, 0], m.C[0, 0] + m.C[2, 2]))
     else:
         u, _, vt = np.linalg.svd(m.C)
         d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0  # a reflection is never a sensor pose

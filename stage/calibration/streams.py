@@ -1,8 +1,8 @@
 """Per-sensor skeleton streams for offline calibration (recordings, simulations).
 
 A ``Stream`` is one sensor's frames in its own space, sorted by time. It is
-built from raw OSC datagrams (``streams_from_datagrams``, the way a
-recording stores them) or directly by the simulator in ``synth``.
+built from raw OSC datagrams (``streams_from_datagrams``), the way a
+recording or the simulator gives them.
 """
 
 from __future__ import annotations

@@ -1,1 +1,9 @@
-"""Helpers for tests and benchmarks (dummy JACK servers, scripted bodies); never used by a show."""
+"""Helpers for stage's tests and benchmarks; never used by the product at run time.
+
+``jack``: a dummy JACK server for MIDI tests and the MIDI benchmark.
+``script``: scripted fused frames (``ScriptedStage``) for piece tests.
+``simdata``: simulated sensor streams with known calibrations, for the
+calibration tests and benchmark. Both build their bodies and sensors with
+the simulator (``stage.sensors.sim``), the one synthetic body and sensor
+model of stage.
+"""

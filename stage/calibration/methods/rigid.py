@@ -16,7 +16,7 @@ import numpy as np
 
 from ...errors import CalibrationError
 from ..fitness import kabsch
-from ...geometry import matrix
+from ...geometry import matrix, yaw_matrices
 from ..pairs import PairSet
 
 
@@ -88,10 +88,7 @@ def _ransac_inliers(p: np.ndarray, q: np.ndarray, w: np.ndarray, iterations: int
         raise CalibrationError("the joints are (nearly) collinear: rotation is undetermined")
     r, t = _batched_kabsch(ps[keep], qs[keep])
     if planar:  # project each hypothesis on a yaw (the data are level)
-        yaw = np.arctan2(r[:, 0, 2] - r[:, 2, 0], r[:, 0, 0] + r[:, 2, 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        r = np.zeros_like(r)
-        r[:, 0, 0], r[:, 0, 2], r[:, 1, 1], r[:, 2, 0], r[:, 2, 2] = c, s, 1.0, -s, c
+        r = yaw_matrices(np.arctan2(r[:, 0, 2] - r[:, 2, 0], r[:, 0, 0] + r[:, 2, 2]))
         t = qs[keep].mean(axis=1) - np.einsum("kij,kj->ki", r, ps[keep].mean(axis=1))
     best_score, best = -1.0, None
     for k in range(len(r)):  # one (n,3) product per hypothesis keeps memory flat

@@ -133,8 +133,8 @@ def landmarks_to_body(world: np.ndarray, image: np.ndarray, visibility: np.ndarr
     hip_mid = points[hips].mean(axis=0)
     spine_shoulder = joints[J["SpineShoulder"]]
     hip_conf = conf_lm[hips].min()
-    # Kinect proportions (stage.body.REST_POSE): SpineBase just above the hip joints,
-    # SpineMid 53 % of the way up to SpineShoulder, Neck a third of the way on to the head
+    # Kinect proportions (the simulator's kinematics.REST_POSE): SpineBase just above the hip
+    # joints, SpineMid 53 % of the way up to SpineShoulder, Neck a third of the way on to the head
     joints[J["SpineBase"]] = hip_mid + 0.06 * (spine_shoulder - hip_mid)
     conf[J["SpineBase"]] = min(hip_conf, conf[J["SpineShoulder"]])
     joints[J["SpineMid"]] = joints[J["SpineBase"]] + 0.53 * (spine_shoulder - joints[J["SpineBase"]])

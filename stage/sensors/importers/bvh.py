@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import ConfigError
+from ...geometry import axis_rotations
 from ...joints import JOINT_INDEX, JOINTS, N_JOINTS
 
 
@@ -181,19 +182,6 @@ def load_bvh(path: str | os.PathLike) -> Bvh:
     return parse_bvh(text, path)
 
 
-def _axis_rotations(axis: str, degrees: np.ndarray) -> np.ndarray:
-    a = np.radians(degrees)
-    c, s = np.cos(a), np.sin(a)
-    one, zero = np.ones_like(a), np.zeros_like(a)
-    if axis == "x":
-        rows = [[one, zero, zero], [zero, c, -s], [zero, s, c]]
-    elif axis == "y":
-        rows = [[c, zero, s], [zero, one, zero], [-s, zero, c]]
-    else:
-        rows = [[c, -s, zero], [s, c, zero], [zero, zero, one]]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-
 def forward_kinematics(bvh: Bvh, frames: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """World positions per joint name, (T, 3) file units; End Sites as ``'<joint>/end'``.
 
@@ -212,7 +200,7 @@ def forward_kinematics(bvh: Bvh, frames: np.ndarray | None = None) -> dict[str, 
         for ch in joint.channels:
             axis, kind = ch[0], ch[1:]
             if kind == "rotation":
-                local_r = local_r @ _axis_rotations(axis, values[:, col])
+                local_r = local_r @ axis_rotations(axis, np.radians(values[:, col]))
             else:
                 k = "xyz".index(axis)
                 if not moved[k]:
@@ -338,8 +326,8 @@ def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | No
     if spine_shoulder is not None:
         out[:, JOINT_INDEX["SpineShoulder"]] = world[spine_shoulder]
         conf[JOINT_INDEX["SpineShoulder"]] = 1.0
-        # Kinect proportions (stage.body.REST_POSE): SpineBase 3 cm above the hip joints,
-        # SpineMid 53 % of the way from SpineBase to SpineShoulder
+        # Kinect proportions (the simulator's kinematics.REST_POSE): SpineBase 3 cm above the
+        # hip joints, SpineMid 53 % of the way from SpineBase to SpineShoulder
         hips = 0.5 * (out[:, JOINT_INDEX["HipLeft"]] + out[:, JOINT_INDEX["HipRight"]])
         base = hips + 0.06 * (world[spine_shoulder] - hips)
         out[:, JOINT_INDEX["SpineBase"]] = base

@@ -11,13 +11,15 @@ Scenario files (YAML) describe the rig, the performers' timelines and
 events; see docs/sources.md.
 """
 
-from .kinect import KinectModel, VirtualPose
+from .kinect import KinectModel, VirtualKinect, VirtualPose, ring_poses
+from .kinematics import standing_pose
 from .performer import Performer, Step
-from .scenario import (Event, Scenario, SensorSpec, builtin_names, default_scenario, load_scenario,
-                       parse_scenario)
+from .scenario import (Event, Scenario, SensorSpec, builtin_names, default_scenario, demo_scenario,
+                       load_scenario, parse_scenario)
 from .simulator import EPOCH, Datagram, SimSource, Simulator
 from .truth import Truth, load_truth, write_truth
 
 __all__ = ["Simulator", "SimSource", "Datagram", "Scenario", "SensorSpec", "Event",
-           "Performer", "Step", "KinectModel", "VirtualPose", "load_scenario", "default_scenario",
+           "Performer", "Step", "KinectModel", "VirtualPose", "VirtualKinect", "ring_poses",
+           "standing_pose", "load_scenario", "default_scenario", "demo_scenario",
            "parse_scenario", "builtin_names", "load_truth", "write_truth", "Truth", "EPOCH"]

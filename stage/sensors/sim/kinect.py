@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from ...body import rot_y
+from ...geometry import rot_x, rot_y, rot_z
 from ...joints import JOINT_INDEX as J
 from ...joints import N_JOINTS, HandState
 
@@ -72,6 +72,8 @@ class KinectModel:
     hand_misread_p: float = 0.08    # a visible hand's state reported wrong
     hand_range_m: float = 3.5       # beyond this distance hand states are 'unknown'
     nan_p: float = 0.001            # a skeleton message sent with NaN coordinates (seed 002)
+    glitch_p: float = 0.0           # a tracked joint thrown 0.3-1 m off, still 'tracked' (per
+                                    # joint per frame; off by default: for robustness tests)
     acquire_s: float = 0.3          # visible this long before the sensor reports a new user
     lose_s: float = 0.1             # invisible this long before it reports the user lost
     max_users: int = 6              # paper 4.1.1
@@ -94,16 +96,6 @@ class KinectModel:
         return f
 
 
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 @dataclass(frozen=True)
 class VirtualPose:
     """Where a virtual sensor stands and how it is turned (stage space).
@@ -111,7 +103,6 @@ class VirtualPose:
     Camera space is the Kinect's: x to the sensor's left, y up, z out of the
     lens. ``yaw``: radians about y (0 looks along +z); ``pitch``: radians the
     sensor is tilted down; ``roll``: radians about its optical axis.
-    Duck-compatible with ``stage.body.SensorPose``.
     """
 
     position: np.ndarray
@@ -128,7 +119,7 @@ class VirtualPose:
     @property
     def rotation(self) -> np.ndarray:
         """3x3 camera -> stage."""
-        return rot_y(self.yaw) @ _rot_x(self.pitch) @ _rot_z(self.roll)
+        return rot_y(self.yaw) @ rot_x(self.pitch) @ rot_z(self.roll)
 
     @property
     def to_stage(self) -> np.ndarray:
@@ -152,6 +143,28 @@ class VirtualPose:
         """This pose bumped: angles in radians added, ``move`` metres added."""
         pos = self.position + (np.zeros(3) if move is None else np.asarray(move, float))
         return VirtualPose(pos, self.yaw + yaw, self.pitch + pitch, self.roll + roll)
+
+
+def ring_poses(count: int = 3, radius: float = 2.5, height: float = 0.8,
+               centre: tuple[float, float] = (0.0, 0.0), start_angle: float = 0.0,
+               aim_height: float | None = None) -> list[VirtualPose]:
+    """``count`` sensors evenly round a circle, all looking at its centre (seed 004's rig).
+
+    Metres, stage space; ``centre`` is (x, z) on the floor. Sensor k stands at
+    ``start_angle + 2 pi k / count`` radians round the circle, counted from -z
+    towards -x (sensor 0 at ``start_angle = 0`` stands at z = -radius looking
+    along +z), ``height`` above the floor, aimed at the centre at
+    ``aim_height`` (default: its own height, so it is level). The layout of a
+    scenario's ``ring:``.
+    """
+    aim = height if aim_height is None else aim_height
+    cx, cz = centre
+    out = []
+    for k in range(count):
+        a = start_angle + 2 * math.pi * k / count
+        position = np.array([cx - radius * math.sin(a), height, cz - radius * math.cos(a)])
+        out.append(VirtualPose.looking_at(position, [cx, aim, cz]))
+    return out
 
 
 # Volumes that hide what is behind them: (joint a, joint b, fraction from a to b, radius at 1.75 m)
@@ -289,7 +302,68 @@ def measure(model: KinectModel, track: UserTrack, rng: np.random.Generator, cam:
     # a depth camera sees the near surface: hidden joints are fitted towards it (seed 003)
     toward = cam / np.maximum(distance, 1e-6)[:, None]
     joints = joints - (hidden[:, None] * model.occlusion_bias_m) * toward
+    if model.glitch_p > 0:  # drawn only when asked for, so other runs keep their numbers
+        hit = (rng.random(N_JOINTS) < model.glitch_p) & (conf > 0)
+        if hit.any():
+            direction = rng.normal(size=(int(hit.sum()), 3))
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            joints[hit] += direction * rng.uniform(0.3, 1.0, (int(hit.sum()), 1))
     return joints, conf
+
+
+class VirtualKinect:
+    """One virtual sensor measuring true skeletons the caller poses: the Kinect model alone.
+
+    For tests and benchmarks that script the bodies (and the sensor: assign
+    ``pose`` to bump it) frame by frame. Each call measures exactly as the
+    simulator's sensors do: field of view and range, occlusion by the bodies'
+    own and each other's limbs, correlated noise, a constant fit error per
+    user, hidden joints inferred and pulled towards the lens, glitches. Time
+    is the caller's: there is no frame clock, acquisition delay, dropped or
+    NaN frame, clock or hand state here (the ``Simulator`` adds those).
+    Seeded: the same calls give the same numbers.
+    """
+
+    def __init__(self, pose: VirtualPose, model: KinectModel | None = None,
+                 rng: np.random.Generator | int = 0) -> None:
+        self.pose = pose
+        self.model = model or KinectModel()
+        self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        self._tracks: dict[int, UserTrack] = {}
+
+    def observe(self, truth: np.ndarray, user: int = 0,
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+        """One body alone (nobody else hides it): ``truth`` (25, 3) stage space, metres ->
+        (joints (25, 3) camera space, metres; conf (25,)), or None when the sensor cannot
+        track it (outside the view or range, or mostly hidden). ``user`` keeps each
+        body's noise and fit error apart when several are observed one by one."""
+        return self._measure([user], np.asarray(truth, float)[None])[0]
+
+    def observe_all(self, bodies: list[np.ndarray],
+                    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Several bodies in one frame, hiding each other: ``observe`` for each, in order
+        (body k is user k)."""
+        if not len(bodies):
+            return []
+        return self._measure(list(range(len(bodies))), np.stack(bodies).astype(float))
+
+    def _measure(self, users: list[int], stage: np.ndarray) -> list:
+        cam = self.pose.observe(stage)
+        # body size from the upper body, which no pose stretches (rest: 0.55 m at 1.75 m)
+        scales = np.linalg.norm(stage[:, J["Neck"]] - stage[:, J["SpineBase"]], axis=1) / 0.55
+        vis = visibility(self.model, cam, scales)
+        out: list[tuple[np.ndarray, np.ndarray] | None] = []
+        for k, user in enumerate(users):
+            if not body_visible(vis, k):
+                self._tracks.pop(user, None)  # found again later: a new fit error, as on a Kinect
+                out.append(None)
+                continue
+            track = self._tracks.get(user)
+            if track is None:
+                track = self._tracks[user] = UserTrack(self.rng, self.model)
+            out.append(measure(self.model, track, self.rng, cam[k], vis.in_fov[k],
+                               vis.hidden_self[k], vis.hidden_other[k]))
+        return out
 
 
 def sensed_hand(model: KinectModel, rng: np.random.Generator, true: HandState, conf: float,

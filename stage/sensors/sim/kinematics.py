@@ -1,7 +1,11 @@
 """A procedural 25-joint body: arms by angles or reaching a point, walking legs, crouch, jump.
 
-Body frame as in ``stage.body``: x to the performer's left, y up, z the way
-they face; metres. Stage space: the body frame turned by ``heading`` about y
+The one synthetic body of stage: the simulator's performers, the demo and
+every test or benchmark that needs a posed skeleton use it
+(``standing_pose`` for a simple one).
+
+Body frame: x to the performer's left, y up, z the way they face; metres;
+feet on y = 0. Stage space: the body frame turned by ``heading`` about y
 (0 faces +z, positive turns to the performer's left, i.e. counter-clockwise
 seen from above) and placed at ``position``.
 
@@ -14,11 +18,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
-from ...body import REST_POSE, rot_y
+from ...geometry import rot_x, rot_y
 from ...joints import JOINT_INDEX as J
+from ...joints import JOINTS
+
+_REST = {
+    "SpineBase": (0.0, 0.95, 0.0), "SpineMid": (0.0, 1.20, 0.0), "Neck": (0.0, 1.50, 0.0),
+    "Head": (0.0, 1.65, 0.02), "SpineShoulder": (0.0, 1.42, 0.0),
+    "ShoulderLeft": (0.18, 1.40, 0.0), "ElbowLeft": (0.22, 1.12, 0.0),
+    "WristLeft": (0.24, 0.88, 0.02), "HandLeft": (0.24, 0.80, 0.03),
+    "HandTipLeft": (0.24, 0.72, 0.04), "ThumbLeft": (0.21, 0.80, 0.06),
+    "HipLeft": (0.09, 0.92, 0.0), "KneeLeft": (0.10, 0.50, 0.02),
+    "AnkleLeft": (0.10, 0.08, 0.0), "FootLeft": (0.10, 0.02, 0.10),
+}
+for _name, (_x, _y, _z) in list(_REST.items()):
+    if _name.endswith("Left"):
+        _REST[_name[:-4] + "Right"] = (-_x, _y, _z)
+
+#: (25, 3) rest pose of a 1.75 m performer in the body frame, metres: the segment
+#: lengths of every simulated body are scaled from it
+REST_POSE = np.array([_REST[name] for name in JOINTS])
 
 _UP = np.array([0.0, 1.0, 0.0])
 _FWD = np.array([0.0, 0.0, 1.0])
@@ -145,11 +168,6 @@ def reach_angles(target: np.ndarray, shoulder: np.ndarray, props: Proportions, s
     return ArmPose(e, a, math.pi - inner)
 
 
-def _rot_x(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
 def _leg(joints: np.ndarray, side: str, flex: float, knee: float, props: Proportions) -> None:
     """Pose a leg in place: ``flex`` hip flexion (+ forwards), ``knee`` knee flexion, radians."""
     hip = joints[J["Hip" + side]]
@@ -184,7 +202,7 @@ def upper_frame(state: BodyState, props: Proportions,
     lean = 0.5 * hip_flex
     pivot = props.pivot
     r_heading = rot_y(state.heading)
-    lean_r = _rot_x(lean)
+    lean_r = rot_x(lean)
     # p_stage = Rh @ (Rl @ (p - pivot) + pivot + [0, y_shift, 0]) + [x, 0, z]
     y_shift = _ground_shift(state, props, legs)
     rotation = r_heading @ lean_r
@@ -212,6 +230,33 @@ def _ground_shift(state: BodyState, props: Proportions,
     if state.lift > 0:  # airborne: tucked feet do not pull the body down
         lowest = min(lowest, props.ankle_y)
     return props.ankle_y - lowest + state.lift
+
+
+@lru_cache(maxsize=64)
+def proportions(height: float = 1.75) -> Proportions:
+    """The (shared, read-only) proportions of a performer ``height`` metres tall."""
+    return Proportions(height)
+
+
+def standing_pose(position: tuple[float, float] | np.ndarray = (0.0, 0.0), heading: float = 0.0,
+                  left_arm: float = 0.0, right_arm: float = 0.0, *, height: float = 1.75,
+                  stride_phase: float = 0.0, stride_amp: float = 0.0) -> np.ndarray:
+    """(25, 3) joints, stage space, metres: an upright performer with straight arms.
+
+    position: (x, z) on the floor, metres. heading: radians (0 faces +z,
+    positive turns to the performer's left). left_arm/right_arm: radians the
+    straight arm is raised sideways (0 hanging, pi/2 horizontal, pi overhead).
+    stride_phase/stride_amp: the legs in a walking stride (phase in cycles,
+    1 = two steps; amplitude 0 standing still, 1 a normal walk; hanging arms
+    swing with it). The simple posed skeleton for tests and benchmarks; for
+    crouching, jumping, reaching or bent elbows pose a ``BodyState`` with
+    ``skeleton``.
+    """
+    x, z = (float(v) for v in position)
+    state = BodyState(np.array([x, z]), float(heading),
+                      (ArmPose(float(left_arm)), ArmPose(float(right_arm))),
+                      stride_phase=float(stride_phase), stride_amp=float(stride_amp))
+    return skeleton(state, proportions(float(height)))
 
 
 def skeleton(state: BodyState, props: Proportions) -> np.ndarray:

@@ -15,12 +15,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ...body import REST_POSE, rot_y
 from ...errors import ConfigError
+from ...geometry import rot_y
 from ...joints import JOINT_INDEX, HandState
 from .channels import Arc, Channel, Ease, EaseTo, Hold, Motion, Polyline, Still, Travel, wrap_near
-from .kinematics import (STRIDE_M, ArmPose, BodyState, Proportions, reach_angles, skeleton,
-                         upper_frame)
+from .kinematics import (REST_POSE, STRIDE_M, ArmPose, BodyState, Proportions, reach_angles,
+                         skeleton, upper_frame)
 
 Mark = tuple[int, int]
 G = 9.81

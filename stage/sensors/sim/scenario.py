@@ -1,7 +1,7 @@
 """Scenario files: the virtual rig, the performers' choreography, and events.
 
 The format is documented, with examples, in docs/sources.md; the built-in
-scenarios in ``stage/sim/scenarios/`` are examples too. Errors name
+scenarios in ``stage/sensors/sim/scenarios/`` are examples too. Errors name
 ``file:line:column`` and say what was expected.
 """
 
@@ -19,7 +19,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...joints import HandState, parse_hand_state
 from ...yamlio import MarkedDict, Where, load_marked
-from .kinect import KinectModel, VirtualPose
+from .kinect import KinectModel, VirtualPose, ring_poses
 from .performer import Clip, Performer, Step
 
 BUILTIN = "stage.sensors.sim.scenarios"
@@ -60,6 +60,8 @@ class SensorSpec:
     clock_offset: float | None = None     # seconds; None: drawn from the seed (+-2 s)
     clock_drift_ppm: float | None = None  # None: drawn from the seed (+-20 ppm)
     latency: float | None = None          # seconds; None: drawn from the seed (60-80 ms)
+    phase: float | None = None            # seconds into the frame period of its first frame;
+                                          # None: drawn from the seed (free-running sensors)
 
 
 @dataclass
@@ -106,15 +108,30 @@ def load_scenario(name_or_path: str | os.PathLike | None = None) -> Scenario:
 
 
 def default_scenario(sensors: int = 3, radius: float = 2.5, height: float = 0.8) -> Scenario:
-    """The default scenario with ``sensors`` virtual Kinects on its ring (for `stage demo`)."""
-    scenario = load_scenario("default")
-    where = Where(scenario.path or "default.yaml")
-    ring = MarkedDict({"count": sensors, "radius": radius, "height": height})
-    scenario.sensors = _ring(where, ring, KinectModel())
-    scenario.reference = scenario.sensors[0].id
-    for performer in scenario.performers:
-        performer.places = {s.id: s.pose.position for s in scenario.sensors}
-    return scenario
+    """The default scenario with ``sensors`` virtual Kinects on a ring of its own size."""
+    return builtin_with_ring("default", count=sensors, radius=radius, height=height)
+
+
+def demo_scenario(n_sensors: int = 3) -> Scenario:
+    """The ``demo`` scenario with ``n_sensors`` virtual Kinects on its ring (`stage demo`)."""
+    return builtin_with_ring("demo", count=n_sensors)
+
+
+def builtin_with_ring(name: str, **ring: Any) -> Scenario:
+    """A built-in scenario whose ``ring:`` keys (count, radius, ...) are replaced by ``ring``.
+
+    The file is parsed again with the new ring, so sensor ids, the reference
+    and the places performers face or point at follow the new sensors.
+    """
+    if name not in builtin_names():
+        raise ConfigError(f"no built-in scenario '{name}' (built-in: {', '.join(builtin_names())})")
+    with resources.as_file(resources.files(BUILTIN) / f"{name}.yaml") as p:
+        data = load_marked(p)
+        sensors = data.get("sensors") if isinstance(data, dict) else None
+        if not isinstance(sensors, dict) or not isinstance(sensors.get("ring"), dict):
+            raise ConfigError(f"the built-in scenario '{name}' has no sensor ring", path=str(p))
+        sensors["ring"].update(ring)
+        return parse_scenario(data, str(p))
 
 
 def parse_scenario(data: Any, path: str) -> Scenario:
@@ -174,7 +191,7 @@ def _model(where: Where, section: Any, base: KinectModel, what: str) -> KinectMo
             values[key] = int(where.number(section, key, default, minimum=1))
         else:
             values[key] = where.number(section, key, default, minimum=0.0)
-    for key in ("drop_p", "hand_misread_p", "nan_p", "noise_correlation"):
+    for key in ("drop_p", "hand_misread_p", "nan_p", "glitch_p", "noise_correlation"):
         if values.get(key, 0.0) >= 1.0:
             raise where.at_key(section, key, f"'{key}' must be below 1")
     model = replace(base, **values)
@@ -201,7 +218,7 @@ def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
             out.extend(_ring(where, entry, base))
             continue
         keys = ("position", "look_at", "yaw", "pitch", "roll", "type", "clock_offset",
-                "clock_drift_ppm", "latency", "kinect")
+                "clock_drift_ppm", "latency", "phase", "kinect")
         where.check_keys(entry, keys, f"sensor '{sid}'")
         if "position" not in entry:
             raise where.error(f"sensor '{sid}' needs a 'position' [x, y, z] in metres",
@@ -220,7 +237,8 @@ def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
             str(entry.get("type", "kinect2")),
             _optional(where, entry, "clock_offset"),
             _optional(where, entry, "clock_drift_ppm"),
-            _optional(where, entry, "latency", minimum=0.0)))
+            _optional(where, entry, "latency", minimum=0.0),
+            _optional(where, entry, "phase", minimum=0.0)))
     if not out:
         raise where.at_key(data, "sensors", "a scenario needs at least one sensor")
     ids = [s.id for s in out]
@@ -246,14 +264,9 @@ def _ring(where: Where, entry: dict, base: KinectModel) -> list[SensorSpec]:
     start = math.radians(where.number(entry, "start_angle", 0.0))
     prefix = str(entry.get("prefix", "kinect-"))
     model = _model(where, entry.get("kinect"), base, "kinect of 'ring'")
-    out = []
-    for k in range(count):
-        a = start + 2 * math.pi * k / count
-        pos = np.array([centre[0] - radius * math.sin(a), height, centre[1] - radius * math.cos(a)])
-        name = prefix + (chr(ord("a") + k) if count <= 26 else str(k + 1))
-        out.append(SensorSpec(name, VirtualPose.looking_at(pos, [centre[0], aim, centre[1]]),
-                              model))
-    return out
+    poses = ring_poses(count, radius, height, (centre[0], centre[1]), start, aim)
+    return [SensorSpec(prefix + (chr(ord("a") + k) if count <= 26 else str(k + 1)), pose, model)
+            for k, pose in enumerate(poses)]
 
 
 def _performers(where: Where, data: dict, places: dict, path: str) -> list[Performer]:

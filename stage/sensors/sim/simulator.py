@@ -32,7 +32,7 @@ from ...joints import JOINT_INDEX, HandState
 from ...rig import Rig, SensorConfig, set_calibration
 from .kinect import (KinectModel, UserTrack, VirtualPose, body_visible, faces_away, measure,
                      mirrored, sensed_hand, visibility)
-from .scenario import Scenario, load_scenario
+from .scenario import Scenario, builtin_with_ring, load_scenario
 
 log = logging.getLogger("stage.sim")
 
@@ -71,7 +71,8 @@ class _SensorRun:
                       float(rng_setup.uniform(-20.0, 20.0))) * 1e-6
         lo, hi = scenario.latency_range
         self.latency = spec.latency if spec.latency is not None else float(rng_setup.uniform(lo, hi))
-        self.phase = float(rng_setup.uniform(0.0, 1.0 / self.model.fps))
+        self.phase = spec.phase if spec.phase is not None else \
+            float(rng_setup.uniform(0.0, 1.0 / self.model.fps))
         self.source = ("sim", index + 1)
         self.poses: list[tuple[float, VirtualPose]] = [(0.0, spec.pose)]
         self.plugged: list[tuple[float, bool]] = [(0.0, True)]
@@ -367,8 +368,12 @@ class SimSource(ThreadedSource):
 
     def __init__(self, scenario: "str | Scenario | None" = None, seed: int = 1,
                  duration: float | None = None, speed: float = 1.0,
-                 sim: Simulator | None = None) -> None:
+                 sim: Simulator | None = None, sensors: int | None = None) -> None:
         super().__init__()
+        if sensors is not None:  # a built-in scenario with this many sensors on its ring
+            if sim is not None or isinstance(scenario, Scenario):
+                raise ConfigError("'sensors' goes with the name of a built-in scenario")
+            scenario = builtin_with_ring(scenario or "default", count=sensors)
         self.sim = sim or Simulator(scenario or None, seed)
         self._duration = duration if duration is not None else self.sim.scenario.duration
         self.speed = speed

@@ -1,4 +1,4 @@
-"""Scripted skeleton streams: fused frames without sensors, for tests, benches and rehearsal.
+"""Scripted skeleton streams: fused frames without sensors, for tests and benchmarks.
 
 ``ScriptedStage`` turns "person 1 stands here with these joints" into the
 ``FusedFrame`` objects the engine hands its listeners: velocities by finite
@@ -12,17 +12,18 @@ from typing import Callable
 
 import numpy as np
 
-from ..body import pose
 from ..frames import Body, FusedFrame
 from ..joints import JOINT_INDEX, TORSO, HandState
+from ..sensors.sim.kinematics import standing_pose
 
 OPEN = (HandState.OPEN, HandState.OPEN)
 
 
 def standing(x: float = 0.0, z: float = 0.0, heading: float = 0.0, left_arm: float = 0.0,
              right_arm: float = 0.0, height: float = 1.75) -> np.ndarray:
-    """(25, 3) joints of a performer standing at (x, z), stage metres (``stage.body.pose``)."""
-    return pose(np.array([x, z]), heading, left_arm, right_arm, height=height)
+    """(25, 3) joints of a performer standing at (x, z), stage metres; arms raised sideways
+    by ``left_arm``/``right_arm`` radians (the simulator's ``standing_pose``)."""
+    return standing_pose((x, z), heading, left_arm, right_arm, height=height)
 
 
 def with_joint(joints: np.ndarray, name: str, xyz) -> np.ndarray:
