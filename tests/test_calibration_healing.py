@@ -302,7 +302,7 @@ def test_request_recalibrates_on_demand_while_still_fused(tmp_path):
 def _sim_run(bump_deg: float | None):
     """The simulator's default rehearsal (3 Kinects, one dancer), fed offline with the
     calibrator attached; optionally kinect-b is turned by ``bump_deg`` at 10 s."""
-    sim_mod = pytest.importorskip("stage.sensors.sim", reason="the simulator (stage.sim) is not here")
+    from stage.sensors import sim as sim_mod
     from importlib import resources
 
     from stage.yamlio import loads_marked

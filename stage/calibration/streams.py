@@ -157,11 +157,11 @@ def streams_from_datagrams(records: Iterable[tuple[float, bytes, float | None]],
 
 
 def load_recording(path: str) -> tuple[dict[str, Stream], dict[str, int]]:
-    """A recording file (``stage.recording`` format) -> streams and drop counts."""
+    """A recording file (``stage.sensors.recording`` format) -> streams and drop counts."""
     try:
         from ..sensors.recording import read_recording  # type: ignore[attr-defined]
     except ImportError:
-        raise StageError("cannot read recordings: the stage.recording module is not "
+        raise StageError("cannot read recordings: the stage.sensors.recording module is not "
                          "available in this installation") from None
     try:
         records = ((r.arrival, r.data, getattr(r, "capture", None)) for r in read_recording(path))

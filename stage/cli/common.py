@@ -1,4 +1,4 @@
-"""What every subcommand shares: exit codes, argument types, and running a show.
+"""What every subcommand shares: exit codes, argument types, the options of a show.
 
 Argument types raise ``argparse.ArgumentTypeError``, so a mistyped value is
 one line from argparse and exit status 2, never a traceback.
@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import argparse
 from enum import IntEnum
+from typing import TYPE_CHECKING
 
 from ..network import parse_hostport
+
+if TYPE_CHECKING:
+    from ..app.show import ShowOptions
 
 
 class Exit(IntEnum):
@@ -45,6 +49,26 @@ def positive(text: str) -> float:
     return value
 
 
-def finished(interrupted: bool, signals) -> Exit:
-    """The exit status of a show: 130 when a signal (Ctrl-C, SIGTERM) stopped it."""
-    return Exit.INTERRUPTED if signals.received is not None else Exit.OK
+def add_show_options(p: argparse.ArgumentParser, *, status: bool = True) -> None:
+    """Options every live show takes, with the same meaning everywhere."""
+    p.add_argument("--view", action="append", type=hostport, default=[], metavar="HOST:PORT",
+                   help="also send fused bodies to this view (Server-to-View OSC, repeatable)")
+    p.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
+    p.add_argument("--no-self-healing", action="store_true",
+                   help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
+    p.add_argument("--no-plugins", action="store_true",
+                   help="do not run the installed third-party views")
+    p.add_argument("--fused", metavar="OUT.jsonl",
+                   help="write every fused frame as a JSON line (exact floats)")
+    if status:
+        p.add_argument("--status", action="store_true",
+                       help="print a status line every second")
+
+
+def show_options(args: argparse.Namespace, **fields) -> "ShowOptions":
+    """ShowOptions from the options ``add_show_options`` added, plus ``fields``."""
+    from ..app.show import ShowOptions
+    common = dict(views=list(args.view), duration=args.duration,
+                  self_healing=not args.no_self_healing, plugins=not args.no_plugins,
+                  fused=args.fused, status_line=getattr(args, "status", False))
+    return ShowOptions(**{**common, **fields})

@@ -8,7 +8,8 @@ import sys
 from typing import Callable
 
 from ..errors import ConfigError
-from .common import Exit, hostport as _hostport, port as _port, positive as _positive
+from .common import (Exit, add_show_options, hostport as _hostport, port as _port,
+                     positive as _positive, show_options)
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
@@ -38,7 +39,6 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
                       help="target of the piece's OSC outputs (repeatable)")
     play.add_argument("--seed", type=int, help="seed of the aleatoric choices (default: the "
                                                 "piece's, else random and printed)")
-    play.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
     play.add_argument("--events", metavar="OUT.jsonl",
                       help="write every trigger, section change and output message as JSON lines")
     play.add_argument("--monitor", nargs="?", const=True, default=False, type=_port,
@@ -48,14 +48,7 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     play.add_argument("--offline", action="store_true",
                       help="--sim/--replay: run ahead of time on a manual clock (no waiting); "
                            "with --midi-file renders the rehearsal")
-    play.add_argument("--view", action="append", type=_hostport, default=[], metavar="HOST:PORT",
-                      help="also send fused bodies to this view (Server-to-View OSC, repeatable)")
-    play.add_argument("--no-self-healing", action="store_true",
-                      help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
-    play.add_argument("--no-plugins", action="store_true",
-                      help="do not run the installed third-party views")
-    play.add_argument("--fused", metavar="OUT.jsonl",
-                      help="write every fused frame as a JSON line (exact floats)")
+    add_show_options(play, status=False)
     return {"check": cmd_check, "play": cmd_play}
 
 
@@ -80,15 +73,12 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_play(args: argparse.Namespace) -> int:
-    from ..app.play import PlayOptions, Player
+    from ..app.play import Player
     from ..app.signals import StopSignals
-    opts = PlayOptions(piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
-                       host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
-                       osc=list(args.osc), seed=args.seed, duration=args.duration,
-                       events=args.events, monitor=args.monitor, offline=args.offline,
-                       speed=args.speed, views=list(args.view),
-                       self_healing=not args.no_self_healing, plugins=not args.no_plugins,
-                       fused=args.fused)
+    opts = show_options(args, piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
+                        host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
+                        osc=list(args.osc), seed=args.seed, events=args.events,
+                        monitor=args.monitor, offline=args.offline, speed=args.speed)
     with StopSignals() as signals:
         Player(opts, stop_event=signals.event).run()
     return Exit.INTERRUPTED if signals.received else Exit.OK

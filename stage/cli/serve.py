@@ -4,31 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import logging
+import socket
 import sys
 
 from ..errors import ConfigError
 from ..rig import DEFAULT_PORT
-from .common import Exit, hostport, port, positive
+from .common import Exit, add_show_options, port, positive, show_options
 
 log = logging.getLogger("stage")
-
-
-def add_show_options(p: argparse.ArgumentParser, *, status: bool = True) -> None:
-    """Options every live show takes, with the same meaning everywhere."""
-    p.add_argument("--view", action="append", type=hostport, default=[], metavar="HOST:PORT",
-                   help="also send fused bodies to this view (Server-to-View OSC, repeatable)")
-    p.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
-    p.add_argument("--no-self-healing", action="store_true",
-                   help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
-    p.add_argument("--no-plugins", action="store_true",
-                   help="do not run the installed third-party views")
-    p.add_argument("--fused", metavar="OUT.jsonl",
-                   help="write every fused frame as a JSON line (exact floats)")
-    if status:
-        p.add_argument("--status", action="store_true",
-                       help="print a status line every second")
 
 
 def register(sub) -> dict:
@@ -56,15 +40,6 @@ def register(sub) -> dict:
     stats.add_argument("--port", type=port, default=DEFAULT_PORT)
     stats.add_argument("--timeout", type=positive, default=2.0, metavar="S")
     return {"serve": cmd_serve, "demo": cmd_demo, "stats": cmd_stats}
-
-
-def show_options(args: argparse.Namespace, **fields):
-    """ShowOptions from the options ``add_show_options`` added, plus ``fields``."""
-    from ..app.show import ShowOptions
-    common = dict(views=list(args.view), duration=args.duration,
-                  self_healing=not args.no_self_healing, plugins=not args.no_plugins,
-                  fused=args.fused, status_line=getattr(args, "status", False))
-    return ShowOptions(**{**common, **fields})
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

@@ -18,13 +18,12 @@ from ..errors import StageError
 from ..views.base import GROUP
 from ..views.host import MONITOR_PORT
 from ..views.loader import GROUPS, PluginInfo, discover_all
-from .common import Exit, hostport, port
+from .common import Exit, add_show_options, hostport, port, show_options
 
 log = logging.getLogger("stage.views")
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
-    from .serve import add_show_options
     plugins = sub.add_parser("plugins", help="list installed views and sources and whether they load")
     plugins.add_argument("--json", action="store_true", help="machine-readable output")
     plugins.add_argument("--check", action="store_true",
@@ -93,7 +92,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
 def cmd_monitor(args: argparse.Namespace) -> int:
     from ..app.show import Show, summary
     from ..app.signals import StopSignals
-    from .serve import show_options
     fields: dict = {"monitor": args.http, "monitor_bind": args.bind, "osc": list(args.osc),
                     "relay": list(args.relay)}
     if args.demo:

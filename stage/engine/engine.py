@@ -148,14 +148,18 @@ class Engine:
 
     def drain(self) -> None:
         """Process everything queued so far, on the calling thread (tests, offline replay)."""
-        batch: list[Inbound] = []
-        while True:
+        batch = self._take([])
+        if batch:
+            self.process(batch)
+
+    def _take(self, batch: list[Inbound], limit: int | None = None) -> list[Inbound]:
+        """``batch`` with what is queued now appended, up to ``limit`` items in all."""
+        while limit is None or len(batch) < limit:
             try:
                 batch.append(self.queue.get_nowait())
             except queue.Empty:
                 break
-        if batch:
-            self.process(batch)
+        return batch
 
     def handle_datagram(self, data: bytes, source: tuple[str, int] = ("127.0.0.1", 0),
                         arrival: float | None = None) -> None:
@@ -487,14 +491,9 @@ class Engine:
         """The engine thread: drain the queue in batches, tick between them."""
         while not stop.is_set():
             try:
-                batch = [self.queue.get(timeout=tick_s)]
+                batch = self._take([self.queue.get(timeout=tick_s)], limit=512)
             except queue.Empty:
                 batch = []
-            while batch and len(batch) < 512:
-                try:
-                    batch.append(self.queue.get_nowait())
-                except queue.Empty:
-                    break
             if batch:
                 self.process(batch)
             now = self.clock.now()
