@@ -11,7 +11,6 @@ import os
 import threading
 
 import numpy as np
-import pytest
 
 from stage.app.offline import feed
 from stage.geometry import invert, transform_error

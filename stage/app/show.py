@@ -21,19 +21,17 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
-import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, TextIO
 
 from ..calibration import LiveCalibrator, LiveSettings, attach_live
 from ..clock import Clock, ManualClock, MonotonicClock
 from ..engine import Engine
-from ..errors import ConfigError, StageError
+from ..errors import ConfigError
 from ..frames import fused_json
 from ..piece.loader import load_piece
 from ..piece.model import Piece
@@ -247,10 +245,9 @@ class Show:
         o = self.opts
         settings = o.calibration or LiveSettings()
         if not o.self_healing:
-            settings = LiveSettings(**{**settings.__dict__, "heal": False,
-                                       "auto_calibrate": False})
+            settings = replace(settings, heal=False, auto_calibrate=False)
         if o.offline:  # deterministic: on the engine thread, nothing written to the rig file
-            settings = LiveSettings(**{**settings.__dict__, "save": False})
+            settings = replace(settings, save=False)
         self.calibrator = attach_live(engine, None if o.offline else o.rig, settings,
                                       threaded=threaded)
         if self.fused_file is not None:

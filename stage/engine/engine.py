@@ -32,7 +32,7 @@ import numpy as np
 from ..clock import Clock, MonotonicClock
 from ..frames import Body, FusedFrame, SensorFrame
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
-from ..joints import TORSO, HandState
+from ..joints import TORSO
 from ..rig import Rig, store_stage_transform
 from ..sensors.protocol import (FloorPlane, HandStateMsg, Inbound, JointCoordinates, LostUser,
                                 Message, NewUser, RegisterDevice, RegisterView, StatsQuery,
