@@ -10,16 +10,17 @@ through ``stage client webcam --video`` into a real ``stage serve``.
 from __future__ import annotations
 
 import json
-import os
+import re
 import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import free_udp_port
+from helpers import free_udp_port, query_stats
 
 from stage.joints import JOINT_INDEX as J
 from stage.joints import HandState
@@ -192,6 +193,19 @@ def test_late_frames_are_skipped_in_real_time_and_kept_at_max_speed():
         assert frames[-1].stamp - frames[0].stamp == pytest.approx(frames[-1].t)
 
 
+def test_a_video_played_slower_is_stamped_as_filmed_at_that_pace():
+    clock = FakeTime()
+    reader = FrameReader(FakeCapture(5), "test", True, True, speed=0.5,
+                         monotonic=clock.monotonic, sleep=clock.sleep, wall=clock.wall)
+    frames = []
+    while (frame := reader.next()) is not None:
+        frames.append(frame)
+        clock.t += 0.06           # slower than the film (50 ms), faster than half its pace
+    assert reader.skipped == 0
+    assert [f.t for f in frames] == pytest.approx([0, 0.05, 0.1, 0.15, 0.2])
+    assert [f.stamp - frames[0].stamp for f in frames] == pytest.approx([0, 0.1, 0.2, 0.3, 0.4])
+
+
 def test_a_camera_without_frames_is_retried_then_reported():
     from stage.errors import StageError
     clock = FakeTime()
@@ -248,11 +262,19 @@ def test_the_bundles_made_from_the_shipped_models_agree_with_mediapipe_solutions
 
 
 def _start_server(tmp_path, port):
+    """A real `stage serve` writing its fused frames; returns once it answers /stage/stats."""
     fused = tmp_path / "fused.jsonl"
     server = subprocess.Popen([*CLI, "serve", "--host", "127.0.0.1", "--port", str(port),
                                "--fused", str(fused), "--no-plugins", "--no-self-healing"],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    return server, fused
+    deadline = time.monotonic() + 60.0
+    while True:   # up when it answers; each try waits for a reply, no fixed sleep
+        assert server.poll() is None, f"stage serve exited early: {server.communicate()}"
+        try:
+            query_stats(("127.0.0.1", port), timeout=0.2)
+            return server, fused
+        except AssertionError:
+            assert time.monotonic() < deadline, "stage serve never answered /stage/stats"
 
 
 def _stop(server) -> str:
@@ -277,25 +299,33 @@ PLAUSIBLE = {"head to spine base": (0.45, 0.85), "thigh": (0.3, 0.55), "shin": (
 
 @pytest.mark.integration
 def test_a_real_video_through_the_client_into_a_real_server(tmp_path):
+    """The film at a quarter of its pace (250 ms a frame: time for MediaPipe on a slow,
+    busy machine), stamped as a camera filming at that pace: every frame it processes
+    reaches the server and becomes a fused body of adult proportions."""
     _mediapipe()
     port = free_udp_port()
     server, fused = _start_server(tmp_path, port)
     try:
-        client = subprocess.run([*CLI, "client", "webcam", "--video", str(VIDEO), "--max-speed",
-                                 "--to", f"127.0.0.1:{port}", "--id", "dancer-cam"],
+        client = subprocess.run([*CLI, "client", "webcam", "--video", str(VIDEO), "--speed",
+                                 "0.25", "--to", f"127.0.0.1:{port}", "--id", "dancer-cam"],
                                 capture_output=True, text=True, timeout=600)
+        query_stats(("127.0.0.1", port))   # a barrier: every datagram before it is handled
     finally:
         server_out = _stop(server)
     out = client.stdout + client.stderr
     assert client.returncode == 0, out
     assert "Traceback" not in out and "Logging error" not in out, out
-    assert "102 frames read, 102 processed, 0 skipped" in out, out
-    assert "102 with a body (102 bodies)" in out and "the video ended" in out, out
-    assert "102 sensor frames in, 102 fused" in server_out, server_out
+    found = re.search(r"102 frames read, (\d+) processed, (\d+) skipped \(late\); "
+                      r"(\d+) with a body \((\d+) bodies\)", out)
+    assert found, out
+    processed, skipped, with_body, bodies = map(int, found.groups())
+    assert processed + skipped == 102 and processed >= 51, out   # at most half skipped
+    # the dancer is in every frame of the film: every processed frame has one body
+    assert with_body == bodies == processed and "the video ended" in out, out
+    assert f"{processed} sensor frames in, {processed} fused" in server_out, server_out
     rows = [json.loads(line) for line in fused.read_text().splitlines()]
     frames = [r for r in rows if r["updated"]]
-    # the dancer is in every frame of the film: every sensor frame gave one fused body
-    assert len(frames) == 102 and all(len(r["bodies"]) == 1 for r in frames)
+    assert len(frames) == processed and all(len(r["bodies"]) == 1 for r in frames)
     for r in frames:
         body = next(iter(r["bodies"].values()))
         for bone, length in _bones(body["joints"]).items():
@@ -303,7 +333,7 @@ def test_a_real_video_through_the_client_into_a_real_server(tmp_path):
             assert low <= length <= high, (r["t"], bone, length)
     known = [h for r in frames for b in r["bodies"].values() for h in b["hands"]
              if h in (HandState.OPEN, HandState.CLOSED, HandState.LASSO)]
-    assert len(known) >= 5, "no hand states reached the fused bodies"
+    assert len(known) >= 3, "no hand states reached the fused bodies"
 
 
 def test_several_people_in_one_picture(tmp_path):
@@ -312,7 +342,6 @@ def test_several_people_in_one_picture(tmp_path):
     from stage.app.server import Server
     from stage.rig import Rig
     from stage.sensors.clients.webcam import WebcamStats, run
-    from helpers import query_stats
     two = tmp_path / "two.avi"
     writer = cv2.VideoWriter(str(two), cv2.VideoWriter_fourcc(*"MJPG"), 20.0, (1200, 600))
     for _, rgb in _frames(cv2, step=2):

@@ -8,6 +8,7 @@ sends its skeletons to a server with the Client-to-Server OSC API.
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 
 from .. import install_hint
@@ -39,8 +40,12 @@ def register(sub) -> dict:
                    help="webcam: horizontal field of view in degrees (default 60)")
     p.add_argument("--video", metavar="FILE", help="webcam: play a video file (anything OpenCV "
                    "reads) as if a camera filmed it; capture times are the video's frame times")
-    p.add_argument("--max-speed", action="store_true", help="webcam --video: every frame as fast "
-                   "as the model goes (default: the video's own pace, late frames skipped)")
+    pace = p.add_mutually_exclusive_group()
+    pace.add_argument("--speed", type=positive, default=1.0, metavar="X",
+                      help="webcam --video: play at X times the pace it was filmed (default 1; "
+                      "late frames are skipped), stamped as a camera filming at that pace")
+    pace.add_argument("--max-speed", action="store_true", help="webcam --video: every frame as "
+                      "fast as the model goes, stamped with the video's own times")
     p.add_argument("--people", type=_people, default=1, metavar="N",
                    help="webcam: look for up to N people (1-6, default 1)")
     p.add_argument("--no-hands", dest="hands", action="store_false",
@@ -87,11 +92,13 @@ def cmd_client(args: argparse.Namespace) -> int:
     client_id = args.client_id or f"{socket.gethostname()}-{args.sensor}"
     options: dict = {"client_id": client_id} if args.sensor in CLIENTS else {}
     if args.sensor == "webcam":
+        if args.video is not None and not os.path.isfile(args.video):
+            raise ConfigError("no such video file", path=args.video)
         options.update(camera=args.camera, fov=args.fov, model=args.model, show=args.show,
                        video=args.video, realtime=not args.max_speed, people=args.people,
-                       hands=args.hands, hand_model=args.hand_model)
-    elif args.video or args.max_speed:
-        raise ConfigError("--video and --max-speed are webcam options")
+                       hands=args.hands, hand_model=args.hand_model, speed=args.speed)
+    elif args.video or args.max_speed or args.speed != 1.0:
+        raise ConfigError("--video, --speed and --max-speed are webcam options")
     source = load_source(args.sensor, **options)
     print(f"stage client: {args.sensor} as '{client_id}' -> udp {args.to[0]}:{args.to[1]}; "
           "Ctrl-C stops", flush=True)
@@ -101,9 +108,10 @@ def cmd_client(args: argparse.Namespace) -> int:
             stop.event.wait(0.2)
         source.stop()
     summary = getattr(source, "summary", None)
-    if callable(summary):
-        print(f"stage client: {args.sensor}: {summary()}", flush=True)
     error = getattr(source, "error", None)
+    if callable(summary) and not (error and not source.sent and not getattr(
+            getattr(source, "stats", None), "read", 0)):
+        print(f"stage client: {args.sensor}: {summary()}", flush=True)
     if error:
         print(f"stage: {args.sensor}: {error}", flush=True)
         return Exit.FAILURE

@@ -100,13 +100,15 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
 
 
 #: where the SDK installers put the libraries when they are not on the loader's path
-_K4A_PATHS = {"linux": ["/usr/lib/x86_64-linux-gnu/libk4a.so.1.4", "/usr/lib/aarch64-linux-gnu/libk4a.so.1.4",
-                        "/usr/local/lib/libk4a.so"],
-              "win32": [r"C:\Program Files\Azure Kinect SDK v1.4.1\sdk\windows-desktop\amd64\release\bin\k4a.dll",
-                        r"C:\Program Files\Azure Kinect SDK v1.4.2\sdk\windows-desktop\amd64\release\bin\k4a.dll"]}
+_WIN_BIN = r"sdk\windows-desktop\amd64\release\bin"
+_K4A_PATHS = {"linux": ["/usr/lib/x86_64-linux-gnu/libk4a.so.1.4",
+                        "/usr/lib/aarch64-linux-gnu/libk4a.so.1.4", "/usr/local/lib/libk4a.so"],
+              "win32": [rf"C:\Program Files\Azure Kinect SDK v1.4.{v}\{_WIN_BIN}\k4a.dll"
+                        for v in (1, 2, 0)]}
 _K4ABT_PATHS = {"linux": ["/usr/lib/libk4abt.so", "/usr/lib/x86_64-linux-gnu/libk4abt.so",
                           "/usr/lib/libk4abt.so.1.1"],
-                "win32": [r"C:\Program Files\Azure Kinect Body Tracking SDK\sdk\windows-desktop\amd64\release\bin\k4abt.dll"]}
+                "win32": [rf"C:\Program Files\Azure Kinect Body Tracking SDK\{_WIN_BIN}"
+                          r"\k4abt.dll"]}
 
 
 def _first_body(wait_s: float) -> tuple[BodyFrame | None, float]:  # pragma: no cover

@@ -6,10 +6,15 @@ times, ``CAP_PROP_POS_MSEC``); the client stamps each with the wall-clock
 time the video started plus that time, so the server sees the capture times
 the file recorded, whatever the pace:
 
-- ``realtime``: frames are released at the pace they were filmed. When the
-  pose model is slower than the film, late frames are skipped (counted), as
-  a live camera drops what it cannot process.
-- otherwise (``--max-speed``): every frame, as fast as the model goes.
+- ``realtime``: frames are released at the pace they were filmed (``speed``
+  times that pace: 0.5 plays the film at half speed, as a camera filming a
+  slowed-down performance would, and stamps it so). When the pose model is
+  slower than that, late frames are skipped (counted), as a live camera drops
+  what it cannot process.
+- otherwise (``--max-speed``): every frame, as fast as the model goes, stamped
+  with the video's own times. A server estimates each sensor's clock offset
+  assuming it runs at the server's rate, so capture times from a video played
+  faster or slower than it was filmed are only as good as that assumption.
 
 The end of a video is the end of the source, not an error. A camera that
 stops giving frames is retried for ``camera_timeout_s`` and then reported.
@@ -33,7 +38,8 @@ log = logging.getLogger("stage.clients.webcam")
 class Frame:
     image: np.ndarray     # (H, W, 3) BGR as OpenCV reads it
     t: float              # seconds from the start of the stream (video time or wall clock)
-    stamp: float          # capture time, Unix seconds (the bundle's timetag)
+    stamp: float          # capture time, Unix seconds (the bundle's timetag): the start plus
+                          # t, or plus t / speed for a video played at another speed
 
 
 class FrameReader:
@@ -48,10 +54,13 @@ class FrameReader:
     FPS = 5               # cv2.CAP_PROP_FPS
 
     def __init__(self, cap: Any, name: str, video: bool, realtime: bool = True,
-                 camera_timeout_s: float = 5.0, monotonic: Callable[[], float] = time.monotonic,
+                 speed: float = 1.0, camera_timeout_s: float = 5.0, monotonic: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep,
                  wall: Callable[[], float] = time.time) -> None:
         self.cap, self.name, self.video, self.realtime = cap, name, video, realtime
+        if not speed > 0:
+            raise StageError(f"speed must be greater than 0, got {speed}")
+        self.speed = float(speed) if realtime else 1.0
         self.camera_timeout_s = camera_timeout_s
         self._monotonic, self._sleep, self._wall = monotonic, sleep, wall
         fps = float(cap.get(self.FPS) or 0.0)
@@ -87,13 +96,13 @@ class FrameReader:
                 return Frame(image, t, self._start[1] + t)
             t = self._video_time()
             if self.realtime:
-                due = self._start[0] + t
+                due = self._start[0] + t / self.speed
                 if now < due:
                     self._sleep(due - now)
-                elif now - due > 1.0 / self.fps:   # more than a frame late: drop it
+                elif now - due > 1.0 / (self.fps * self.speed):   # over a frame late: drop it
                     self.skipped += 1
                     continue
-            return Frame(image, t, self._start[1] + t)
+            return Frame(image, t, self._start[1] + t / self.speed)
         return None
 
     def _video_time(self) -> float:

@@ -248,12 +248,13 @@ class WebcamStats:
 def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: float = 60.0,
         model: str | None = None, show: bool = False, stop=None, video: str | None = None,
         realtime: bool = True, people: int = 1, hands: bool = True,
-        hand_model: str | None = None, stats: WebcamStats | None = None
+        hand_model: str | None = None, stats: WebcamStats | None = None, speed: float = 1.0
         ) -> WebcamStats:  # pragma: no cover - needs mediapipe and a camera or video
     """Capture from a camera (or play ``video``) and send the Client-to-Server API.
 
     Runs until ``stop`` is set or the video ends. Needs the ``webcam`` extra.
-    ``people``: how many poses to look for; ``hands``: send hand states.
+    ``people``: how many poses to look for; ``hands``: send hand states;
+    ``speed``: a video's pace, times the pace it was filmed (with ``realtime``).
     ``stats`` (optional) is filled in as it goes and returned.
     """
     from .mediapipe_models import Landmarkers, import_mediapipe
@@ -262,7 +263,11 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
     _, cv2 = import_mediapipe()
     stats = stats if stats is not None else WebcamStats()
     cap, name, is_video = open_capture(cv2, camera_index, video)
-    reader = FrameReader(cap, name, is_video, realtime)
+    try:
+        reader = FrameReader(cap, name, is_video, realtime, speed)
+    except Exception:
+        cap.release()
+        raise
     width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     camera = Camera(width, height, fov_h)
     try:
@@ -336,11 +341,12 @@ class WebcamSource(ThreadedSource):
     def __init__(self, client_id: str = "webcam", camera: int = 0, fov: float = 60.0,
                  model: str | None = None, show: bool = False, video: str | None = None,
                  realtime: bool = True, people: int = 1, hands: bool = True,
-                 hand_model: str | None = None) -> None:
+                 hand_model: str | None = None, speed: float = 1.0) -> None:
         super().__init__()
         self.client_id, self.camera, self.fov = client_id, camera, fov
         self.model, self.show, self.video, self.realtime = model, show, video, realtime
         self.people, self.hands, self.hand_model = people, hands, hand_model
+        self.speed = speed
         self.stats = WebcamStats()
 
     def describe(self) -> str:
@@ -352,4 +358,5 @@ class WebcamSource(ThreadedSource):
 
     def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs mediapipe
         run(target, self.client_id, self.camera, self.fov, self.model, self.show, stop,
-            self.video, self.realtime, self.people, self.hands, self.hand_model, self.stats)
+            self.video, self.realtime, self.people, self.hands, self.hand_model, self.stats,
+            self.speed)
