@@ -13,7 +13,8 @@ Starts `stage serve --fused` on a free loopback port, runs
 - from the fused bodies: frames with a body, bone lengths (median, min, max,
   metres) and the hand states the fused bodies carried.
 
-    python bench/bench_webcam.py [--video FILE] [--max-speed] [--people N] [--repeats N]
+    python bench/bench_webcam.py [--video FILE] [--speed X | --max-speed] [--people N]
+                                 [--repeats N]
     python bench/bench_webcam.py --quick      # one run at max speed (a smoke test)
 
 Needs the webcam extra (pip install -e '.[webcam]').
@@ -51,7 +52,8 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def one_run(video: str, max_speed: bool, people: int, work: Path, k: int) -> dict:
+def one_run(video: str, max_speed: bool, people: int, work: Path, k: int,
+            speed: float = 1.0) -> dict:
     from stage.joints import JOINT_INDEX as J
     fused = work / f"fused{k}.jsonl"
     port = free_port()
@@ -61,7 +63,7 @@ def one_run(video: str, max_speed: bool, people: int, work: Path, k: int) -> dic
     time.sleep(1.5)   # the server binds its port
     client = subprocess.run([*CLI, "client", "webcam", "--video", video, "--to",
                              f"127.0.0.1:{port}", "--id", "bench-cam", "--people", str(people),
-                             *(["--max-speed"] if max_speed else [])],
+                             *(["--max-speed"] if max_speed else ["--speed", str(speed)])],
                             capture_output=True, text=True)
     time.sleep(0.5)
     server.send_signal(signal.SIGINT)
@@ -89,6 +91,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--video", default=str(VIDEO))
     ap.add_argument("--max-speed", action="store_true")
+    ap.add_argument("--speed", type=float, default=1.0, help="the video's pace (default 1)")
     ap.add_argument("--people", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="one run at max speed")
@@ -96,9 +99,11 @@ def main() -> None:
     repeats, max_speed = (1, True) if args.quick else (args.repeats, args.max_speed)
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
-        runs = [one_run(args.video, max_speed, args.people, Path(tmp), k) for k in range(repeats)]
+        runs = [one_run(args.video, max_speed, args.people, Path(tmp), k, args.speed)
+                for k in range(repeats)]
     print(f"machine load (1 min) {load:.2f} at the start; {Path(args.video).name}, "
-          f"{'max speed' if max_speed else 'real time'}, up to {args.people} people, "
+          f"{'max speed' if max_speed else f'{args.speed:g} x its pace'}, up to {args.people} "
+          f"people, "
           f"{repeats} run(s)")
     for k, r in enumerate(runs, 1):
         print(f"\nrun {k}: client exit {r['returncode']}, traceback: {r['traceback']}")

@@ -68,6 +68,7 @@ class FrameReader:
         self.read = 0          # frames decoded
         self.skipped = 0       # late frames dropped in real-time pacing
         self.ended = False     # a video reached its end
+        self.decode_s = 0.0    # seconds the returned frame took to read (pacing excluded)
         self._start: tuple[float, float] | None = None   # (monotonic, wall) at the first frame
         self._last_t = -1.0
 
@@ -75,7 +76,9 @@ class FrameReader:
         """The next frame to process; None at the end of a video or when ``stop`` is set."""
         failing_since: float | None = None
         while stop is None or not stop.is_set():
+            started = time.perf_counter()
             ok, image = self.cap.read()
+            self.decode_s = time.perf_counter() - started
             now = self._monotonic()
             if not ok or image is None:
                 if self.video:

@@ -282,7 +282,6 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
              fov_h, people)
     try:
         while stop is None or not stop.is_set():
-            t0 = time.perf_counter()
             frame = reader.next(stop)
             stats.read, stats.skipped = reader.read, reader.skipped
             if frame is None:
@@ -310,7 +309,7 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
             stats.processed += 1
             stats.with_body += bool(bodies)
             stats.bodies += len(bodies)
-            stats.decode_s.append(t1 - t0)
+            stats.decode_s.append(reader.decode_s)
             stats.mediapipe_s.append(found.inference_s)
             stats.stage_s.append((t3 - t1) - found.inference_s)
             stats.sent = sender.sent
