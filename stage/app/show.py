@@ -359,13 +359,27 @@ class Show:
         assert source is not None
         length = o.duration if o.duration is not None else source.duration
         end = None if length is None else source.start_time + length
-        self._fed = offline_mod.feed(engine, clock, source.items(), end=end)
-        if o.duration is None and self.runtime is not None:
-            # the source ended by itself: let the last phrase end
-            end = min(clock.now() + RING_OUT_S, self.runtime.last_note_end)
-            while clock.now() < end and not self.stop_event.is_set():
+        runtime = self.runtime
+        stop = (lambda: runtime.ended) if runtime is not None else None
+        self._fed = offline_mod.feed(engine, clock, source.items(), end=end, stop=stop)
+        if runtime is not None and not runtime.ended:
+            deadline = None if o.duration is None else self._started_at + o.duration
+            end = self.ring_until(clock.now())
+            if deadline is not None:
+                end = min(end, deadline)
+            while clock.now() < end and not runtime.ended and not self.stop_event.is_set():
                 clock.advance(min(PIECE_TICK_S, end - clock.now()))
         return self.stop_event.is_set()
+
+    def ring_until(self, now: float) -> float:
+        """When the source has ended: until the piece's ending is over, else up to
+        ``RING_OUT_S`` for the last notes to end."""
+        runtime = self.runtime
+        if runtime is None or runtime.ended:
+            return now
+        if runtime.ending:
+            return runtime.ends_at
+        return min(now + RING_OUT_S, runtime.last_note_end)
 
     def _wait_live(self) -> bool:
         o, clock = self.opts, self.clock
@@ -380,16 +394,16 @@ class Show:
                 return False
             source_done = (self.source is not None and self.source.done.is_set()
                            and o.end_with_source)
-            piece_ended = self.runtime is not None and self.runtime.ended
-            if (source_done and deadline is None) or piece_ended:
+            if self.runtime is not None and self.runtime.ended:
+                return False               # the piece is over: its ending has rung out
+            if source_done and deadline is None:
                 if self.runtime is None:
                     return False
                 if ring_until is None:
                     self.narrator.print_pending()  # type: ignore[union-attr]
-                    self.narrator.say("stage play: the " + (  # type: ignore[union-attr]
-                        "piece" if piece_ended else "source") + " has ended; letting the "
-                        "last notes ring")
-                    ring_until = min(now + RING_OUT_S, self.runtime.last_note_end)
+                    self.narrator.say("stage play: the source has ended; letting the "  # type: ignore[union-attr]
+                                      "piece finish")
+                    ring_until = self.ring_until(now)
                 if now >= ring_until:
                     return False
             self.stop_event.wait(0.1)

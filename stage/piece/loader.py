@@ -16,9 +16,9 @@ from ..joints import GROUPS, JOINT_INDEX, JOINTS, parse_hand_state, suggest_join
 from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
-from .model import (BODY, Action, Condition, Defaults, Goto, Mapping, Phrase, Piece, Play,
-                    PlayNote, Safety, Section, SendCC, SendOsc, SendProgram, Silence, Trigger,
-                    Zone, curve_function)
+from .model import (BODY, Action, Condition, Defaults, Ending, Goto, Mapping, Phrase, Piece,
+                    Play, PlayNote, Safety, Section, SendCC, SendOsc, SendProgram, Silence,
+                    Trigger, Zone, curve_function)
 from .music import parse_chord, phrase_notes
 from .spec import did_you_mean
 
@@ -64,7 +64,9 @@ class _Compiler:
         self.zones: dict[str, Zone] = {}
         self.phrases: dict[str, Phrase] = {}
         self.outputs: dict[str, OutputDecl] = {}
+        self.overlap: dict[str, str] = {}
         self.section_names: list[str] = []
+        self.meter: str | None = None
 
     def error(self, message: str, mark: Mark | None) -> ConfigError:
         return self.where.error(message, mark)
@@ -78,6 +80,7 @@ class _Compiler:
         self.outputs = self._outputs(data)
         self.meter = data.get("meter")
         self.tempo = data.get("tempo", 60.0)
+        quantize = self._quantize(data, "the piece") or "none"
         self.zones = {name: self._zone(name, z) for name, z in data.get("zones", {}).items()}
         phrases = data.get("phrases", {})
         self.phrases = {name: self._phrase(name, p, getattr(phrases, "marks", {}).get(name))
@@ -94,7 +97,11 @@ class _Compiler:
             title=data["piece"], path=self.path, outputs=self.outputs, zones=self.zones,
             phrases=self.phrases, composer=data.get("composer", ""), about=data.get("about", ""),
             tempo=self.tempo, meter=self.meter, seed=data.get("seed"), defaults=self.defaults,
+            quantize=quantize, overlap=dict(self.overlap),
             sections=[self._section(k, s) for k, s in enumerate(sections)])
+        if "ending" in data:
+            e = data["ending"]
+            piece.ending = Ending(fade=e.get("fade", Ending.fade), ring=e.get("ring", Ending.ring))
         piece.triggers = [self._trigger(t, None) for t in data.get("triggers", [])]
         piece.mappings = [self._mapping(m) for m in data.get("mappings", [])]
         piece.start = data.get("start", sections[0]["name"])
@@ -123,15 +130,32 @@ class _Compiler:
                              _m(d, "velocity_range"))
         return Defaults(**values)
 
+    def _quantize(self, d: dict, what: str) -> str | None:
+        """The ``quantize`` of a piece, section or trigger (None when not given)."""
+        value = d.get("quantize")
+        if value == "bar" and self.meter is None:
+            raise self.error(f"'quantize: bar' in {what} needs the piece's 'meter' (e.g. "
+                             "meter: 3/4)", _m(d, "quantize"))
+        return value
+
     def _outputs(self, data: dict) -> dict[str, OutputDecl]:
         if "outputs" not in data or not data["outputs"]:
+            self.overlap = {"midi": "queue"}
             return {"midi": OutputDecl("midi", "midi")}
         out = {}
         marks = data["outputs"]
         for name, value in data["outputs"].items():
             if isinstance(value, str):
                 out[name] = OutputDecl(name, value)
+                if value == "midi":
+                    self.overlap[name] = "queue"
                 continue
+            for key, kind in (("overlap", "midi"), ("skeletons", "osc")):
+                if key in value and value["type"] != kind:
+                    raise self.error(f"output '{name}': '{key}' applies to {kind} outputs only",
+                                     _m(value, key))
+            if value["type"] == "midi":
+                self.overlap[name] = value.get("overlap", "queue")
             target = value.get("target")
             if value["type"] == "osc" and target is not None:
                 try:
@@ -139,7 +163,7 @@ class _Compiler:
                 except ValueError as exc:
                     raise self.error(f"output '{name}': {exc}", _m(value, "target")) from None
                 target = f"{host}:{port}"
-            out[name] = OutputDecl(name, value["type"], target)
+            out[name] = OutputDecl(name, value["type"], target, value.get("skeletons", False))
         del marks
         return out
 
@@ -226,6 +250,7 @@ class _Compiler:
                       channel=p.get("channel", self.defaults.channel),
                       velocity=p.get("velocity", self.defaults.velocity),
                       gate=p.get("gate", self.defaults.gate), transpose=p.get("transpose", 0),
+                      arpeggiate=p.get("arpeggiate", self.defaults.arpeggiate),
                       about=p.get("about", ""))
 
     # ------------------------------------------------------------ sections
@@ -239,7 +264,8 @@ class _Compiler:
         if nxt is not None and nxt not in self.section_names:
             raise self.error(self._unknown("section", nxt, self.section_names), _m(s, "next"))
         section = Section(name=s["name"], index=index, about=s.get("about", "").strip(),
-                          tempo=s.get("tempo"), phrases=tuple(names), next=nxt)
+                          tempo=s.get("tempo"), phrases=tuple(names), next=nxt,
+                          quantize=self._quantize(s, f"section '{s['name']}'"))
         self.current = section
         section.on_enter = tuple(self._action(a, section, f"'on_enter' of section '{s['name']}'")
                                  for a in s.get("on_enter", []))
@@ -256,7 +282,7 @@ class _Compiler:
                        cooldown=t.get("cooldown", d.cooldown),
                        cooldown_per=t.get("cooldown_per", "trigger"), after=t.get("after", 0.0),
                        once=t.get("once", False), probability=t.get("probability", 1.0),
-                       line=(t["__mark__"] or (0, 0))[0])
+                       line=(t["__mark__"] or (0, 0))[0], quantize=self._quantize(t, label))
         value, vmark = t[kind], _m(t, kind)
         if kind in ("step", "appears", "disappears") and value is not True:
             raise self.error(f"write '{kind}: true' to use this trigger", vmark)
@@ -370,7 +396,9 @@ class _Compiler:
             return PlayNote(pitches, beats=spec.get("beats", None if "seconds" in spec else 1.0),
                             seconds=spec.get("seconds"), velocity=spec.get("velocity"),
                             channel=spec.get("channel", d.channel),
-                            output=self._output(spec.get("output"), "midi", mark, "a note"))
+                            output=self._output(spec.get("output"), "midi", mark, "a note"),
+                            arpeggiate=spec.get("arpeggiate", d.arpeggiate),
+                            overlap=spec.get("overlap"))
         if kind == "cc":
             return SendCC(value["control"], value["value"], value.get("channel", d.channel),
                           self._output(value.get("output"), "midi", mark, "a control change"))
@@ -387,10 +415,13 @@ class _Compiler:
                            self._output(spec.get("output"), "osc", mark, "an OSC message"),
                            tuple(str(x) for x in args))
         if kind == "goto":
-            if value not in ("next", "previous", "end") and value not in self.section_names:
-                raise self.error(self._unknown("section", value, self.section_names)
-                                 + " (or next, previous, end)", mark)
-            return Goto(value)
+            spec = value if isinstance(value, dict) else {"to": value}
+            target = spec["to"]
+            if target not in ("next", "previous", "end") and target not in self.section_names:
+                where = _m(spec, "to") if isinstance(value, dict) else mark
+                raise self.error(self._unknown("section", target, self.section_names)
+                                 + " (or next, previous, end)", where)
+            return Goto(target, now=spec.get("now", False))
         if value != "all" and value not in self.outputs:
             raise self.error(self._unknown("output", value, self.outputs) + " (or all)", mark)
         return Silence(None if value == "all" else value)
@@ -410,6 +441,9 @@ class _Compiler:
         if "phrase" not in spec and pool is None and section is not None and not section.phrases:
             raise self.error(f"section '{section.name}' has no phrases to {spec.get('pick', 'random')}"
                              " from; list them under its 'phrases' or give 'from'", mark)
+        if spec.get("interrupt") and "overlap" in spec:
+            raise self.error("'interrupt' is 'overlap: replace' for the phrase's channel; give "
+                             "one of them", _m(spec, "overlap"))
         weights = spec.get("weights")
         if weights is not None:
             count = len(pool) if pool is not None else len(section.phrases) if section else None
@@ -424,7 +458,7 @@ class _Compiler:
                     pool=tuple(pool) if pool is not None else None,
                     weights=tuple(weights) if weights is not None else None,
                     velocity=spec.get("velocity"), transpose=spec.get("transpose", 0),
-                    interrupt=spec.get("interrupt", False))
+                    interrupt=spec.get("interrupt", False), overlap=spec.get("overlap"))
 
     def _osc_arg(self, arg: Any, mark: Mark | None):
         if not isinstance(arg, str) or not arg.startswith("$"):
