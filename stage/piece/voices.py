@@ -131,6 +131,9 @@ class Voices:
         #: (output, channel) -> last value sent per controller, for the ending's fade
         self.controls: dict[tuple[str, int, int], int] = {}
         self.channels: set[tuple[str, int]] = set()
+        #: AllNotesOff still to come (t, output, channel, why): the MIDI view will end the
+        #: notes sounding then, even those scheduled after it
+        self._cuts: list[tuple[float, str | None, int | None, str]] = []
 
     # ------------------------------------------------------------ reading
     def busy_until(self, output: str | None = None) -> float:
@@ -153,10 +156,6 @@ class Voices:
                                      and p.start > now + EPS for p in mine):
             return "its previous phrase is still waiting (queue)"
         return ""
-
-    def waiting(self, now: float, output: str | None = None) -> list[Planned]:
-        return [p for p in self.planned if p.start > now + EPS
-                and (output is None or p.output == output)]
 
     def policy(self, output: str) -> str:
         return self.policies.get(output, "queue")
@@ -182,7 +181,7 @@ class Voices:
             self.counts["skipped"] += 1
             self.emit(PhraseSkipped(now, output, name, section, trigger, why))
             return None, why
-        if policy == "replace":
+        if policy == "replace" and busy > start + EPS:
             self.cut(start, output, channel, f"replaced by {name}")
         self._ids += 1
         notes = render(start, self._ids)
@@ -190,9 +189,10 @@ class Voices:
         self.emit(PhrasePlayed(start, output, name, self._ids, section, trigger, start + length,
                                len(notes), now, policy))
         for note in notes:
-            self._strike(note, name)
-            self.emit(note)
             sched = _Sched(note.t, note.output, note.channel, note.note, note.duration, note.play)
+            self.emit(note)
+            self._strike(sched, name)
+            self._later_cut(sched)
             planned.notes.append(sched)
             self._keys.setdefault((note.output, note.channel, note.note), []).append(sched)
             self.channels.add((note.output, note.channel))
@@ -200,20 +200,23 @@ class Voices:
         self.planned.append(planned)
         return planned, ""
 
-    def _strike(self, note: Note, name: str) -> None:
+    def _strike(self, new: _Sched, name: str) -> None:
         """A key struck while another note holds it: the MIDI view ends the earlier one."""
-        for other in self._keys.get((note.output, note.channel, note.note), ()):
+        for other in self._keys.get((new.output, new.channel, new.key), ()):
             if other.cut and other.duration <= 0.0:
                 continue
-            if other.t - EPS <= note.t < other.end - EPS:
-                self._shorten(other, note.t, f"struck again by {name}")
-            elif note.t < other.t < note.t + note.duration - EPS:
-                # the new note is the earlier one: it will be struck again when ``other``
-                # begins; its event is already decided, so the cut is reported now
-                self.emit(NoteCut(other.t, note.output, note.channel, note.note, note.t,
-                                  note.duration, other.t - note.t, note.play,
-                                  "struck again"))
-                self.counts["shortened"] += 1
+            if other.t - EPS <= new.t < other.end - EPS:
+                self._shorten(other, new.t, f"struck again by {name}")
+            elif new.t < other.t < new.end - EPS:   # ``other`` will strike the new one
+                self._shorten(new, other.t, "struck again")
+
+    def _later_cut(self, new: _Sched) -> None:
+        """A note scheduled after an AllNotesOff that will come while it sounds."""
+        for t, output, channel, why in self._cuts:
+            if (output is None or output == new.output) and \
+                    (channel is None or channel == new.channel) and new.t < t < new.end - EPS:
+                self._shorten(new, t, why)
+                return
 
     def _shorten(self, s: _Sched, t: float, why: str) -> None:
         sounded = max(0.0, t - s.t)
@@ -228,7 +231,7 @@ class Voices:
 
     def cut(self, t: float, output: str | None, channel: int | None, why: str) -> None:
         """Silence ``output`` (None: all) from ``t``: an AllNotesOff, and the honest account."""
-        self.emit(AllNotesOff(t, output, channel))
+        self._cuts.append((t, output, channel, why))
         for notes in self._keys.values():
             for s in notes:
                 if (output is not None and s.output != output) or \
@@ -236,6 +239,7 @@ class Voices:
                     continue
                 if s.end > t + EPS and not (s.cut and s.duration <= 0.0):
                     self._shorten(s, t, why)
+        self.emit(AllNotesOff(t, output, channel))
         kept = []
         for p in self.planned:
             hit = (output is None or p.output == output) and (
@@ -250,6 +254,7 @@ class Voices:
     def prune(self, now: float) -> None:
         """Forget what has ended (a show may run for weeks)."""
         self.planned = [p for p in self.planned if p.end > now - EPS]
+        self._cuts = [c for c in self._cuts if c[0] > now]
         old = now - KEEP_S
         if any(s.end < old for notes in self._keys.values() for s in notes[:1]):
             self._keys = {k: kept for k, v in self._keys.items()
