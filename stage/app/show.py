@@ -87,6 +87,10 @@ class ShowOptions:
     views: list[tuple[str, int]] = field(default_factory=list)   # Server-to-View OSC targets
     midi: str | None = None
     midi_file: str | None = None
+    audio: str | None = None        # render the MIDI through FluidSynth into this WAV file
+    synth: bool = False             # play the MIDI live through FluidSynth on JACK
+    soundfont: str | None = None    # for audio and synth (default: a General MIDI one)
+    score: str | None = None        # draw the performance (piano roll) into this PNG
     osc: list[tuple[str, int]] = field(default_factory=list)     # the OSC view's targets
     monitor: bool | int = False     # the live web monitor (True: port 7780; an int: that port)
     monitor_bind: str = "127.0.0.1"
@@ -169,7 +173,10 @@ class Show:
             if opts.midi is not None:
                 raise ConfigError("--offline runs ahead of time: MIDI goes to a file "
                                   "(--midi-file), not to a port")
-            if self.piece is not None and opts.midi_file is None and any(
+            if opts.synth:
+                raise ConfigError("--offline runs ahead of time: --synth plays in real time; "
+                                  "render with --audio OUT.wav instead")
+            if self.piece is not None and opts.midi_file is None and opts.audio is None and any(
                     o.kind == "midi" for o in self.piece.outputs.values()):
                 # ahead of time the MIDI can only be a file: name it after the piece, here
                 opts.midi_file = os.path.splitext(os.path.basename(opts.piece))[0] + "-offline.mid"
@@ -274,7 +281,8 @@ class Show:
         host = ViewHost.for_play(outputs, midi_port=o.midi, midi_file=o.midi_file,
                                  osc=list(o.osc), monitor=o.monitor, clock=self.clock,
                                  plugins=o.plugins, relay=list(o.relay),
-                                 monitor_host=o.monitor_bind, threaded=threaded)
+                                 monitor_host=o.monitor_bind, threaded=threaded,
+                                 audio=o.audio, synth=o.synth, soundfont=o.soundfont)
         if not host.slots:
             return None
         if self.piece is not None:

@@ -35,6 +35,16 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     midi = play.add_mutually_exclusive_group()
     midi.add_argument("--midi", metavar="PORT", help="MIDI port for the piece's MIDI outputs")
     midi.add_argument("--midi-file", metavar="OUT.mid", help="write the MIDI to a file instead")
+    play.add_argument("--audio", metavar="OUT.wav",
+                      help="hear it: render the MIDI through FluidSynth into a WAV file")
+    play.add_argument("--synth", action="store_true",
+                      help="hear it live: play the MIDI through FluidSynth on JACK")
+    play.add_argument("--soundfont", metavar="FILE.sf2",
+                      help="for --audio/--synth (default: the General MIDI soundfont of "
+                           "fluid-soundfont-gm)")
+    play.add_argument("--score", metavar="OUT.png",
+                      help="see it: draw what was played (a piano roll by section and phrase, "
+                           "with triggers and zones) when the show ends")
     play.add_argument("--osc", action="append", type=_hostport, default=[], metavar="HOST:PORT",
                       help="target of the piece's OSC outputs (repeatable)")
     play.add_argument("--seed", type=int, help="seed of the aleatoric choices (default: the "
@@ -78,7 +88,9 @@ def cmd_play(args: argparse.Namespace) -> int:
     opts = show_options(args, piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
                         host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
                         osc=list(args.osc), seed=args.seed, events=args.events,
-                        monitor=args.monitor, offline=args.offline, speed=args.speed)
+                        monitor=args.monitor, offline=args.offline, speed=args.speed,
+                        audio=args.audio, synth=args.synth, soundfont=args.soundfont,
+                        score=args.score)
     with StopSignals() as signals:
         Player(opts, stop_event=signals.event).run()
     return Exit.INTERRUPTED if signals.received else Exit.OK
