@@ -31,7 +31,7 @@ from stage.views import View, ViewContext
 from .ports import PortSink, choose_api
 from .schedule import MidiScheduler, Out
 from .smf import SmfWriter
-from .synth import LiveSynth, WavRenderer, find_soundfont, load_fluidsynth
+from .synth import LiveSynth, WavRenderer
 
 _MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff)
 CLOCK, START, STOP = b"\xf8", b"\xfa", b"\xfc"
@@ -64,12 +64,8 @@ class MidiView(View):
         self.soundfont = soundfont
         self.audio: WavRenderer | None = None
         self.synth: LiveSynth | None = None
-        if self.audio_path is not None:      # a missing library or soundfont: say so now
-            if not self.audio_path.parent.is_dir():
-                raise ConfigError(f"--audio {audio}: folder '{self.audio_path.parent}' does "
-                                  "not exist")
-            load_fluidsynth("--audio")
-            find_soundfont(soundfont, "--audio")
+        if self.audio_path is not None:      # a missing library or soundfont: said now
+            self.audio = WavRenderer(self.audio_path, soundfont)
         if synth:
             self.synth = LiveSynth(soundfont)
         self.flush_every_s = flush_every_s
@@ -126,8 +122,8 @@ class MidiView(View):
         if self.file is not None:
             self.smf = SmfWriter(self.file, now, name=self.outputs[0].name)
             self._next_flush = now + self.flush_every_s
-        if self.audio_path is not None:
-            self.audio = WavRenderer(self.audio_path, now, self.soundfont)
+        if self.audio is not None:
+            self.audio.begin(now)
         for o in self.outputs:
             sinks: list[Any] = []
             port = self.ports.get(wanted.get(o.name, ""))

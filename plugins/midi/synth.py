@@ -125,20 +125,25 @@ class _Synth:
 class WavRenderer(_Synth):
     """A MIDI sink (``write(t, data)``) rendered into the WAV file ``path`` as it goes.
 
-    ``t0`` (engine clock) is the file's first sample. Each message renders the
+    ``begin(t0)``: engine time ``t0`` is the file's first sample. Each message renders the
     audio up to its time first (FluidSynth renders far faster than real time,
     so a live show loses nothing by it); ``close`` renders the tail until the
     sound has died away and finishes the file.
     """
 
-    def __init__(self, path: str | os.PathLike, t0: float, soundfont: str | None = None) -> None:
+    def __init__(self, path: str | os.PathLike, soundfont: str | None = None) -> None:
         self.path = Path(path)
         if not self.path.parent.is_dir():
             raise ConfigError(f"--audio {path}: folder '{self.path.parent}' does not exist")
-        super().__init__(soundfont, "--audio")
-        self.t0 = t0
+        super().__init__(soundfont, "--audio")   # loading the soundfont takes a moment
+        self.t0 = 0.0
         self.done = 0                          # frames written so far
         self.messages = 0
+        self._wav: Any = None
+
+    def begin(self, t0: float) -> None:
+        """Open the file; engine time ``t0`` is its first sample (the show's start)."""
+        self.t0 = t0
         self._wav = wave.open(str(self.path), "wb")
         self._wav.setnchannels(2)
         self._wav.setsampwidth(2)
@@ -149,7 +154,7 @@ class WavRenderer(_Synth):
         return self.done / SAMPLE_RATE
 
     def write(self, t: float, data: bytes) -> None:
-        if self.synth is None:
+        if self.synth is None or self._wav is None:
             return
         at = int(round((t - self.t0) * SAMPLE_RATE))
         if at > self.done:
@@ -164,6 +169,10 @@ class WavRenderer(_Synth):
     def close(self) -> None:
         """Render the tail (until the sound has died away) and finish the file."""
         if self.synth is None:
+            return
+        if self._wav is None:                  # never begun: nothing to write
+            self.synth.delete()
+            self.synth = None
             return
         block = int(0.1 * SAMPLE_RATE)
         for _ in range(int(TAIL_MAX_S / 0.1)):

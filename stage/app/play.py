@@ -85,7 +85,8 @@ class Player:
                      + f"; sections reached: {len(seen)}/{len(self.piece.sections)} "
                      f"({', '.join(seen)}); {c['fired']} triggers fired, {c['notes']} notes "
                      f"sounded" + (f" ({', '.join(cuts)})" if cuts else "")
-                     + (f", {c['skipped']} phrases not played" if c["skipped"] else "")
+                     + (f", {c['skipped']} phrase{'s' if c['skipped'] != 1 else ''} not "
+                        "played" if c["skipped"] else "")
                      + (f", {c['errors']} runtime errors (see log)" if c["errors"] else ""))
         for line in result.views:
             narrator.say(f"  view {line}")

@@ -43,6 +43,7 @@ from ..rig import Rig, load_rig
 from ..sensors.source import Source, load_source
 from ..views import ViewHost
 from . import offline as offline_mod
+from .report import Performance, ScoreSink
 from .server import Server
 from .status_line import StatusLine
 
@@ -190,6 +191,13 @@ class Show:
             if view not in self.rig.views:
                 self.rig.views.append(view)
         self.recorded = RecordingSink(None if opts.offline else KEEP_EVENTS) if self.piece else None
+        self.score: ScoreSink | None = None
+        if opts.score:
+            if self.piece is None:
+                raise ConfigError("--score draws a piece's performance: give a piece")
+            from .score import check_score_path
+            check_score_path(opts.score)
+            self.score = ScoreSink()
         self.events_file: EventsFile | None = None
         self.fused_file: TextIO | None = None
         self.engine: Engine | None = None
@@ -268,7 +276,7 @@ class Show:
             self.host.attach(engine)
         if self.piece is not None:
             self.narrator = Narrator(self.out, origin=self._started_at, direct=not threaded)
-            sink = FanoutSink(self.host, self.events_file, self.recorded)
+            sink = FanoutSink(self.host, self.events_file, self.recorded, self.score)
             self.runtime = PieceRuntime(self.piece, sink, seed=self.seed, narrator=self.narrator)
             engine.listeners.append(self.runtime)
         if o.status_line:
@@ -443,6 +451,14 @@ class Show:
         if self.narrator is not None:
             self.narrator.print_pending()
         self._close_files()
+        if self.score is not None and self.score.events:
+            from .score import draw_score
+            try:
+                path = draw_score(Performance.from_events(self.score.events), self.opts.score,
+                                  self.piece.title if self.piece is not None else "")
+                log.info("score: %s", path)
+            except Exception:     # the show is over; a drawing must not turn it into a crash
+                log.exception("could not draw the score %s", self.opts.score)
         stats = self.engine.stats() if self.engine is not None else {}
         return ShowResult(stats, now - self._started_at, interrupted, self.piece, self.runtime,
                           self.recorded, self.host.summary() if self.host is not None else [],

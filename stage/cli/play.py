@@ -13,9 +13,13 @@ from .common import (Exit, add_show_options, hostport as _hostport, port as _por
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
-    check = sub.add_parser("check", help="check piece files and summarise them",
+    check = sub.add_parser("check", help="check piece files (and their rehearsal scenarios) and "
+                                         "summarise them",
                            description="Check piece files: every mistake is reported as "
-                                       "file:line:column with what was expected (exit status 2).")
+                                       "file:line:column with what was expected (exit status 2). "
+                                       "A rehearsal scenario kept beside the pieces (a file with "
+                                       "'performers' and no 'piece') is checked as a scenario, "
+                                       "and its choreography printed with the time of each step.")
     check.add_argument("pieces", nargs="+", metavar="PIECE.yaml")
     check.add_argument("--quiet-summary", action="store_true", dest="brief",
                        help="one line per piece instead of the summary")
@@ -65,15 +69,20 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
 def cmd_check(args: argparse.Namespace) -> int:
     from ..piece.narrator import check_summary
     from ..piece.loader import load_piece
+    from ..sensors.sim.scenario import describe, load_scenario, looks_like_scenario
     status = 0
     for path in args.pieces:
         try:
-            piece = load_piece(path)
+            if looks_like_scenario(path):
+                scenario = load_scenario(path)
+                lines = [f"{path}: ok -- rehearsal scenario '{scenario.name}': "
+                         + describe(scenario)[0]] + describe(scenario)[1:]
+            else:
+                lines = check_summary(load_piece(path), path)
         except ConfigError as exc:
             print(f"stage: {exc}", file=sys.stderr)
             status = 2
             continue
-        lines = check_summary(piece, path)
         try:
             print("\n".join(lines[:1] if args.brief else lines), flush=True)
         except BrokenPipeError:  # `stage check x.yaml | head`: the reader has had enough
