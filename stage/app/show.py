@@ -328,7 +328,9 @@ class Show:
         runtime, host = self.runtime, self.host
 
         def hook(t: float) -> None:
-            if runtime is not None and t >= next_tick[0]:
+            # the piece sees time pass every PIECE_TICK_S, and the moment its ending is over
+            if runtime is not None and (t >= next_tick[0] or (
+                    runtime.ending and not runtime.ended and t >= runtime.ends_at)):
                 next_tick[0] = t + PIECE_TICK_S
                 runtime.tick(t)
             if host is not None:
