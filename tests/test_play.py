@@ -118,6 +118,30 @@ def test_liminal_rehearsal_events_file_has_every_event_as_a_json_line(rehearsal)
     assert events[-1]["type"] == "AllNotesOff"                   # the stop
 
 
+def test_liminal_sounds_like_music(rehearsal):
+    """Issue 12: bars no longer cut each other, phrases start on the beat, the final
+    cadence is heard whole and rings out, the exit message is sent, and the run ends
+    when the piece does (bench/bench_liminal.py checks ten seeds)."""
+    from stage.app.report import Performance, grid_check
+    from stage.events import NoteCut, PhrasePlayed
+    result, tmp, console = rehearsal
+    events, runtime = result.recorded.events, result.runtime
+    assert not [e for e in events if isinstance(e, NoteCut)]
+    played = [e for e in events if isinstance(e, PhrasePlayed)]
+    assert len(played) >= 10 and {p.policy for p in played} == {"queue"}
+    for a, b in zip(played, played[1:]):
+        assert b.t >= a.end - 1e-6                      # one cellist: one bar after another
+    checked = grid_check(Performance.from_events(events), load_piece(LIMINAL))
+    assert all(unit == "beat" and on for _, unit, on in checked)
+    (final,) = [p for p in played if p.phrase == "final"]
+    final_notes = [n for n in result.recorded.of(Note) if n.play == final.id]
+    assert [n.note for n in final_notes] == [50, 55, 57, 54, 55, 43]   # bar 16, whole
+    assert runtime.ended and runtime.ends_at == pytest.approx(final.end + 4.0 + 1.5)
+    assert result.seconds == pytest.approx(runtime.ends_at, abs=0.03)
+    assert "dancer leaves" in {e.trigger for e in result.recorded.of(TriggerFired)}
+    assert "(the piece has ended)" in console
+
+
 def test_the_same_seed_gives_the_same_performance(tmp_path):
     def run(seed, name):
         return Player(PlayOptions(piece=LIMINAL, sim="", offline=True, duration=20.0, seed=seed,

@@ -208,10 +208,10 @@ class Actions:
         return f"{what} not played: {why}"
 
     def _when(self, start: float, ctx: FireContext) -> str:
-        """' at 12.3 s (bar 4 beat 1)' when a phrase does not start at once."""
+        """' in 0.6 s (bar 4 beat 1)' when a phrase does not start at once."""
         if start <= ctx.t + 1e-6:
             return ""
-        return f" at {start - self.rt.started_at:.1f} s ({self.rt.grid.where(start)})"
+        return f" in {start - ctx.t:.1f} s ({self.rt.grid.where(start)})"
 
     def pick(self, action: Play) -> str | None:
         """The phrase to play: random (weighted, never twice in a row), next, or shuffle."""

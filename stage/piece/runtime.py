@@ -340,7 +340,7 @@ class PieceRuntime:
         elif self.transition is None:     # the first decision stands
             self.transition = (target, cause, at)
             self._narrate(t, f"[{self.section.index + 1}] {cause}: moving on ({target}) when "
-                             f"the sounding phrase ends, at {at - self.started_at:.1f} s")
+                             f"the sounding phrase ends, in {at - t:.1f} s")
 
     def _due(self, t: float) -> None:
         """What the clock brings: a waiting section change, the end of the ending."""
@@ -362,10 +362,9 @@ class PieceRuntime:
         self.ends_at = fade_end + ending.ring
         if fade_end > last_end:
             self.voices.restore(self.ends_at)
-        self._narrate(t, f"== the ending == ({cause}): the last phrase ends at "
-                         f"{last_end - self.started_at:.1f} s, fades for {ending.fade:g} s "
-                         f"and rings for {ending.ring:g} s; over at "
-                         f"{self.ends_at - self.started_at:.1f} s")
+        self._narrate(t, f"== the ending == ({cause}): the last phrase ends in "
+                         f"{last_end - t:.1f} s, fades for {ending.fade:g} s and rings for "
+                         f"{ending.ring:g} s: over in {self.ends_at - t:.1f} s")
 
     def _change_section(self, target: str, t: float, cause: str,
                         at: float | None = None) -> bool:
