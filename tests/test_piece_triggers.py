@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from stage.events import ControlChange, Note, NoteCut, SectionChange, TriggerFired
+from stage.events import ControlChange, Note, NoteCut, OscOut, SectionChange, TriggerFired
 from stage.joints import JOINT_INDEX, HandState
 from stage.piece import PieceRuntime, RecordingSink, loads_piece
 from stage.testing.script import ScriptedStage, standing, with_joint
@@ -456,6 +456,9 @@ def test_goto_end_lets_the_last_phrase_finish_ring_and_fade_then_ends():
 """, extra="""ending: {fade: 2, ring: 0.5}
 triggers:
   - {name: gone, disappears: true, do: [osc: /gone]}
+mappings:
+  - {name: swell, joint: HandRight, in_range: [0, 2], cc: 11}
+  - {name: where, joint: body, measure: x, in_range: [-3, 3], osc: /x}
 """)
     stage.run(0.0, 1.0, lambda t: {1: standing(-2, 0)})
     stage.run(1.0, 2.0, lambda t: {1: standing(0, 0)})
@@ -463,14 +466,22 @@ triggers:
     assert finish.trigger == "finish" and runtime.ending and not runtime.ended
     (note,) = sink.of(Note)
     assert runtime.ends_at == pytest.approx(note.t + 1.0 + 2.0 + 0.5)   # phrase, fade, ring
-    ccs = [(c.t - note.t, c.control, c.value) for c in sink.of(ControlChange)]
+    ccs = [(c.t - note.t, c.control, c.value) for c in sink.of(ControlChange)
+           if c.t > note.t]                          # the ending's (...and is restored to it)
     assert ccs[0] == (pytest.approx(0.02), 64, 127)                 # held from its onset
     fade = [(t, v) for t, c, v in ccs if c == 11]
     assert fade[0][0] > 1.0 and fade[-2] == (pytest.approx(3.0), 0)  # after it, down to 0
     assert all(a[1] >= b[1] for a, b in zip(fade, fade[1:-1]))
-    assert (pytest.approx(3.0), 64, 0) in ccs and fade[-1] == (pytest.approx(3.5), 127)
-    stage.run(2.0, 3.5, lambda t: {1: standing(0, 0, left_arm=math.pi * (t > 2.5))})
+    swell = [c.value for c in sink.of(ControlChange) if c.control == 11 and c.t <= finish.t][-1]
+    assert fade[0][1] < swell                       # it falls from the mapping's last value...
+    assert (pytest.approx(3.0), 64, 0) in ccs and fade[-1] == (pytest.approx(3.5), swell)
+    swells = len([c for c in sink.of(ControlChange) if c.control == 11])
+    xs = len([o for o in sink.of(OscOut) if o.address == "/x"])
+    stage.run(2.0, 3.5, lambda t: {1: standing(0.5 * t - 1.0, 0, left_arm=math.pi * (t > 2.5),
+                                               right_arm=t)})
     assert [e.trigger for e in fired(sink)] == ["finish"]          # the section has finished
+    assert len([c for c in sink.of(ControlChange) if c.control == 11]) == swells  # the fade's
+    assert len([o for o in sink.of(OscOut) if o.address == "/x"]) > xs             # she moves
     assert not runtime.goto("next", 3.5)
     stage.run(3.5, 4.0, lambda t: {})                             # she leaves: the exit sounds
     assert [e.trigger for e in fired(sink)] == ["finish", "gone"]

@@ -235,9 +235,9 @@ class PieceRuntime:
                     self._consider(run, f, t)
                 firings.clear()
         self._clock_triggers(t, runs)
-        for mrun in self._maps[self.section.index]:
-            mrun.update(self, t)
-        for mrun in self._global_maps:
+        for mrun in (*self._maps[self.section.index], *self._global_maps):
+            if self.ending and mrun.mapping.kind == "cc":
+                continue      # the ending's fade owns the sound; OSC mappings go on
             mrun.update(self, t)
         self._apply_goto(t)
         self._flush()
