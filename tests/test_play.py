@@ -142,6 +142,19 @@ def test_liminal_sounds_like_music(rehearsal):
     assert "(the piece has ended)" in console
 
 
+
+def test_docs_give_the_rehearsal_its_measured_length(rehearsal):
+    """Issue 12: the README, docs/pieces.md and the rehearsal file said 70, 80 and 90 s for
+    a rehearsal that lasted 67.5 s; each now says the length this run measures."""
+    import re
+    result, tmp, console = rehearsal
+    measured = round(result.seconds)
+    for path in (REPO / "README.md", REPO / "docs" / "pieces.md",
+                 REPO / "pieces" / "liminal.sim.yaml"):
+        said = re.findall(r"about (\d+) s(?:econds)?\b", path.read_text(encoding="utf-8"))
+        assert said and {int(x) for x in said} == {measured}, (path.name, said, measured)
+
+
 def test_the_same_seed_gives_the_same_performance(tmp_path):
     def run(seed, name):
         return Player(PlayOptions(piece=LIMINAL, sim="", offline=True, duration=20.0, seed=seed,
