@@ -26,8 +26,8 @@ from stage.events import (AllNotesOff, ControlChange, Event, MappingValue, Note,
 from stage.joints import JOINTS
 from stage.views import Status
 
-#: Default height of a cylinder zone when the piece gives none (m).
-CYLINDER_HEIGHT_M = 2.5
+#: Default height of a cylinder zone when the piece gives none (m): the piece language's
+CYLINDER_HEIGHT_M = 3.0
 
 
 def frame_json(frame: FusedFrame, fps: float) -> dict[str, Any]:

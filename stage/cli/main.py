@@ -26,6 +26,7 @@ COMMAND_MODULES: list[str] = [
     "stage.cli.serve",
     "stage.cli.views",
     "stage.cli.play",
+    "stage.cli.compose",
     "stage.cli.calibrate",
     "stage.cli.sim",
     "stage.cli.replay",

@@ -21,12 +21,14 @@ from typing import Callable
 import numpy as np
 
 from ..frames import FusedFrame
-from ..events import AllNotesOff, Event, EventSink, SectionChange, TriggerFired, ZoneState
+from ..events import ControlChange, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
 from .mappings import MappingRun
 from .model import Piece, Section, Trigger, joint_label
+from .music import meter_beats
 from .sinks import FanoutSink, RecordingSink
 from .triggers import ClockDetector, Detector, Firing, Person, PresenceDetector, detector_for
+from .voices import EPS, Grid, Voices
 
 log = logging.getLogger("stage.piece")
 
@@ -67,7 +69,9 @@ class PieceRuntime:
         self.min_conf = piece.defaults.min_confidence
         self.section: Section = piece.section(piece.start)
         self.started = False
-        self.ended = False          # 'goto: end' happened: the piece is over, its notes ring out
+        self.ending = False         # 'goto: end' happened: the last phrase plays, then the fade
+        self.ended = False          # the piece is over: its last notes have rung out
+        self.ends_at = float("inf")  # when it will be over (once ending)
         self.started_at = 0.0
         self.section_start = 0.0
         self.arrivals: dict[int, float] = {}
@@ -82,13 +86,27 @@ class PieceRuntime:
         self._maps: dict[int, list[MappingRun]] = {
             s.index: [MappingRun(m) for m in s.mappings] for s in piece.sections}
         self.actions = Actions(self)
-        self._pending_goto: tuple[str, str] | None = None
+        self._pending_goto: tuple[str, str, bool] | None = None
+        #: a section change waiting for the sounding phrases: (target, cause, when)
+        self.transition: tuple[str, str, float] | None = None
         self._out: list[Event] = []
         self.visited: list[str] = []
-        #: engine time when the last note emitted so far ends (to let a show ring out)
-        self.last_note_end = float("-inf")
-        self.counts = {"frames": 0, "fired": 0, "notes": 0, "errors": 0, "section_changes": 0}
+        #: "notes" counts the notes that sound (scheduled, less those cancelled before
+        #: their onset); "cancelled", "shortened" and "skipped" (phrases) are the rest
+        self.counts = {"frames": 0, "fired": 0, "notes": 0, "cancelled": 0, "shortened": 0,
+                       "skipped": 0, "errors": 0, "section_changes": 0}
+        self.voices = Voices(piece.overlap, self._emit, self.counts)
+        self.grid = Grid(0.0, piece.tempo, float(meter_beats(piece.meter)) if piece.meter else 4.0)
+        self._firings = 0
         self._last_error_log = float("-inf")
+
+    @property
+    def last_note_end(self) -> float:
+        """Engine time when the last note scheduled so far ends (-inf if none)."""
+        return self.voices.last_note_end()
+
+    def _emit(self, event: Event) -> None:
+        self._out.append(event)
 
     # ------------------------------------------------------------ entry points
     def __call__(self, frame: FusedFrame) -> None:
@@ -99,6 +117,7 @@ class PieceRuntime:
         if self.started:
             return
         self.started, self.started_at = True, t
+        self.grid.origin = t
         self._enter(self.section, None, t, "start")
         self._flush()
 
@@ -116,6 +135,10 @@ class PieceRuntime:
                 self.start(t)
             if self.ended:
                 return
+            self._due(t)
+            if self.ended:
+                self._flush()
+                return
             self._clock_triggers(t, self._active_runs())
             self._apply_goto(t)
             self._flush()
@@ -123,10 +146,18 @@ class PieceRuntime:
             self._error(t, "tick skipped")
 
     def goto(self, target: str, t: float, cause: str = "operator") -> bool:
-        """Force a section change (the cellist's or operator's safety). False if nothing changed."""
+        """Force a section change at once (the cellist's or operator's safety); 'end' begins
+        the ending. False if nothing changed."""
         try:
             if not self.started:
                 self.start(t)
+            if self.ending or self.ended:
+                return False
+            if target == "end":
+                self._begin_ending(t, cause, now=False)
+                self._flush()
+                return True
+            self.transition = None
             changed = self._change_section(target, t, cause)
             self._flush()
             return changed
@@ -144,12 +175,14 @@ class PieceRuntime:
                           "logged once a minute)", t, what, self.counts["errors"])
 
     def stop(self, t: float) -> None:
-        """End of the show: cancel pending notes and silence every output."""
-        self._out.append(AllNotesOff(t, None, None))
+        """End of the show: cancel pending notes and silence every output (each cut logged)."""
+        self.voices.cut(t, None, None, "stop")
         self._flush()
 
     # ------------------------------------------------------------ frame
     def _active_runs(self) -> list[_TriggerRun]:
+        if self.transition is not None or self.ending:
+            return self._global     # the section has said its last word
         return self._runs[self.section.index] + self._global
 
     def _on_frame(self, frame: FusedFrame) -> None:
@@ -158,6 +191,10 @@ class PieceRuntime:
             self.start(t)
         self.counts["frames"] += 1
         if self.ended:
+            return
+        self._due(t)
+        if self.ended:
+            self._flush()
             return
         min_conf, arrivals = self.min_conf, self.arrivals
         persons = {}
@@ -198,9 +235,9 @@ class PieceRuntime:
                     self._consider(run, f, t)
                 firings.clear()
         self._clock_triggers(t, runs)
-        for mrun in self._maps[self.section.index]:
-            mrun.update(self, t)
-        for mrun in self._global_maps:
+        for mrun in (*self._maps[self.section.index], *self._global_maps):
+            if self.ending and mrun.mapping.kind == "cc":
+                continue      # the ending's fade owns the sound; OSC mappings go on
             mrun.update(self, t)
         self._apply_goto(t)
         self._flush()
@@ -272,10 +309,13 @@ class PieceRuntime:
             return
         run.fired_in_visit = True
         self.counts["fired"] += 1
+        self._firings += 1
         joint = None if f.joint is None else joint_label(f.joint)
         self._out.append(TriggerFired(t, self.section.name, trig.name, f.person, joint,
                                       None if f.value is None else round(float(f.value), 4)))
-        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed)
+        quantize = trig.quantize or self.section.quantize or self.piece.quantize
+        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed,
+                          quantize, self._firings)
         done = [self.actions.act(a, ctx) for a in trig.actions]
         who = "" if f.person is None else f" [person {f.person}" + (
             f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"
@@ -284,20 +324,55 @@ class PieceRuntime:
 
     # ------------------------------------------------------------ sections
     def _apply_goto(self, t: float) -> None:
-        if self._pending_goto is not None:
-            target, cause = self._pending_goto
-            self._pending_goto = None
+        if self._pending_goto is None:
+            return
+        target, cause, now = self._pending_goto
+        self._pending_goto = None
+        if self.ending or self.ended:
+            return
+        if target == "end":
+            self._begin_ending(t, cause, now)
+            return
+        at = self.voices.busy_until()
+        if now or at <= t + EPS:
+            self.transition = None
             self._change_section(target, t, cause)
+        elif self.transition is None:     # the first decision stands
+            self.transition = (target, cause, at)
+            self._narrate(t, f"[{self.section.index + 1}] {cause}: moving on ({target}) when "
+                             f"the sounding phrase ends, in {at - t:.1f} s")
 
-    def _change_section(self, target: str, t: float, cause: str) -> bool:
+    def _due(self, t: float) -> None:
+        """What the clock brings: a waiting section change, the end of the ending."""
+        if self.transition is not None and t >= self.transition[2] - EPS:
+            target, cause, at = self.transition
+            self.transition = None
+            self._change_section(target, t, cause, at)
+        if self.ending and t >= self.ends_at - EPS:
+            self.ended = True
+            self._narrate(t, "== the end == the last notes have rung out; nothing acts any more")
+
+    def _begin_ending(self, t: float, cause: str, now: bool) -> None:
+        """'goto: end': the last phrase finishes, its last notes are held and faded, the room
+        rings; triggers of the whole piece (exits) act until then."""
+        ending = self.piece.ending
+        last_end = t if now else max(t, self.voices.busy_until())
+        fade_end = self.voices.ending(t, last_end, ending.fade)
+        self.ending, self.transition = True, None
+        self.ends_at = fade_end + ending.ring
+        if fade_end > last_end:
+            self.voices.restore(self.ends_at)
+        self._narrate(t, f"== the ending == ({cause}): the last phrase ends in "
+                         f"{last_end - t:.1f} s, fades for {ending.fade:g} s and rings for "
+                         f"{ending.ring:g} s: over in {self.ends_at - t:.1f} s")
+
+    def _change_section(self, target: str, t: float, cause: str,
+                        at: float | None = None) -> bool:
+        """Enter ``target`` now (``at``: the musical moment it was due, for the grid)."""
         sections = self.piece.sections
         current = self.section
-        if self.ended:
+        if self.ended or self.ending:
             return False
-        if target == "end":
-            self.ended = True
-            self._narrate(t, f"== the end == ({cause}): no trigger or mapping acts any more")
-            return True
         if target == "next":
             if current.next is not None:
                 new = self.piece.section(current.next)
@@ -321,10 +396,14 @@ class PieceRuntime:
             if run.active and run.mapping.otherwise is not None:
                 run.send(self._out, t, run.mapping.otherwise, force=True)
             run.active, run.smoothed, run.sent = False, None, None
-        self._enter(new, current, t, cause)
+        self._enter(new, current, t, cause, at)
         return True
 
-    def _enter(self, new: Section, previous: Section | None, t: float, cause: str) -> None:
+    def _enter(self, new: Section, previous: Section | None, t: float, cause: str,
+               at: float | None = None) -> None:
+        tempo = new.tempo or self.piece.tempo
+        if tempo != self.grid.tempo:    # a new tempo: its grid starts with the section
+            self.grid.origin, self.grid.tempo = (t if at is None else at), tempo
         self.section, self.section_start = new, t
         self.visited.append(new.name)
         if previous is not None:
@@ -340,7 +419,9 @@ class PieceRuntime:
         self._narrate(t, f"== section {new.index + 1}/{n}: {new.name} =="
                          + (f" ({cause})" if cause != "start" else "")
                          + (f" -- {new.about}" if new.about else ""))
-        ctx = FireContext(t, self, "on_enter", None, None, None, None, 0.0)
+        self._firings += 1
+        ctx = FireContext(t, self, "on_enter", None, None, None, None, 0.0,
+                          new.quantize or self.piece.quantize, self._firings)
         done = [self.actions.act(a, ctx) for a in new.on_enter]
         if done:
             self._narrate(t, f"on entering {new.name} -> {'; '.join(done)}")
@@ -356,6 +437,10 @@ class PieceRuntime:
     def _flush(self) -> None:
         if self._out:
             events, self._out = self._out, []
+            if not self.ending:   # the fade starts from the last expression the piece sent
+                for e in events:
+                    if isinstance(e, ControlChange):
+                        self.voices.note_control(e)
             self.sink.emit(events)
 
 

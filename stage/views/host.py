@@ -127,7 +127,8 @@ class ViewHost:
                  midi_clock_bpm: float | None = None, osc_bundles: bool = False,
                  monitor_host: str = "127.0.0.1",
                  plugin_options: dict[str, dict[str, Any]] | None = None,
-                 threaded: bool = True) -> "ViewHost":
+                 threaded: bool = True, audio: str | None = None, synth: bool = False,
+                 soundfont: str | None = None) -> "ViewHost":
         """The views of a show, built from the piece's outputs and the command line.
 
         outputs: the piece's declared outputs (kind "midi" or "osc").
@@ -137,7 +138,9 @@ class ViewHost:
         plugins: also run every installed view that starts by itself (``autostart``);
         relay: other stage servers to send our fused bodies to (Client-to-Server API);
         midi_clock_bpm: send MIDI clock at this tempo; osc_bundles: OSC in timetagged bundles;
-        plugin_options: keyword options per view name.
+        plugin_options: keyword options per view name; audio: render the MIDI to this WAV
+        file through FluidSynth; synth: play it live through FluidSynth on JACK; soundfont:
+        theirs (default: a General MIDI one where the system installs it).
         """
         host = cls(clock=clock, threaded=threaded)
         found = discover_views()
@@ -147,9 +150,12 @@ class ViewHost:
                 log.warning("output '%s' has kind '%s': only 'midi' and 'osc' are played; "
                             "its events are ignored", output.name, output.kind)
         midi = [o for o in outputs if o.kind == "midi"]
-        if midi or midi_port or midi_file:
+        if midi or midi_port or midi_file or audio or synth:
+            extra = {k: v for k, v in (("audio", audio), ("synth", synth),
+                                       ("soundfont", soundfont)) if v}
             host.add_plugin(found.get("midi"), "midi", outputs=midi, port=midi_port,
-                            file=midi_file, clock_bpm=midi_clock_bpm, **options.pop("midi", {}))
+                            file=midi_file, clock_bpm=midi_clock_bpm, **extra,
+                            **options.pop("midi", {}))
         osc_outputs = [o for o in outputs if o.kind == "osc"]
         if osc_outputs or osc:
             host.add_plugin(found.get("osc"), "osc", outputs=osc_outputs, targets=list(osc),

@@ -20,7 +20,7 @@ from ...errors import ConfigError
 from ...joints import HandState, parse_hand_state
 from ...yamlio import MarkedDict, Where, load_marked
 from .kinect import KinectModel, VirtualPose, ring_poses
-from .performer import Clip, Performer, Step
+from .performer import Clip, Performer, Step, describe_step
 
 BUILTIN = "stage.sensors.sim.scenarios"
 
@@ -87,6 +87,36 @@ class Scenario:
     path: str | None = None
     network_jitter_s: float = 0.0005
     latency_range: tuple[float, float] = (0.060, 0.080)   # seed 004: 60-80 ms
+
+
+def looks_like_scenario(path: str | os.PathLike) -> bool:
+    """Whether a YAML file is a scenario rather than a piece: it has 'performers' or
+    'sensors' at the top and no 'piece' (rehearsals live beside the pieces they rehearse)."""
+    try:
+        data = load_marked(path)
+    except ConfigError:
+        return False
+    return isinstance(data, dict) and "piece" not in data and (
+        "performers" in data or "sensors" in data)
+
+
+def describe(scenario: Scenario) -> list[str]:
+    """A scenario in words: its sensors, then each performer's choreography with the time
+    every step begins and ends (seconds from the start), as ``stage check`` prints it."""
+    out = [f"{len(scenario.sensors)} sensor(s) ({', '.join(s.id for s in scenario.sensors)}), "
+           f"{len(scenario.performers)} performer(s)"
+           + (f", {scenario.duration:g} s" if scenario.duration else "")]
+    for p in scenario.performers:
+        loop = f", repeating every {p.period:.1f} s" if p.period else ""
+        out.append(f"  {p.name}: {p.props.height:.2f} m tall, {p.length:.1f} s of "
+                   f"choreography{loop}")
+        for start, duration, step in p.schedule:
+            span = f"{start:5.1f}-{start + duration:5.1f} s" if duration > 0 else \
+                f"{start:5.1f}        "
+            out.append(f"    {span}  {describe_step(step)}")
+    for e in scenario.events:
+        out.append(f"  at {e.at:g} s: {e.kind} {e.target}")
+    return out
 
 
 def builtin_names() -> list[str]:
