@@ -32,6 +32,7 @@ class FireContext:
     joint: int | None
     value: float | None
     speed: float
+    detail: dict | None = None     # step: gait's step_length, step_width, step_time
 
     def ref(self, name: str):
         if name in ("x", "y", "z"):
@@ -52,6 +53,9 @@ class FireContext:
             return self.runtime.section.name
         if name == "trigger":
             return self.trigger
+        if name.startswith("step_"):
+            value = (self.detail or {}).get(name)
+            return 0.0 if value is None else float(value)
         return float(self.t - self.runtime.started_at)  # "time"
 
     def joint_ref(self, j: int, axis: str):

@@ -275,7 +275,8 @@ class PieceRuntime:
         joint = None if f.joint is None else joint_label(f.joint)
         self._out.append(TriggerFired(t, self.section.name, trig.name, f.person, joint,
                                       None if f.value is None else round(float(f.value), 4)))
-        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed)
+        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed,
+                          f.detail)
         done = [self.actions.act(a, ctx) for a in trig.actions]
         who = "" if f.person is None else f" [person {f.person}" + (
             f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"
