@@ -162,3 +162,12 @@ def test_series_gives_speeds_by_central_differences():
     assert s["speed"].shape == (30, 25)
     assert s["speed"] == pytest.approx(np.full((30, 25), 0.5))
     assert s["com_speed_horizontal"] == pytest.approx(np.full(30, 0.5))
+
+
+def test_series_quantity_of_motion_is_the_mean_joint_speed_over_the_last_window():
+    t = np.arange(0, 3, 1 / 30)
+    x = np.where(t < 1.5, 0.6 * t, 0.9)        # walks at 0.6 m/s for 1.5 s, then stands
+    frames = np.stack([standing_pose((xk, 0.0)) for xk in x])
+    qom = series(t, frames, window=1.0)["quantity_of_motion"]
+    assert qom[(t > 0.2) & (t < 1.4)] == pytest.approx(0.6, abs=1e-6)
+    assert qom[t > 2.6] == pytest.approx(0.0, abs=1e-9)

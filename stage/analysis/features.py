@@ -26,6 +26,7 @@ hip       hip->knee, trunk upwards           180 standing, about 90 sitting
 from __future__ import annotations
 
 import math
+import warnings
 from collections import deque
 from dataclasses import dataclass
 
@@ -277,11 +278,12 @@ class FeatureTracker:
         return Features(t, {**values, **timed}, speed, accel)
 
 
-def series(t: np.ndarray, joints: np.ndarray) -> dict[str, np.ndarray]:
+def series(t: np.ndarray, joints: np.ndarray, window: float = 1.0) -> dict[str, np.ndarray]:
     """Features of a whole trajectory: (N,) arrays, plus joint speeds (N, 25) m/s.
 
     ``t`` (N,) seconds; ``joints`` (N, 25, 3) metres with NaN where missing.
-    Speeds are central differences.
+    Speeds are central differences; quantity of motion is the mean joint speed
+    over the ``window`` seconds up to each sample (as ``FeatureTracker``).
     """
     out: dict[str, np.ndarray] = {f"angle_{k}": v for k, v in joint_angles(joints).items()}
     out.update(hand_distances(joints))
@@ -296,4 +298,14 @@ def series(t: np.ndarray, joints: np.ndarray) -> dict[str, np.ndarray]:
     out["speed"] = np.linalg.norm(vel, axis=-1)
     out["com_speed"] = np.linalg.norm(dcom, axis=-1)
     out["com_speed_horizontal"] = np.hypot(dcom[:, 0], dcom[:, 2])
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # a frame with no joint seen
+        mean = np.nanmean(out["speed"], axis=1)
+    ok = np.isfinite(mean)
+    total = np.concatenate([[0.0], np.cumsum(np.where(ok, mean, 0.0))])
+    count = np.concatenate([[0], np.cumsum(ok)])
+    start = np.searchsorted(t, t - window, side="right")     # samples in (t - window, t]
+    n = count[1:] - count[start]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["quantity_of_motion"] = np.where(n > 0, (total[1:] - total[start]) / n, np.nan)
     return out

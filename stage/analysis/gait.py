@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..joints import JOINT_INDEX as J
-from .trajectory import Trajectory
+from .trajectory import Trajectory, fill, smooth
 
 _AL, _AR = J["AnkleLeft"], J["AnkleRight"]
 _PELVIS = (J["SpineBase"], J["HipLeft"], J["HipRight"])
@@ -88,11 +88,10 @@ def walking_direction(traj: Trajectory, sigma_s: float = 0.3,
 
     From the pelvis smoothed over ``sigma_s`` seconds; NaN where unknown.
     """
-    pelvis = Trajectory(traj.t, np.repeat(_pelvis(traj.joints)[:, None], 25, axis=1))
-    smooth = pelvis.filled(0.25).smoothed(sigma_s).joints[:, 0]
     if len(traj) < 3:
         return np.full((len(traj), 2), np.nan), np.full(len(traj), np.nan)
-    v = np.gradient(smooth[:, [0, 2]], traj.t, axis=0)
+    pelvis = smooth(fill(traj.t, _pelvis(traj.joints), 0.25), sigma_s * traj.rate)
+    v = np.gradient(pelvis[:, [0, 2]], traj.t, axis=0)
     speed = np.linalg.norm(v, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return v / speed[:, None], speed
@@ -126,7 +125,7 @@ def foot_events(traj: Trajectory, *, min_speed: float = 0.2, min_lead: float = 0
     idx = np.flatnonzero(walking)
     runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1) if len(idx) else []
     steps: list[Step] = []
-    for r, run in enumerate(runs):
+    for run in runs:
         state, most = 0, 0.0
         pending: tuple[float, str] | None = None  # a crossing waiting to be confirmed
         for k, i in enumerate(run):
@@ -148,7 +147,7 @@ def foot_events(traj: Trajectory, *, min_speed: float = 0.2, min_lead: float = 0
                 # the passing foot got well ahead: a step, not a foot closing beside the other;
                 # and the foot passed was put down in this walk, not stood on before it
                 if not _stood(pending[0], ankles[pending[1]], t, standing_s):
-                    steps.append(_placement(pending[0], pending[1], ankles[pending[1]], t, r))
+                    steps.append(_placement(pending[0], pending[1], ankles[pending[1]], t))
                 pending = None
     return _link(steps, bout_gap_s, t, d)
 
@@ -169,12 +168,12 @@ def _stood(tc: float, ankle: np.ndarray, t: np.ndarray, standing_s: float) -> bo
     return float(np.hypot(*(np.median(a, axis=0) - np.median(b, axis=0)))) < STOOD_M
 
 
-def _placement(tc: float, side: str, ankle: np.ndarray, t: np.ndarray, run: int) -> Step:
+def _placement(tc: float, side: str, ankle: np.ndarray, t: np.ndarray) -> Step:
     """The standing foot's placement: its median position over +-0.15 s around ``tc``."""
     near = np.abs(t - tc) <= 0.15
     pos = ankle[near & np.isfinite(ankle).all(axis=1)]
     x, z = (np.median(pos, axis=0) if len(pos) else (np.nan, np.nan))
-    return Step(tc, side, None, None, None, None, float(x), float(z), run)
+    return Step(tc, side, None, None, None, None, float(x), float(z))
 
 
 def _link(steps: list[Step], bout_gap_s: float, t: np.ndarray | None = None,
@@ -203,7 +202,8 @@ def _link(steps: list[Step], bout_gap_s: float, t: np.ndarray | None = None,
                 # foot in turn, and a whole sway cycle cancels out of the direction
                 half = 0.5 * (s.t - previous.t)
                 span = (t >= previous.t - half) & (t <= s.t + half)
-                way = np.nanmean(d[span], axis=0) if span.any() else np.full(2, np.nan)
+                known = span & np.isfinite(d).all(axis=1)
+                way = d[known].mean(axis=0) if known.any() else np.full(2, np.nan)
                 n = float(np.hypot(*way))
                 if n > 1e-6:
                     way = way / n

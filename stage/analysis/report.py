@@ -153,11 +153,13 @@ def _angle_charts(results: list[SubsetResult], truth: SubsetResult | None) -> st
 
 
 def _motion_chart(results: list[SubsetResult]) -> str:
-    c = Chart(1180, 210, title="Centre-of-mass speed", x_label="time (s)", y_label="m/s")
+    c = Chart(1180, 210, title="Centre-of-mass speed (solid) and quantity of motion: mean joint "
+              "speed over the last second (dashed)", x_label="time (s)", y_label="m/s")
     for k, r in enumerate(results):
         f = series(r.trajectory.t, r.trajectory.filled(0.25).smoothed(0.1).joints)
-        c.line(r.trajectory.t, f["com_speed_horizontal"], PALETTE[k % len(PALETTE)],
-               label=r.subset.name)
+        colour = PALETTE[k % len(PALETTE)]
+        c.line(r.trajectory.t, f["com_speed_horizontal"], colour, label=r.subset.name)
+        c.line(r.trajectory.t, f["quantity_of_motion"], colour, dash="5 3", width=1.2)
     return c.svg()
 
 

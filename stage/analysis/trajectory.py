@@ -80,23 +80,9 @@ class Trajectory:
         """
         if sigma_s <= 0 or len(self.t) < 3:
             return self
-        sigma = sigma_s * self.rate
-        half = max(1, int(np.ceil(3 * sigma)))
-        k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
-        out = np.full_like(self.joints, np.nan)
-        flat = self.joints.reshape(len(self.t), -1)
-        res = out.reshape(len(self.t), -1)
-        for c in range(flat.shape[1]):
-            x = flat[:, c]
-            ok = np.isfinite(x)
-            if not ok.any():
-                continue
-            xs = np.where(ok, x, 0.0)
-            num = np.convolve(xs, k, mode="same")
-            den = np.convolve(ok.astype(float), k, mode="same")
-            with np.errstate(invalid="ignore", divide="ignore"):
-                res[:, c] = np.where(ok, num / den, np.nan)
-        return Trajectory(self.t, out, self.count, self.label, dict(self.meta))
+        flat = smooth(self.joints.reshape(len(self.t), -1), sigma_s * self.rate)
+        return Trajectory(self.t, flat.reshape(self.joints.shape), self.count, self.label,
+                          dict(self.meta))
 
     def resampled(self, rate: float = 30.0, max_gap_s: float = 0.1) -> "Trajectory":
         """Linear interpolation onto a ``rate`` Hz grid; samples across longer gaps stay missing."""
@@ -133,6 +119,31 @@ class Trajectory:
             rows.append(j)
         joints = np.stack(rows) if rows else np.zeros((0, N_JOINTS, 3))
         return cls(np.array(t), joints, None, label or f"person {person}")
+
+
+def smooth(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Each column of (N, k) low-passed by a Gaussian of s.d. ``sigma`` samples, zero phase.
+
+    Missing samples (NaN) stay missing and do not pull their neighbours: the
+    kernel is renormalised over the samples present.
+    """
+    half = max(1, int(np.ceil(3 * sigma)))
+    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
+    out = np.full_like(x, np.nan, dtype=float)
+    for c in range(x.shape[1]):
+        ok = np.isfinite(x[:, c])
+        if not ok.any():
+            continue
+        num = np.convolve(np.where(ok, x[:, c], 0.0), kernel, mode="same")
+        den = np.convolve(ok.astype(float), kernel, mode="same")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, c] = np.where(ok, num / den, np.nan)
+    return out
+
+
+def fill(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """(N, 3) with NaN runs no longer than ``max_gap_s`` (between two known samples) filled."""
+    return _fill(t, x, max_gap_s)
 
 
 def _fill(t: np.ndarray, x: np.ndarray, max_gap_s: float) -> np.ndarray:
