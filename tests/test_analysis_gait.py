@@ -199,3 +199,34 @@ def test_integration_without_capture_times_aligns_sensor_clocks_from_timetags():
     assert len(steps) >= 4
     assert np.nanmean([s.length for s in steps if s.length]) == pytest.approx(0.7, abs=0.03)
     assert max(abs(c["offset_s"]) for c in clocks.values()) > 0.1   # the offsets were real
+
+
+# ------------------------------------------------------------------ real walking
+@pytest.mark.parametrize("take", ["131_01", "131_02"])
+def test_cmu_walk_watched_one_sided_and_two_sided_against_the_motion_capture(take):
+    """A real walk (CMU motion capture, "start, walk, stop") played along the walkway: both
+    analyses find the motion capture's own steps, the two-sided one at least as closely.
+    (This seed, RMS errors of step length and width: 131_01 one-sided 3.3 and 1.7 cm,
+    two-sided 1.2 and 1.0 cm; 131_02 2.7/2.9 and 2.0/2.5 cm. bench/bench_gait.py does this
+    for 16 virtual subjects with seed 003's statistics.)"""
+    from stage.testing.walks import cmu_file, cmu_walker
+    path = cmu_file(take)
+    if path is None:
+        pytest.skip("CMU motion capture not found ($STAGE_CMU_DIR or shared/data/cmu above "
+                    "the checkout)")
+    performer = cmu_walker(path, height=1.75)
+    duration = performer.length + 0.5
+    frames, rig, _ = simulate(walkway(performer, duration), 1)
+    true = analyse_trajectory(truth(performer, duration), Subset("truth"))
+    assert true.gait["used"] >= 4
+    errors = {}
+    for name, sensors in (("one-sided", list(LEFT)), ("two-sided", None)):
+        r = analyse_trajectory(integrate(frames, rig, sensors), Subset(name, sensors))
+        compare(r, true)
+        assert len(r.pairs) >= true.gait["used"] - 1, name      # at most one step missed
+        a = r.agreement
+        errors[name] = (a["step_length"]["all"]["rmse"], a["step_width"]["all"]["rmse"])
+        assert a["step_length"]["all"]["rmse"] < 0.05, name
+        assert a["step_width"]["all"]["rmse"] < 0.05, name
+        assert a["step_time"]["all"]["rmse"] < 0.03, name
+    assert sum(errors["two-sided"]) <= sum(errors["one-sided"]) + 0.005

@@ -96,8 +96,9 @@ def summary_lines(data: dict) -> list[str]:
                    + ("    bias    RPC  ICC(A,1)  (L+R vs truth)" if truth else ""))
         for p, unit, scale, digits in (("step_length", "cm", 100, 1), ("step_width", "cm", 100, 1),
                                        ("step_time", "s", 1, 3), ("stride_length", "cm", 100, 1)):
-            cells = [f"{_f(g[p][s]['mean'], scale, digits)}±{_f(g[p][s]['sd'], scale, digits)}"
-                     for s in ("left", "right")]
+            cells = [_f(g[p][s]["mean"], scale, digits)
+                     + (f"±{_f(g[p][s]['sd'], scale, digits)}" if g[p][s]["sd"] is not None
+                        else "") for s in ("left", "right")]
             label = f"{p.replace('_', ' ')} ({unit})"
             line = f"  {label:18s} {cells[0]:>14s} {cells[1]:>16s}"
             if truth and "agreement" in r:
