@@ -182,3 +182,21 @@ def test_stage_record_of_stage_sim_analysed_and_drawn_in_chromium(tmp_path, brow
                               "height": min(size["height"], 6000), "scale": 1})
     ARTIFACTS.mkdir(exist_ok=True)
     (ARTIFACTS / "analysis_report.png").write_bytes(base64.b64decode(shot["data"]))
+
+
+def test_a_recording_with_no_walking_or_hardly_any_data_still_reports(tmp_path, capsys):
+    rec, report = tmp_path / "short.rec", tmp_path / "short.html"
+    Simulator(load_scenario("walkway"), seed=1).record(str(rec), 0.5)   # a few frames
+    assert main(["analyze", str(rec), "--report", str(report), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["subsets"]["all"]["gait"]["steps"] == 0
+    assert data["subsets"]["all"]["gait"]["speed"] is None       # NaN becomes null in JSON
+    assert "<svg" in report.read_text()
+
+
+def test_a_recording_in_which_nobody_was_seen_is_one_line(tmp_path, capsys):
+    rec = tmp_path / "empty.rec"
+    Simulator(load_scenario("walkway"), seed=1).record(str(rec), 0.2)  # before anyone is found
+    assert main(["analyze", str(rec)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("stage: no skeletons from kinect-l1") and "nobody was seen" in err

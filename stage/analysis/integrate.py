@@ -134,9 +134,12 @@ def integrate(frames: dict[str, SensorFrames], rig: Rig, sensors: Iterable[str] 
         log.warning("sensor(s) %s have no calibration in the rig: left out",
                     ", ".join(uncalibrated))
     tracks = []  # (sensor, resampled joints (G, 25, 3)) per (sensor, user)
-    if not used or not any(len(frames[s]) for s in used):
-        raise ConfigError("no calibrated sensor with skeletons to analyse (give --rig, or "
-                          "calibrate: stage calibrate RECORDING --rig RIG)")
+    if not used:
+        raise ConfigError(f"none of the sensors ({', '.join(wanted) or 'none'}) has a "
+                          "calibration in the rig: give --rig, or calibrate: stage calibrate "
+                          "RECORDING --rig RIG")
+    if not any(len(frames[s]) for s in used):
+        raise ConfigError(f"no skeletons from {', '.join(used)}: nobody was seen")
     t0 = min(frames[s].t[0] for s in used if len(frames[s]))
     t1 = max(frames[s].t[-1] for s in used if len(frames[s]))
     grid = np.arange(t0, t1 + 1e-9, 1.0 / rate)

@@ -134,8 +134,10 @@ def smooth(x: np.ndarray, sigma: float) -> np.ndarray:
         ok = np.isfinite(x[:, c])
         if not ok.any():
             continue
-        num = np.convolve(np.where(ok, x[:, c], 0.0), kernel, mode="same")
-        den = np.convolve(ok.astype(float), kernel, mode="same")
+        # "full" then the centre: "same" would return the kernel's length for a short series
+        n = len(ok)
+        num = np.convolve(np.where(ok, x[:, c], 0.0), kernel)[half:half + n]
+        den = np.convolve(ok.astype(float), kernel)[half:half + n]
         with np.errstate(invalid="ignore", divide="ignore"):
             out[:, c] = np.where(ok, num / den, np.nan)
     return out
