@@ -102,3 +102,11 @@ def test_working_envelope_is_the_volume_of_the_reached_points():
     assert hull_volume(ball) == pytest.approx(4 / 3 * math.pi * 0.3 ** 3, rel=0.04)
     assert hull_volume(np.zeros((3, 3))) == 0.0
     assert hull_volume(np.full((10, 3), np.nan)) == 0.0
+
+
+def test_icc_and_r_say_nothing_when_the_truth_does_not_vary():
+    rng = np.random.default_rng(2)
+    truth = np.full(30, 0.70)                   # a gait set in the simulator
+    a = agreement(truth + rng.normal(0, 0.01, 30), truth)
+    assert math.isnan(a["icc"]) and math.isnan(a["r"])
+    assert a["rpc"] == pytest.approx(1.96 * 0.01, rel=0.4) and math.isfinite(a["bias"])

@@ -61,7 +61,9 @@ def agreement(measured: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """Seed 003's agreement statistics of paired values (same units as the inputs).
 
     Keys: n, mean, sd (measured), truth_mean, truth_sd, r, bias, rpc, cv
-    (percent), icc (ICC(A,1)), rmse.
+    (percent), icc (ICC(A,1)), rmse. The ICC (and r) compare variation between
+    steps with the measuring error; when the truth hardly varies (s.d. under
+    1 % of its mean: a gait set in the simulator) they say nothing and are NaN.
     """
     m, t = np.asarray(measured, float), np.asarray(truth, float)
     ok = np.isfinite(m) & np.isfinite(t)
@@ -74,8 +76,11 @@ def agreement(measured: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     diff = m - t
     sd_diff = float(diff.std(ddof=1)) if n > 1 else nan
     both = float(np.concatenate([m, t]).mean())
+    truth_sd = float(t.std(ddof=1)) if n > 1 else nan
+    varies = n > 1 and truth_sd > 0.01 * abs(float(t.mean()))
     return {"n": n, "mean": float(m.mean()), "sd": float(m.std(ddof=1)) if n > 1 else nan,
-            "truth_mean": float(t.mean()), "truth_sd": float(t.std(ddof=1)) if n > 1 else nan,
-            "r": pearson(m, t), "bias": float(diff.mean()), "rpc": 1.96 * sd_diff,
-            "cv": 100.0 * sd_diff / abs(both) if both else nan,
-            "icc": icc_a1(np.column_stack([m, t])), "rmse": float(np.sqrt((diff ** 2).mean()))}
+            "truth_mean": float(t.mean()), "truth_sd": truth_sd,
+            "r": pearson(m, t) if varies else nan, "bias": float(diff.mean()),
+            "rpc": 1.96 * sd_diff, "cv": 100.0 * sd_diff / abs(both) if both else nan,
+            "icc": icc_a1(np.column_stack([m, t])) if varies else nan,
+            "rmse": float(np.sqrt((diff ** 2).mean()))}

@@ -141,13 +141,14 @@ def align_truth(measured: Trajectory, truth: Trajectory) -> float:
 
     A recording made live has its own clock; the truth counts from 0. Every
     shift that overlaps the two (on the measured trajectory's grid) is tried;
-    the smallest median pelvis distance wins. (A looping scenario matches as
-    well one loop later: any of those shifts compares the same walk.)
+    the smallest median pelvis distance wins, and among shifts within 1 cm of
+    it the one that compares the most samples (a looping scenario matches
+    about as well one loop later, over less of the recording).
     """
     step = 1.0 / measured.rate
     lo, hi = measured.t[0] - truth.t[-1], measured.t[-1] - truth.t[0]
-    best, best_cost = 0.0, math.inf
     tp, mp = truth.joints[:, 0], measured.joints[:, 0]
+    tried: list[tuple[float, int, float]] = []       # (cost, samples compared, shift)
     for shift in np.arange(lo, hi + step, step):
         idx = np.searchsorted(measured.t, truth.t + shift)
         ok = (idx > 0) & (idx < len(measured.t))
@@ -155,12 +156,12 @@ def align_truth(measured: Trajectory, truth: Trajectory) -> float:
             continue
         d = np.linalg.norm(mp[idx[ok]] - tp[ok], axis=1)
         d = d[np.isfinite(d)]
-        if len(d) < 30:
-            continue
-        cost = float(np.median(d))
-        if cost < best_cost:
-            best, best_cost = float(shift), cost
-    return best
+        if len(d) >= 30:
+            tried.append((float(np.median(d)), len(d), float(shift)))
+    if not tried:
+        return 0.0
+    best = min(c for c, _, _ in tried)
+    return max((n, -abs(s), s) for c, n, s in tried if c <= best + 0.01)[2]
 
 
 def analyze_recording(path: str, subsets: list[Subset] | None = None, rig: Rig | None = None,

@@ -276,7 +276,9 @@ def render(analysis: Analysis) -> str:
                         'statistics, paired steps)</h2>' + _agreement_table(results)
                         + '<p class="muted">RPC = 1.96 × SD of the differences; CV = SD of the '
                         "differences / mean; ICC(A,1): poor &lt; 0.4 ≤ fair &lt; 0.6 ≤ good "
-                        "&lt; 0.75 ≤ excellent.</p></section>")
+                        "&lt; 0.75 ≤ excellent; n/a where the truth does not vary from step "
+                        "to step (a gait set in the simulator): then RPC says it all.</p>"
+                        "</section>")
     sections += [
         '<section id="angles"><h2>Joint angles</h2><div class="row">'
         + _angle_charts(results, truth) + "</div></section>",
@@ -302,5 +304,10 @@ def render(analysis: Analysis) -> str:
 
 
 def write_report(analysis: Analysis, path: str) -> None:
+    """Write the report atomically, readable as any file the user makes (the umask's mode)."""
+    import os
     from ..yamlio import write_atomic
     write_atomic(path, render(analysis))
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
