@@ -23,6 +23,7 @@ with the truth than one-sided, especially in step width.
     python bench/bench_gait.py               # 16 subjects x 2 walks (about 3 minutes)
     python bench/bench_gait.py --quick       # 2 subjects x 1 walk, a smoke test
     python bench/bench_gait.py --seeds 3 --engine --json
+    python bench/bench_gait.py --set-gait    # walks with a set gait instead (no CMU needed)
 
 The CMU data are not part of the repository: $STAGE_CMU_DIR or a
 ``shared/data/cmu`` folder above the checkout (the bench says where it
@@ -238,6 +239,44 @@ def closing_note(results: dict, methods: list[str]) -> None:
             print(f"{label + ' ' + side[0].upper():18s}" + "".join(f"{c:>30s}" for c in cells))
 
 
+def set_gait(seeds: list[int]) -> None:
+    """Walks whose gait is set in the simulator: how far each analysis is from the set values."""
+    from stage.testing.walks import gait_walker
+    gaits = ((0.70, 0.12, 110.0), (0.55, 0.20, 95.0), (0.80, 0.08, 125.0))
+    print("set gait (the simulator's planted-feet walker, 10 steps), walkway scenario; errors of "
+          "the means vs the set values and per-step RMS vs the true steps")
+    print(f"{'gait (m, m, /min)':22s} {'seed':>4s} {'subset':>9s} {'len cm':>7s} {'wid cm':>7s} "
+          f"{'cadence':>8s} {'speed':>7s} {'RMS len':>8s} {'RMS wid':>8s} {'RMS time':>9s} "
+          f"{'steps':>5s}")
+    worst: dict = {}
+    for length, width, cadence in gaits:
+        for seed in seeds:
+            performer, _ = gait_walker(10, length, width, cadence)
+            duration = performer.length + 0.5
+            frames, rig, _ = simulate(walkway(performer, duration), seed)
+            true = analyse_trajectory(truth(performer, duration), Subset("truth"))
+            for name, sensors in (("two-sided", None), ("one-sided", list(LEFT))):
+                r = analyse_trajectory(integrate(frames, rig, sensors), Subset(name, sensors))
+                compare(r, true)
+                g, a = r.gait, r.agreement
+                row = (100 * (g["step_length"]["all"]["mean"] - length),
+                       100 * (g["step_width"]["all"]["mean"] - width),
+                       100 * (g["cadence"] / cadence - 1),
+                       100 * (g["speed"] / (length * cadence / 60) - 1),
+                       100 * a["step_length"]["all"]["rmse"], 100 * a["step_width"]["all"]["rmse"],
+                       1000 * a["step_time"]["all"]["rmse"])
+                w = worst.setdefault(name, [0.0] * 7)
+                worst[name] = [max(x, abs(v)) for x, v in zip(w, row)]
+                print(f"{f'{length}, {width}, {cadence:g}':22s} {seed:4d} {name:>9s} "
+                      f"{row[0]:+7.1f} {row[1]:+7.1f} {row[2]:+7.1f}% {row[3]:+6.1f}% "
+                      f"{row[4]:5.1f} cm {row[5]:5.1f} cm {row[6]:6.0f} ms {len(r.pairs):5d}")
+    for name, w in worst.items():
+        print(f"worst {name}: mean length {w[0]:.1f} cm, width {w[1]:.1f} cm, cadence "
+              f"{w[2]:.1f} %, speed {w[3]:.1f} %, RMS {w[4]:.1f} / {w[5]:.1f} cm, {w[6]:.0f} ms "
+              "(tests/test_analysis_gait.py allows two-sided 2 / 3 cm, 3 %, 3.5 cm, 25 ms; "
+              "one-sided 2 / 4 cm, 3 %, 5 cm, 30 ms)")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="2 subjects x 1 walk (smoke test)")
@@ -245,10 +284,16 @@ def main() -> int:
     parser.add_argument("--engine", action="store_true",
                         help="also stage's live fusion (engine + Kalman) of all six sensors")
     parser.add_argument("--json", action="store_true", help="print the tables as JSON")
+    parser.add_argument("--set-gait", action="store_true",
+                        help="instead: walks with a gait set in the simulator (no CMU needed), "
+                             "the errors against the set values (seeds 1, 2, 3, 5)")
     parser.add_argument("--all-steps", action="store_true",
                         help="also the steps of turning on the spot (default: straight walking "
                              "along the walkway only, as in seed 003's corridor)")
     args = parser.parse_args()
+    if args.set_gait:
+        set_gait([1] if args.quick else [1, 2, 3, 5])
+        return 0
     missing = [t for t in TAKES if cmu_file(t) is None]
     if missing:
         print(f"bench_gait: CMU take(s) {', '.join(missing)} not found ($STAGE_CMU_DIR or "
