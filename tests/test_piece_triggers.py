@@ -277,6 +277,45 @@ def test_step_fires_when_a_foot_is_put_down_after_a_swing():
     assert all(0.4 <= e.t % 1.0 <= 0.45 for e in events)   # when the foot stops
 
 
+def test_step_gait_fires_once_per_walking_step_with_its_length_width_and_time():
+    # a walk with a set gait (the simulator's planted-feet walker): 8 placements of 0.65 m,
+    # 0.15 m apart sideways, at 100 steps a minute, left foot first
+    from stage.sensors.sim.gait import GaitClip
+    walk = GaitClip(8, step_length=0.65, step_width=0.15, cadence=100.0)
+    runtime, sink, stage = make("""
+      - {name: stride, step: gait, cooldown: 0,
+         do: [{osc: {address: /step, args: [$joint, $value, $step_width, $step_time, $speed]}}]}
+      - {name: left only, joint: FootLeft, step: gait, cooldown: 0, do: [play: a]}
+      - {name: swing, step: true, cooldown: 0, do: [play: b]}
+""")
+    stage.run(0.0, walk.duration, lambda t: {1: walk.joints(t)})
+    steps = [o.args for o in sink.events if type(o).__name__ == "OscOut" and o.address == "/step"]
+    # placements 2-8 each end a step (the first has none before it); the last placement, the
+    # closing foot never passes, so it is never a foot event: 6 steps
+    assert len(steps) == 6
+    # left foot first: the right passes the standing left (its placement, no step before it),
+    # then the left passes the right, which ended the first step: right, left, right, ...
+    assert [a[0] for a in steps] == ["FootRight", "FootLeft"] * 3
+    for k, (joint, length, width, step_time, speed) in enumerate(steps):
+        assert length == pytest.approx(0.65, abs=0.005)
+        # the first step's walking direction still sees the start of the walk
+        assert width == pytest.approx(0.15, abs=0.01 if k == 0 else 0.002)
+        assert step_time == pytest.approx(0.6, abs=0.05 if k == 0 else 1 / FPS)
+        assert speed == pytest.approx(length / step_time)
+    assert len(fired(sink, "left only")) == 3
+    # the same walk with step: true (a foot swings and is put down): every landing, both feet
+    assert len(fired(sink, "swing")) >= 8
+
+
+def test_step_gait_is_checked_when_the_piece_loads():
+    from stage.errors import ConfigError
+    with pytest.raises(ConfigError, match="'step' in trigger 1 of section 'one' must be true or "
+                                          "gait, got 'walk'"):
+        make("      - {step: walk, do: [play: a]}")
+    with pytest.raises(ConfigError, match="'speed' is the swing speed"):
+        make("      - {step: gait, speed: 1.0, do: [play: a]}")
+
+
 def test_appears_and_disappears():
     runtime, sink, stage = make("""
       - {name: hello, appears: true, do: [{osc: {address: /hello, args: [$person]}}]}

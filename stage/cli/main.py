@@ -32,6 +32,7 @@ COMMAND_MODULES: list[str] = [
     "stage.cli.replay",
     "stage.cli.importers",
     "stage.cli.client",
+    "stage.cli.analyze",
 ]
 
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {}

@@ -34,6 +34,7 @@ class FireContext:
     speed: float
     quantize: str | None = None    # beat | bar | none: where phrases and notes start
     firing: int = 0                # which firing (a trigger's phrases queue per firing)
+    detail: dict | None = None     # step: gait's step_length, step_width, step_time
 
     def ref(self, name: str):
         if name in ("x", "y", "z"):
@@ -54,6 +55,9 @@ class FireContext:
             return self.runtime.section.name
         if name == "trigger":
             return self.trigger
+        if name.startswith("step_"):
+            value = (self.detail or {}).get(name)
+            return 0.0 if value is None else float(value)
         return float(self.t - self.runtime.started_at)  # "time"
 
     def joint_ref(self, j: int, axis: str):

@@ -30,7 +30,7 @@ PICKS = ("random", "next", "shuffle")
 CURVES = ("linear", "exp", "log", "smooth")
 #: voice policies: what a phrase does when another still sounds (or waits) on its output
 OVERLAPS = ("queue", "layer", "replace", "ignore")
-MEASURES = ("x", "y", "z", "height", "speed", "distance")
+MEASURES = ("x", "y", "z", "height", "speed", "distance", "angle")
 
 JOINT = JointName(extra=("body",), doc="A joint (HandLeft, Head, ...), a group (hands, feet, "
                   "...) or 'body' (the torso centre).")
@@ -245,7 +245,10 @@ TRIGGER = Obj("Trigger", {
     "rises_above": Field(HEIGHT),
     "falls_below": Field(HEIGHT),
     "hand": Field(Choice(HAND_STATES), doc="A hand becomes open, closed or lasso (pointing)."),
-    "step": Field(Boolean(), doc="A foot is put down after a swing."),
+    "step": Field(AnyOf((Boolean(), Choice(("gait",))), says="true or gait"),
+                  doc="true: a foot is put down after a swing. gait: a walking step as gait "
+                      "analysis counts it (seed 003): one foot passes the other; $value is the "
+                      "step length (m), $step_width, $step_time, $speed the walking speed."),
     "appears": Field(Boolean(), doc="A performer is seen for the first time."),
     "disappears": Field(Boolean(), doc="A performer is lost."),
     "stage_empty": Field(SECONDS, doc="Nobody has been on stage for this long."),
@@ -280,10 +283,12 @@ OSC_TARGET = AnyOf((Text(pattern=r"/\S*", expected="an OSC address like /pan"), 
 MAPPING = Obj("Mapping", {
     "name": Field(NAME),
     "joint": Field(SINGLE_JOINT, required=True),
-    "measure": Field(Choice(MEASURES), doc="What of the joint (default height)."),
+    "measure": Field(Choice(MEASURES), doc="What of the joint (default height); angle: the "
+                                            "angle at an elbow, knee, shoulder or hip (degrees)."),
     "to_joint": Field(SINGLE_JOINT, doc="measure: distance, between 'joint' and this one."),
     "performer": Field(ONE_PERFORMER),
-    "in_range": Field(RANGE, required=True, doc="Input range (metres or m/s); clamped."),
+    "in_range": Field(RANGE, required=True, doc="Input range (metres, m/s, or degrees for "
+                                               "angle); clamped."),
     "out_range": Field(RANGE, doc="Output range (default 0-127 for cc, 0-1 for osc)."),
     "curve": Field(AnyOf((Choice(CURVES), Number(exclusive_minimum=0.0))),
                    doc="linear, exp, log, smooth, or a power."),

@@ -11,6 +11,7 @@ import os
 from typing import Any
 
 from ..errors import ConfigError, MusicError
+from ..analysis.features import ANGLES
 from ..events import OutputDecl
 from ..joints import JOINT_INDEX, JOINTS, parse_hand_state
 from ..network import parse_hostport
@@ -270,8 +271,14 @@ class _Compiler(ActionCompiler):
                        once=t.get("once", False), probability=t.get("probability", 1.0),
                        line=(t["__mark__"] or (0, 0))[0], quantize=self._quantize(t, label))
         value, vmark = t[kind], _m(t, kind)
-        if kind in ("step", "appears", "disappears") and value is not True:
+        if kind in ("appears", "disappears") and value is not True:
             raise self.error(f"write '{kind}: true' to use this trigger", vmark)
+        if kind == "step" and value not in (True, "gait"):
+            raise self.error("write 'step: true' (a foot is put down after a swing) or "
+                             "'step: gait' (a walking step: one foot passes the other)", vmark)
+        if kind == "step" and value == "gait" and "speed" in t:
+            raise self.error("'speed' is the swing speed of 'step: true'; 'step: gait' takes "
+                             "none", _m(t, "speed"))
         for key, owners in (("for", ("dwells",)), ("speed", ("moves", "step"))):
             if key in t and kind not in owners:
                 raise self.error(f"'{key}' only applies to {' and '.join(owners)} triggers",
@@ -323,6 +330,7 @@ class _Compiler(ActionCompiler):
             trig.hand_state = parse_hand_state(value)
         elif kind == "step":
             trig.threshold = t.get("speed", 0.8)
+            trig.gait = value == "gait"
         elif kind in ("stage_empty", "elapsed"):
             trig.threshold = value
         if "while" in t:
@@ -370,6 +378,9 @@ class _Compiler(ActionCompiler):
             raise self.error(f"{label} measures a distance: give 'to_joint'", _m(m, "measure"))
         if "to_joint" in m and measure != "distance":
             raise self.error("'to_joint' only applies to measure: distance", _m(m, "to_joint"))
+        if measure == "angle" and m["joint"] not in ANGLES:
+            raise self.error(f"{label} measures an angle: 'joint' must be where two segments "
+                             f"meet: {', '.join(ANGLES)}", _m(m, "joint"))
         lo, hi = m["in_range"]
         if lo == hi:
             raise self.error(f"'in_range' of {label} needs two different numbers", _m(m, "in_range"))

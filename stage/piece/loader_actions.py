@@ -17,7 +17,8 @@ from .model import (BODY, Action, Goto, Play, PlayNote, Section, SendCC, SendOsc
                     Silence)
 from .music import parse_chord
 
-_REFS = ("x", "y", "z", "speed", "value", "person", "joint", "section", "trigger", "time")
+_REFS = ("x", "y", "z", "speed", "value", "person", "joint", "section", "trigger", "time",
+         "step_length", "step_width", "step_time")
 
 
 def m(d: dict, key: str) -> Mark | None:

@@ -322,6 +322,7 @@ class Trigger:
     actions: tuple[Action, ...] = ()
     line: int = 0
     quantize: str | None = None        # beat | bar | none; None: the section's or piece's
+    gait: bool = False                 # step: gait (seed 003's foot events), not step: true
 
     def describe(self) -> str:
         joints = "+".join(joint_label(j) for j in self.joints) if self.joints else ""
@@ -341,7 +342,7 @@ class Trigger:
         elif k == "hand":
             what = f"{joints} {self.hand_state.wire_name}"
         elif k == "step":
-            what = f"{joints} step"
+            what = f"{joints} {'gait ' if self.gait else ''}step"
         elif k in ("appears", "disappears"):
             what = f"a performer {k}"
         elif k == "stage_empty":
@@ -364,7 +365,7 @@ def _direction_name(d: tuple[float, float, float]) -> str:
 class Mapping:
     name: str
     joint: int
-    measure: str = "height"           # x | y | z | height | speed | distance
+    measure: str = "height"           # x | y | z | height | speed | distance | angle
     to_joint: int | None = None
     performer: str | int = "first"
     in_range: tuple[float, float] = (0.0, 1.0)

@@ -315,7 +315,7 @@ class PieceRuntime:
                                       None if f.value is None else round(float(f.value), 4)))
         quantize = trig.quantize or self.section.quantize or self.piece.quantize
         ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed,
-                          quantize, self._firings)
+                          quantize, self._firings, f.detail)
         done = [self.actions.act(a, ctx) for a in trig.actions]
         who = "" if f.person is None else f" [person {f.person}" + (
             f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"

@@ -370,7 +370,22 @@ class Performer:
         return 0.0
 
     def _do_bvh(self, step: Step, start: float) -> float:
-        clip = self.clips[step.value]
+        return self._play_clip(step, start, self.clips[step.value])
+
+    def _do_gait(self, step: Step, start: float) -> float:
+        from .gait import GaitClip
+        o = step.opts
+        try:
+            clip = GaitClip(int(step.value), o.get("length", 0.70), o.get("width", 0.12),
+                            o.get("cadence", 110.0), first_step=o.get("first"),
+                            lead=o.get("lead", "left"), props=self.props)
+        except ValueError as exc:
+            raise self._error(step, str(exc)) from None
+        self.clips[f"gait@{start:g}"] = clip
+        step.opts = {k: v for k, v in o.items() if k == "facing"}
+        return self._play_clip(step, start, clip)
+
+    def _play_clip(self, step: Step, start: float, clip: Clip) -> float:
         begin = float(self._opt(step, "from", 0.0))
         end = float(self._opt(step, "to", clip.duration))
         if not 0 <= begin < end <= clip.duration + 1e-6:

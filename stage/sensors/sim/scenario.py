@@ -46,6 +46,8 @@ VERBS: dict[str, tuple[tuple[str, ...], str]] = {
     "enter": (("facing",), "true, or the point [x, z] where the performer appears"),
     "leave": ((), "true"),
     "bvh": (("from", "to", "speed", "repeat", "facing"), "a BVH file (path relative to the scenario)"),
+    "gait": (("length", "width", "cadence", "first", "lead", "facing"),
+             "the number of steps of a straight walk with planted feet"),
 }
 TIMING = ("at", "with", "after")
 SIDES = ("left", "right", "both")
@@ -462,6 +464,10 @@ def _step_value(where: Where, entry: dict, verb: str, what: str, places: dict) -
         if not isinstance(value, str) or not value:
             raise bad
         return value
+    if verb == "gait":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise bad
+        return value
     raise bad  # pragma: no cover - every verb is handled above
 
 
@@ -488,6 +494,10 @@ def _step_option(where: Where, entry: dict, verb: str, key: str, places: dict) -
         if isinstance(value, list) and len(value) == 3 and all(_num(v) for v in value):
             return [float(v) for v in value]
         raise where.at_key(entry, key, "'to' takes a point [x, y, z] in metres or a sensor id")
+    if key == "lead":
+        if value not in ("left", "right"):
+            raise where.at_key(entry, key, "'lead' is the foot that starts: left or right")
+        return value
     if key == "repeat":
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise where.at_key(entry, key, "'repeat' must be a whole number >= 1")
