@@ -35,13 +35,14 @@ from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from ..joints import TORSO, HandState
 from ..rig import Rig, store_stage_transform
 from ..sensors.protocol import (FloorPlane, HandStateMsg, Inbound, JointCoordinates, LostUser,
-                                Message, NewUser, RegisterDevice, RegisterView, StatsQuery,
+                                NewUser, RegisterView, StatsQuery,
                                 decode_datagram, encode_message)
 from ..stats import DropCounter, LatencyWindow, format_drops
 from .callbacks import Callbacks
 from .output import Transport, ViewOutput
 from .rigstore import RigStore
-from .tracking import OffsetEstimator, Person, Track, Tracker
+from .clients import ClientRegistry, ClientState
+from .tracking import Person, Track, Tracker
 
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
@@ -58,21 +59,6 @@ class Call:
     fn: Callable[["Engine"], None]
 
 
-class ClientState:
-    def __init__(self, client: str, sensor_type: str, source: tuple[str, int], now: float,
-                 offset: OffsetEstimator) -> None:
-        self.id, self.type, self.source = client, sensor_type, source
-        self.registered = now
-        self.last_seen = now
-        self.frames = 0
-        self.tracks: dict[int, Track] = {}
-        self.offset = offset
-        self.transform: np.ndarray | None = None
-        self.warned_uncalibrated = False
-        self.floor: np.ndarray | None = None
-        self.active = True
-
-
 class Engine:
     """Kuatro's server core. Call ``process`` and ``tick`` from one thread only."""
 
@@ -82,7 +68,8 @@ class Engine:
         self.clock = clock or MonotonicClock()
         self.drops = drops or DropCounter()
         self.queue: queue.Queue[Inbound] = queue.Queue(maxsize=8192)
-        self.clients: dict[str, ClientState] = {}
+        #: the clients (sensors) by id, the reference sensor, the clients' clocks
+        self.registry = ClientRegistry(self.rig, self.drops, self._drop_track)
         self.tracker = Tracker(self.rig.fusion, self.rig.smoothing)
         self.output = ViewOutput(transport, self.rig.views)
         #: called on the engine thread with every fused frame (copy-on-write: add and
@@ -94,7 +81,6 @@ class Engine:
         self.rig_store = RigStore()
         self.latency = LatencyWindow()
         self.counts = {"messages": 0, "frames": 0, "fused_frames": 0}
-        self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._stats_replies: list[tuple[str, int]] = []
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
         #: written on the engine thread (via call_soon), shown in stats and monitors
@@ -111,7 +97,16 @@ class Engine:
         self._started = self.clock.now()
         self._last_tick = self._started
         self._last_drop_report = self._started
-        self.reference = self.rig.reference
+
+    @property
+    def clients(self) -> dict[str, ClientState]:
+        """Known clients by id (the registry's; engine thread only)."""
+        return self.registry.clients
+
+    @property
+    def reference(self) -> str | None:
+        """The reference sensor: its space is stage space (None until one is chosen)."""
+        return self.registry.reference
 
     @property
     def persons(self) -> dict[int, Person]:
@@ -172,7 +167,7 @@ class Engine:
 
     def process(self, batch: list[Inbound]) -> None:
         """Apply a batch of inbound items in capture-time order, then emit once."""
-        timed = sorted(((self._capture_time(item), k, item) for k, item in enumerate(batch)),
+        timed = sorted(((self.registry.capture_time(item), k, item) for k, item in enumerate(batch)),
                        key=lambda e: (e[0], e[1]))
         for t, _, item in timed:
             self.counts["messages"] += 1
@@ -187,17 +182,6 @@ class Engine:
             for address in self._stats_replies:
                 self.output.send(reply, address)
             self._stats_replies.clear()
-
-    def _capture_time(self, item: Inbound) -> float:
-        msg = item.message
-        client = getattr(msg, "client", None)
-        if item.timetag is None or client is None:
-            return item.arrival
-        estimator = self._offsets.get(client)
-        if estimator is None:
-            estimator = self._offsets[client] = OffsetEstimator()
-        offset = estimator.update(item.arrival, item.timetag)
-        return min(item.timetag + offset, item.arrival)
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message
@@ -214,7 +198,7 @@ class Engine:
             # the fused output of frames that arrived before the query
             self._stats_replies.append((item.source[0], msg.reply_port or item.source[1]))
             return
-        client = self._client(msg, item)
+        client = self.registry.client(msg, item)
         if client is None:
             return
         if isinstance(msg, JointCoordinates):
@@ -238,42 +222,6 @@ class Engine:
             track = client.tracks.pop(msg.user, None)
             if track is not None:
                 self._drop_track(track, t)
-
-    def _client(self, msg: Message, item: Inbound) -> ClientState | None:
-        cid = msg.client  # type: ignore[union-attr]
-        now = item.arrival
-        if (not self.rig.allow_unknown_sensors and self.rig.sensors
-                and cid not in self.rig.sensors):
-            self.drops.add(cid, "not_allowed")
-            return None
-        state = self.clients.get(cid)
-        if isinstance(msg, RegisterDevice):
-            if state is None:
-                log.info("sensor %s (%s) registered from %s:%d", cid, msg.sensor_type, *item.source)
-            else:
-                log.info("sensor %s re-registered from %s:%d", cid, *item.source)
-        if state is None:
-            state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now,
-                                self._offsets.setdefault(cid, OffsetEstimator()))
-            self.clients[cid] = state
-            if not isinstance(msg, RegisterDevice):
-                log.info("sensor %s sending from %s:%d without /registerDevice; accepted",
-                         cid, *item.source)
-            self._set_transform(state)
-        elif not state.active:
-            log.info("sensor %s is back after %.1f s of silence", cid, now - state.last_seen)
-            state.active = True
-        if isinstance(msg, RegisterDevice):
-            state.type, state.source = msg.sensor_type, item.source
-        state.last_seen = max(state.last_seen, now)
-        return state
-
-    def _set_transform(self, state: ClientState) -> None:
-        if self.reference is None:
-            self.reference = state.id
-            log.info("sensor %s is the reference: its space is stage space", state.id)
-        state.transform = (self.rig.stage_frame.copy() if state.id == self.reference
-                           else self.rig.transform_for(state.id))
 
     def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
         """Use a new sensor->stage transform from now on (None: leave the sensor out)."""
@@ -450,20 +398,7 @@ class Engine:
         """Timeouts, person expiry and merging, the per-minute drop report."""
         now = self.clock.now() if now is None else now
         self._last_tick = now
-        timeout = self.rig.clients.timeout_s
-        for client in self.clients.values():
-            if client.active and now - client.last_seen > timeout:
-                client.active = False
-                n = len(client.tracks)
-                log.warning("sensor %s silent for %.1f s%s", client.id, now - client.last_seen,
-                            f": lost its {n} user(s)" if n else "")
-                for track in client.tracks.values():
-                    self._drop_track(track, now)
-                client.tracks.clear()
-            for user, track in list(client.tracks.items()):
-                if track.t != float("-inf") and now - track.t > timeout:
-                    del client.tracks[user]  # the client is alive but forgot /lostUser
-                    self._drop_track(track, now)
+        self.registry.timeouts(now)
         self._flush_pending(now)
         self.tracker.merge_close(now)
         self._lost.extend(self.tracker.expire(now))
