@@ -19,7 +19,6 @@ changed and saved by ``apply_calibration`` on this thread.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -34,12 +33,12 @@ from ..frames import Body, FusedFrame, SensorFrame
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from ..joints import TORSO, HandState
 from ..rig import Rig, store_stage_transform
-from ..sensors.protocol import (FloorPlane, HandStateMsg, Inbound, JointCoordinates, LostUser,
-                                NewUser, RegisterView, StatsQuery,
-                                decode_datagram, encode_message)
+from ..sensors.protocol import (FloorPlane, HandStateMsg, HealthQuery, Inbound, JointCoordinates,
+                                LostUser, NewUser, RegisterView, StatsQuery, ViewUnreachable,
+                                decode_datagram)
 from ..stats import DropCounter, LatencyWindow, format_drops
 from .callbacks import Callbacks
-from .output import Transport, ViewOutput
+from .output import Transport, ViewOutput, encode_stats
 from .rigstore import RigStore
 from .clients import ClientRegistry, ClientState
 from .tracking import Person, Track, Tracker
@@ -66,12 +65,14 @@ class Engine:
                  transport: Transport | None = None, drops: DropCounter | None = None) -> None:
         self.rig = rig or Rig()
         self.clock = clock or MonotonicClock()
-        self.drops = drops or DropCounter()
+        self.drops = drops or DropCounter(self.rig.limits.max_drop_keys)
         self.queue: queue.Queue[Inbound] = queue.Queue(maxsize=8192)
         #: the clients (sensors) by id, the reference sensor, the clients' clocks
         self.registry = ClientRegistry(self.rig, self.drops, self._drop_track)
         self.tracker = Tracker(self.rig.fusion, self.rig.smoothing)
-        self.output = ViewOutput(transport, self.rig.views)
+        self.output = ViewOutput(transport, self.rig.views, self.rig.limits,
+                                 self.rig.allow_views if transport is not None else None,
+                                 self.drops)
         #: called on the engine thread with every fused frame (copy-on-write: add and
         #: remove from any thread)
         self.listeners = Callbacks("listener")
@@ -80,13 +81,20 @@ class Engine:
         #: writes the rig file off the engine thread (see ``apply_calibration``)
         self.rig_store = RigStore()
         self.latency = LatencyWindow()
+        #: seconds the engine spent on each batch (health: frame time p99)
+        self.batch_time = LatencyWindow(1024)
+        #: the app's health messages for ``/stage/health`` (set by the app; engine thread)
+        self.health_messages: Callable[[], list[bytes]] | None = None
         self.counts = {"messages": 0, "frames": 0, "fused_frames": 0}
         self._stats_replies: list[tuple[str, int]] = []
+        self._health_replies: list[tuple[str, int]] = []
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
         #: written on the engine thread (via call_soon), shown in stats and monitors
         self.sensor_notes: dict[str, dict] = {}
         # engine clock -> wall clock, to report client clocks against ours in seconds
         self._wall_minus_clock = time.time() - self.clock.now()
+        if isinstance(self.clock, MonotonicClock):  # live: timetags can be judged against it
+            self.registry.wall_minus_clock = self._wall_minus_clock
         # person id -> arrival of the earliest frame whose fusion is not emitted yet
         self._dirty: dict[int, float] = {}
         self._hands_dirty: set[int] = set()  # persons whose hand vote may have changed
@@ -120,8 +128,7 @@ class Engine:
 
     def add_view(self, address: tuple[str, int]) -> None:
         """Send fused bodies to ``address`` too (before start, or on the engine thread)."""
-        if address not in self.output.views:
-            self.output.views.append(address)
+        self.output.add_static(address)
 
     # ------------------------------------------------------------ input
     def submit(self, item: Inbound) -> bool:
@@ -167,8 +174,13 @@ class Engine:
 
     def process(self, batch: list[Inbound]) -> None:
         """Apply a batch of inbound items in capture-time order, then emit once."""
-        timed = sorted(((self.registry.capture_time(item), k, item) for k, item in enumerate(batch)),
-                       key=lambda e: (e[0], e[1]))
+        started = time.perf_counter()
+        timed = []
+        for k, item in enumerate(batch):
+            t = self.registry.capture_time(item)
+            if t is not None:  # None: a timetag far from the real time (counted: bad_time)
+                timed.append((t, k, item))
+        timed.sort(key=lambda e: (e[0], e[1]))
         for t, _, item in timed:
             self.counts["messages"] += 1
             try:
@@ -178,10 +190,18 @@ class Engine:
                 self.drops.add(_client_key(item), "internal_error")
         self._emit()
         if self._stats_replies:
-            reply = encode_message("/stage/stats", json.dumps(self.stats()))
+            # one datagram whatever the stats hold; only to addresses views may be at
+            reply = encode_stats(self.stats(), self.rig.limits.stats_reply_bytes)
             for address in self._stats_replies:
                 self.output.send(reply, address)
             self._stats_replies.clear()
+        if self._health_replies:
+            messages = self.health_messages() if self.health_messages is not None else []
+            for address in self._health_replies:
+                for data in messages:
+                    self.output.send(data, address)
+            self._health_replies.clear()
+        self.batch_time.add(time.perf_counter() - started)
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message
@@ -191,12 +211,22 @@ class Engine:
         if isinstance(msg, RegisterView):
             self.output.register(msg, ((pid, p.centre, (p.hands[0], p.hands[1]))
                                        for pid, p in self.persons.items()
-                                       if p.announced and p.centre is not None))
+                                       if p.announced and p.centre is not None),
+                                 item.arrival, f"{item.source[0]}:{item.source[1]}")
             return
-        if isinstance(msg, StatsQuery):
+        if isinstance(msg, (StatsQuery, HealthQuery)):
             # answered after this batch's emission, so a reply never overtakes
-            # the fused output of frames that arrived before the query
-            self._stats_replies.append((item.source[0], msg.reply_port or item.source[1]))
+            # the fused output of frames that arrived before the query; replies go only
+            # to the asker's own address, and only where views may be
+            if not self.output.allowed(item.source[0]):
+                self.drops.add(f"{item.source[0]}:{item.source[1]}", "not_allowed")
+                return
+            replies = self._stats_replies if isinstance(msg, StatsQuery) else self._health_replies
+            if len(replies) < 64:
+                replies.append((item.source[0], msg.reply_port or item.source[1]))
+            return
+        if isinstance(msg, ViewUnreachable):
+            self.output.unreachable(msg.host, msg.port)
             return
         client = self.registry.client(msg, item)
         if client is None:
@@ -246,7 +276,13 @@ class Engine:
         and with ``path`` saves it (atomically, by the writer thread of
         ``rig_store``; ``wait``: until it is on disk).
         """
+        if not self.registry.may_persist(sensor):
+            log.warning("%s's calibration is in use but not written into the rig: it is not an "
+                        "allowed sensor", sensor)
+            return
         store_stage_transform(self.rig, sensor, to_stage, self.reference, method, fitness, rms_m)
+        if self.reference is not None:
+            self.registry.elected = False  # the rig now depends on it: it stays the reference
         if path is not None:
             self.rig_store.save(self.rig, path, f"{sensor}'s calibration")
             if wait:
@@ -399,6 +435,7 @@ class Engine:
         now = self.clock.now() if now is None else now
         self._last_tick = now
         self.registry.timeouts(now)
+        self.output.expire(now)
         self._flush_pending(now)
         self.tracker.merge_close(now)
         self._lost.extend(self.tracker.expire(now))
@@ -448,6 +485,7 @@ class Engine:
                               "clock_ahead_s": None if c.offset.offset is None else
                               round(-c.offset.offset - self._wall_minus_clock, 4),
                               "calibration": self.sensor_notes.get(cid, {}),
+                              "restarts": c.restarts,
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": {pid: {"sensors": list(p.sensors()),
@@ -456,7 +494,10 @@ class Engine:
                         for pid, p in self.persons.items() if p.announced},
             "views": [f"{h}:{p}" for h, p in self.views],
             "counts": {**self.counts, "datagrams_out": self.output.datagrams_out,
-                       "send_errors": self.output.send_errors},
+                       "send_errors": self.output.send_errors,
+                       "views_expired": self.output.expired,
+                       "views_unreachable": self.output.dropped_unreachable,
+                       "clients_forgotten": self.registry.evicted},
             "drops": drops,
             "drops_total": sum(n for r in drops.values() for n in r.values()),
             "latency_ms": self.latency.summary_ms(),
