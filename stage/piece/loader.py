@@ -17,7 +17,7 @@ from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
 from .model import (BODY, Action, Condition, Defaults, Goto, Mapping, Phrase, Piece, Play,
-                    PlayNote, Safety, Section, SendCC, SendOsc, SendProgram, Silence, Trigger,
+                    PlayNote, Idle, Safety, Section, SendCC, SendOsc, SendProgram, Silence, Trigger,
                     Zone, curve_function)
 from .music import parse_chord, phrase_notes
 from .spec import did_you_mean
@@ -107,6 +107,15 @@ class _Compiler:
         if "safety" in data:
             s = data["safety"]
             piece.safety = Safety(keys=s.get("keys", False), osc_port=s.get("osc_port"))
+        if "idle" in data:
+            idle = data["idle"]
+            for key in ("section", "back"):
+                name = idle.get(key)
+                if name is not None and name not in self.section_names and not (
+                        key == "back" and name in ("start", "previous")):
+                    raise self.error(self._unknown("section", name, self.section_names),
+                                     _m(idle, key))
+            piece.idle = Idle(float(idle["after"]), idle["section"], idle.get("back", "start"))
         return piece
 
     # ------------------------------------------------------------ top level

@@ -87,7 +87,9 @@ class PieceRuntime:
         self.visited: list[str] = []
         #: engine time when the last note emitted so far ends (to let a show ring out)
         self.last_note_end = float("-inf")
-        self.counts = {"frames": 0, "fired": 0, "notes": 0, "errors": 0, "section_changes": 0}
+        self.counts = {"frames": 0, "fired": 0, "notes": 0, "errors": 0, "section_changes": 0,
+                       "idle": 0}
+        self._before_idle: str | None = None    # the section the idle section interrupted
         self._last_error_log = float("-inf")
 
     # ------------------------------------------------------------ entry points
@@ -117,6 +119,7 @@ class PieceRuntime:
             if self.ended:
                 return
             self._clock_triggers(t, self._active_runs())
+            self._idle(t)
             self._apply_goto(t)
             self._flush()
         except Exception:
@@ -202,6 +205,7 @@ class PieceRuntime:
             mrun.update(self, t)
         for mrun in self._global_maps:
             mrun.update(self, t)
+        self._idle(t)
         self._apply_goto(t)
         self._flush()
 
@@ -283,6 +287,26 @@ class PieceRuntime:
                          f"{'; '.join(d for d in done if d)}")
 
     # ------------------------------------------------------------ sections
+    def _idle(self, t: float) -> None:
+        """The piece's attract section: entered when the room has been empty ``after`` s,
+        left (``back``) as soon as someone is on stage. A goto asked for in this frame wins."""
+        idle = self.piece.idle
+        if idle is None or self._pending_goto is not None:
+            return
+        in_idle = self.section.name == idle.section
+        if not in_idle and not self.persons and self.empty_since is not None \
+                and t - self.empty_since >= idle.after:
+            self._before_idle = self.section.name
+            self.counts["idle"] += 1
+            self._pending_goto = (idle.section, "idle")
+        elif in_idle and self.persons and self._before_idle is not None:
+            back = idle.back
+            target = (self.piece.start if back == "start" else
+                      self._before_idle if back == "previous" else back)
+            self._before_idle = None
+            if target != self.section.name:
+                self._pending_goto = (target, "someone arrived")
+
     def _apply_goto(self, t: float) -> None:
         if self._pending_goto is not None:
             target, cause = self._pending_goto
