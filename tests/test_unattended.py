@@ -325,3 +325,35 @@ def test_replay_at_max_speed_into_a_server_fuses_every_frame(tmp_path):
     # every frame fused: as many fusions as the deterministic offline run (within a few
     # at the edges), never the handful a 30x-compressed time line allows
     assert abs(got["fused_frames"] - want["fused_frames"]) <= 0.05 * want["fused_frames"]
+
+
+# ---------------------------------------------------------------- the monitor's web server
+
+@pytest.mark.integration
+def test_the_monitor_keeps_a_bounded_number_of_connections_and_threads():
+    import socket as _socket
+    from stage_plugins.monitor.server import MAX_CONNECTIONS, Broadcaster, MonitorServer
+    server = MonitorServer("127.0.0.1", 0, Broadcaster())
+    server.start()
+    before = threading.active_count()
+    socks = []
+    try:
+        for _ in range(100):  # idle connections that never send a request
+            s = _socket.create_connection(server.server_address[:2], timeout=5)
+            socks.append(s)
+        # the kernel hands over connections beyond the listen backlog slowly (SYN-ACK
+        # retries): wait until the server has taken them all or nothing changes for 3 s
+        deadline, last, since = time.monotonic() + 30, -1, time.monotonic()
+        while server.refused < 100 - MAX_CONNECTIONS and time.monotonic() < deadline:
+            if server.refused != last:
+                last, since = server.refused, time.monotonic()
+            elif time.monotonic() - since > 3.0:
+                break
+            time.sleep(0.05)
+        grew = threading.active_count() - before
+        assert grew <= MAX_CONNECTIONS + 2, grew
+        assert server.refused >= 20
+    finally:
+        for s in socks:
+            s.close()
+        server.stop()
