@@ -168,17 +168,22 @@ class ViewOutput:
         return out
 
     # ------------------------------------------------------------ messages
+    # (nothing is encoded when nobody would receive it: offline runs and view-less servers)
     def new_user(self, pid: int, centre: np.ndarray) -> None:
-        self.broadcast(encode_view_new_user(pid, centre))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_new_user(pid, centre))
 
     def joints(self, pid: int, joints: np.ndarray, conf: np.ndarray) -> None:
-        self.broadcast(encode_view_joints(pid, joints, conf))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_joints(pid, joints, conf))
 
     def hand(self, pid: int, hand: int, state: HandState) -> None:
-        self.broadcast(encode_view_hand_state(pid, hand, state))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_hand_state(pid, hand, state))
 
     def lost_user(self, pid: int) -> None:
-        self.broadcast(encode_view_lost_user(pid))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_lost_user(pid))
 
     # ------------------------------------------------------------ sending
     def broadcast(self, data: bytes) -> None:
