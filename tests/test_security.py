@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import socket
+import sys
 import time
 
 import numpy as np
@@ -424,3 +425,36 @@ def test_a_closed_view_port_is_dropped_by_the_servers_own_socket():
     assert stats["views"] == [f"{LOCALHOST}:{view.port}"]      # the live one stays
     assert view.messages("/jointCoordinates")
     view.close()
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SO_RXQ_OVFL is Linux's")
+def test_datagrams_the_kernel_drops_are_counted_too():
+    import threading
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)   # a queue that overflows
+    sock.bind((LOCALHOST, 0))
+    drops = DropCounter()
+    got: list[Inbound] = []
+    receiver = Receiver(sock, got.append, drops, ManualClock(0.0), 1e9, None, 1e9)
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    data = encode_message("/lostUser", "k", 0) + b""
+    n = 400
+    for _ in range(n):                       # nobody reads yet: most are dropped by the kernel
+        sender.sendto(data, sock.getsockname())
+    stop = threading.Event()
+    thread = threading.Thread(target=receiver.run, args=(stop,), daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 5
+    while len(got) + receiver.kernel_drops < n and time.monotonic() < deadline:
+        # the kernel reports its count on the next datagram read: send one more now and then
+        sender.sendto(data, sock.getsockname())
+        n += 1
+        time.sleep(0.05)
+    stop.set()
+    thread.join(2)
+    sender.close()
+    sock.close()
+    assert receiver.kernel_drops > 0
+    assert drops.snapshot()["(kernel)"]["kernel_overflow"] == receiver.kernel_drops
+    assert len(got) + receiver.kernel_drops == n        # every datagram: read or counted
