@@ -248,6 +248,7 @@ def memory(base: str | None, tmp: Path, ids: int, junk_s: float, junk_rate: int,
     s = stats(server.address, 10.0)
     out["stats_reply"] = "answered" if s is not None else "no answer"
     if s is not None:
+        out["drops_by_reason"] = {r: n for d in s.get("drops", {}).values() for r, n in d.items()}
         out["drop_keys_in_stats"] = len(s.get("drops", {}))
         out["drops_total"] = s.get("drops_total")
         out["stats_truncated_after_junk"] = "truncated" in s
@@ -293,7 +294,10 @@ def many_ids(base: str | None, tmp: Path, counts: list[int]) -> dict:
                 time.sleep(0.05)
         time.sleep(1.0)
         log = server.log_path.read_text()
-        crashed = bool(re.search(r"IndexError|it is disabled|live calibrator failed", log))
+        found = re.findall(r".*(?:IndexError|it is disabled|live calibrator failed).*", log)
+        crashed = bool(found)
+        if found:
+            out.setdefault("crash_lines", found[:3])
         st = stats(server.address)
         out[f"after_{target}_ids"] = {"server_alive": server.proc.poll() is None,
                                       "calibrator_crash_in_log": crashed,

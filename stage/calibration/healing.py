@@ -480,7 +480,9 @@ class LiveCalibrator(EngineWorker):
         trusted = [sid for sid, (state, *_rest) in states.items() if state == "ok"]
         for sid, (state, *_rest) in states.items():
             with self._lock:
-                st = self._states[sid]
+                st = self._states.get(sid)  # the engine thread may have forgotten it
+                if st is None:
+                    continue
                 wanted = st.duplicate_of is None and not st.busy and (
                     st.requested or (state == "uncalibrated" and s.auto_calibrate)
                     or (state == "suspect" and s.heal))
@@ -490,8 +492,8 @@ class LiveCalibrator(EngineWorker):
             new, waiting = new_pairs(sid, views, trusted, start, t1, now, s.min_joints)
             self._yield()
             with self._lock:
-                st = self._states[sid]
-                if st.epoch != epochs.get(sid):
+                st = self._states.get(sid)
+                if st is None or st.epoch != epochs.get(sid):
                     continue
                 if waiting is not None:
                     st.reason = waiting
