@@ -12,8 +12,13 @@ A rig never mentions music. Example (every key optional)::
         calibration: {matrix: [[...4x4...]], method: rigid, fitness: 0.97, rms_m: 0.021,
                       date: 2026-11-21T10:00:00}
     allow_unknown_sensors: true    # false: only the sensors listed here are accepted
+    allow:                         # who may send and where output may go (docs/security.md)
+      sensors: [loopback, local]   # addresses or networks sensor datagrams are read from
+      views: [loopback, local]     # where /registerView may point and stats replies may go
     views: ["127.0.0.1:9001"]
     clients: {timeout_s: 1.0, max_messages_per_s: 3000}
+    limits: {max_clients: 64, max_views: 32, view_ttl_s: 60}   # see LimitSettings
+    alerts: {after_s: 60, command: "notify-installer", osc: "10.0.0.9:9999"}
     fusion: {associate_m: 0.5, min_interval_s: 0.025, ...}   # see FusionSettings
     smoothing: {enabled: true, process_noise: 4.0, measurement_noise: 1e-4}
 """
@@ -30,8 +35,8 @@ import yaml
 
 from .errors import ConfigError
 from .geometry import invert
-from .network import parse_hostport
-from .settings import ClientSettings, FusionSettings, KalmanSettings
+from .network import Networks, parse_hostport
+from .settings import AlertSettings, ClientSettings, FusionSettings, KalmanSettings, LimitSettings
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
 DEFAULT_PORT = 7770
@@ -53,6 +58,8 @@ class SensorConfig:
     id: str
     type: str = "kinect2"
     calibration: Calibration | None = None
+    #: where this sensor may send from (an address or network); None: any allowed address
+    address: Networks | None = None
 
 
 @dataclass
@@ -63,8 +70,14 @@ class Rig:
     stage_frame: np.ndarray = field(default_factory=lambda: np.eye(4))
     sensors: dict[str, SensorConfig] = field(default_factory=dict)
     allow_unknown_sensors: bool = True
+    #: addresses sensor datagrams are accepted from (docs/security.md)
+    allow_sensors: Networks = field(default_factory=Networks)
+    #: addresses views may be registered at and stats replies sent to
+    allow_views: Networks = field(default_factory=Networks)
     views: list[tuple[str, int]] = field(default_factory=list)
     clients: ClientSettings = field(default_factory=ClientSettings)
+    limits: LimitSettings = field(default_factory=LimitSettings)
+    alerts: AlertSettings = field(default_factory=AlertSettings)
     fusion: FusionSettings = field(default_factory=FusionSettings)
     smoothing: KalmanSettings = field(default_factory=KalmanSettings)
     smoothing_enabled: bool = True
@@ -91,6 +104,8 @@ class Rig:
         sensors: dict[str, Any] = {}
         for sid, cfg in self.sensors.items():
             entry: dict[str, Any] = {"type": cfg.type}
+            if cfg.address is not None:
+                entry["address"] = list(cfg.address.entries)
             if cfg.calibration is not None:
                 c = cfg.calibration
                 entry["calibration"] = {
@@ -104,8 +119,12 @@ class Rig:
             out["stage_frame"] = [[float(v) for v in row] for row in self.stage_frame]
         out["sensors"] = sensors
         out["allow_unknown_sensors"] = self.allow_unknown_sensors
+        out["allow"] = {"sensors": list(self.allow_sensors.entries),
+                        "views": list(self.allow_views.entries)}
         out["views"] = [f"{h}:{p}" for h, p in self.views]
         out["clients"] = dataclasses.asdict(self.clients)
+        out["limits"] = dataclasses.asdict(self.limits)
+        out["alerts"] = dataclasses.asdict(self.alerts)
         out["fusion"] = dataclasses.asdict(self.fusion)
         out["smoothing"] = {"enabled": self.smoothing_enabled, **dataclasses.asdict(self.smoothing)}
         return out
@@ -123,7 +142,8 @@ def load_rig(path: str) -> Rig:
     where = Where(path)
     data = where.mapping(load_marked(path), "the rig")
     where.check_keys(data, ("server", "reference", "stage_frame", "sensors",
-                            "allow_unknown_sensors", "views", "clients", "fusion", "smoothing"),
+                            "allow_unknown_sensors", "allow", "views", "clients", "limits",
+                            "alerts", "fusion", "smoothing"),
                      "the rig")
     rig = Rig(path=path)
     server = where.mapping(data.get("server"), "'server'")
@@ -140,8 +160,10 @@ def load_rig(path: str) -> Rig:
     sensors = where.mapping(data.get("sensors"), "'sensors'")
     for sid, entry in sensors.items():
         entry = where.mapping(entry, f"sensor '{sid}'", sensors.value_marks.get(sid))
-        where.check_keys(entry, ("type", "calibration"), f"sensor '{sid}'")
+        where.check_keys(entry, ("type", "calibration", "address"), f"sensor '{sid}'")
         config = SensorConfig(str(sid), str(entry.get("type", "kinect2")))
+        if entry.get("address") is not None:
+            config.address = _networks(where, entry, "address")
         if entry.get("calibration") is not None:
             cal = where.mapping(entry["calibration"], f"calibration of '{sid}'")
             where.check_keys(cal, ("matrix", "method", "fitness", "rms_m", "date"),
@@ -161,6 +183,12 @@ def load_rig(path: str) -> Rig:
     if not isinstance(allow, bool):
         raise where.at_key(data, "allow_unknown_sensors", "'allow_unknown_sensors' must be true or false")
     rig.allow_unknown_sensors = allow
+    allow_lists = where.mapping(data.get("allow"), "'allow'")
+    where.check_keys(allow_lists, ("sensors", "views"), "'allow'")
+    if "sensors" in allow_lists:
+        rig.allow_sensors = _networks(where, allow_lists, "sensors")
+    if "views" in allow_lists:
+        rig.allow_views = _networks(where, allow_lists, "views")
     views = data.get("views") or []
     if not isinstance(views, list):
         raise where.at_key(data, "views", "'views' must be a list of HOST:PORT")
@@ -170,6 +198,14 @@ def load_rig(path: str) -> Rig:
         except ValueError as exc:
             raise where.error(str(exc), getattr(views, "marks", [None] * len(views))[k]) from None
     rig.clients = _settings(where, data, "clients", ClientSettings)
+    rig.limits = _settings(where, data, "limits", LimitSettings)
+    rig.alerts = _settings(where, data, "alerts", AlertSettings)
+    if rig.alerts.osc:
+        try:
+            parse_hostport(rig.alerts.osc)
+        except ValueError as exc:
+            raise where.error(f"alerts: osc: {exc}", getattr(data.get("alerts"), "mark", None)
+                              ) from None
     rig.fusion = _settings(where, data, "fusion", FusionSettings)
     smoothing = where.mapping(data.get("smoothing"), "'smoothing'")
     enabled = smoothing.get("enabled", True)
@@ -182,6 +218,18 @@ def load_rig(path: str) -> Rig:
     rest.value_marks = getattr(smoothing, "value_marks", {})
     rig.smoothing = _settings(where, {"smoothing": rest}, "smoothing", KalmanSettings)
     return rig
+
+
+def _networks(where: Where, mapping: dict, key: str) -> Networks:
+    """An allow-list: one entry or a list of addresses, networks, 'loopback', 'local', 'any'."""
+    value = mapping[key]
+    entries = value if isinstance(value, list) else [value]
+    if not entries:
+        return Networks(())
+    try:
+        return Networks(str(e) for e in entries)
+    except ValueError as exc:
+        raise where.at_key(mapping, key, f"'{key}': {exc}") from None
 
 
 def _optional_number(where: Where, mapping: dict, key: str) -> float | None:
@@ -203,7 +251,7 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"min_interval_s"}
+_ZERO_ALLOWED = {"min_interval_s", "reference_after_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

@@ -68,3 +68,40 @@ class FusionSettings:
 class ClientSettings:
     timeout_s: float = 1.0            # silence after which a client loses its users
     max_messages_per_s: float = 3000  # per-source budget; beyond it datagrams count as flood
+    # per-host budget (all source ports of one address together), so a sender cannot
+    # escape its budget by using many ports; several sensors on one PC share it
+    max_messages_per_s_per_host: float = 24000
+    # a timetag further than this from our wall clock is not a capture time: rejected and
+    # counted (bad_time); generous, since sensor PCs need not run NTP
+    max_clock_skew_s: float = 86400.0
+    # a client whose clock goes back by more than this has restarted: its users are
+    # dropped and its clock followed afresh (smaller steps back are UDP reordering: late)
+    restart_back_s: float = 0.25
+    # with no reference in the rig, a sensor becomes the reference once it has sent valid
+    # skeletons of a person for this long (0: its first one, so a lone sensor is fused at
+    # once); a client that only registers never does, and a reference chosen so that goes
+    # silent before anything is calibrated against it is replaced (docs/security.md)
+    reference_after_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class LimitSettings:
+    """Caps that keep memory and CPU bounded whatever arrives (docs/security.md)."""
+
+    max_clients: int = 64         # sensor ids remembered; beyond, the longest-silent is forgotten
+    max_views: int = 32           # views registered over OSC at once
+    view_ttl_s: float = 60.0      # a view registered over OSC expires unless it re-registers
+    view_send_errors: int = 5     # a view refused this many times in a row is dropped
+    max_drop_keys: int = 256      # drop counters by client/source; beyond, one "(other)" key
+    max_sources: int = 4096       # per-source and per-host rate-limit entries (LRU)
+    stats_reply_bytes: int = 8192  # a /stage/stats reply is one datagram of at most this
+
+
+@dataclass(frozen=True)
+class AlertSettings:
+    """When to tell someone (docs/installing.md): a part down or suspect for ``after_s``."""
+
+    after_s: float = 60.0
+    command: str = ""             # run with the alert in STAGE_ALERT_* environment variables
+    osc: str = ""                 # HOST:PORT to send /stage/alert to
+    summary_every_s: float = 60.0  # the one-line health summary in the log

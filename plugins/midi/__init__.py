@@ -35,6 +35,8 @@ from .synth import LiveSynth, WavRenderer
 
 _MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff)
 CLOCK, START, STOP = b"\xf8", b"\xfa", b"\xfc"
+#: how often the ports are checked (a JACK server killed, a synth quit) and reopened
+CHECK_EVERY_S = 2.0
 
 
 class MidiView(View):
@@ -77,7 +79,7 @@ class MidiView(View):
         self._closed: list[PortSink] = []
         self.smf: SmfWriter | None = None
         self._ctx: ViewContext | None = None
-        self._next_flush = self._next_clock = float("inf")
+        self._next_flush = self._next_clock = self._next_check = float("inf")
         self._clock_k = 0
         self._clock_t0 = 0.0
         self._warned_outputs: set[str] = set()
@@ -136,6 +138,8 @@ class MidiView(View):
             if self.audio is not None:
                 sinks.append(self.audio)
             self.routes[o.name] = sinks
+        if self.ports:
+            self._next_check = now + CHECK_EVERY_S
         if self.clock_bpm and self.ports:
             self._clock_t0 = now
             self._next_clock = now
@@ -158,6 +162,11 @@ class MidiView(View):
                     port.send(STOP)
         finally:
             for port in self.ports.values():
+                state = port.state() if hasattr(port, "state") else {}
+                if state.get("down_s"):
+                    self._log().warning("MIDI port '%s' was disconnected for %.0f s in all "
+                                        "(%d message(s) not sent, %d reconnection(s))", port.name,
+                                        state["down_s"], state["dropped"], state["reconnects"])
                 port.close()
             self._closed = list(self.ports.values())
             self.ports.clear()
@@ -186,6 +195,9 @@ class MidiView(View):
                 self._log().warning("MIDI event dropped (counted): %s", self.scheduler.last_bad)
 
     def tick(self, now: float) -> float | None:
+        if now >= self._next_check:
+            self._next_check = now + CHECK_EVERY_S
+            self._check_ports()
         self._send(self.scheduler.due(now))
         if now >= self._next_clock:
             period = 60.0 / (self.clock_bpm or 120.0) / 24.0
@@ -197,9 +209,19 @@ class MidiView(View):
         if self.smf is not None and now >= self._next_flush:
             self.smf.flush()
             self._next_flush = now + self.flush_every_s
-        times = [t for t in (self.scheduler.next_time(), self._next_clock, self._next_flush)
+        times = [t for t in (self.scheduler.next_time(), self._next_clock, self._next_flush,
+                             self._next_check)
                  if t is not None and t != float("inf")]
         return min(times) if times else None
+
+    def _check_ports(self) -> None:
+        """A port whose server or synth went away is reopened when it is back (health)."""
+        for port in self.ports.values():
+            check = getattr(port, "check", None)
+            change = check() if check is not None else None
+            if change:
+                lost = not getattr(port, "connected", True)
+                (self._log().warning if lost else self._log().info)("%s", change)
 
     def _send(self, outs: list[Out]) -> None:
         for out in outs:
@@ -219,6 +241,7 @@ class MidiView(View):
         ports = list(self.ports.values()) + self._closed
         out["sent"] = sum(p.sent for p in ports)
         out["send_errors"] = sum(p.errors for p in ports)
+        out["ports"] = {p.name: p.state() for p in self.ports.values() if hasattr(p, "state")}
         if self.smf is not None:
             out["file"] = str(self.smf.path)
             out["file_events"] = self.smf.events

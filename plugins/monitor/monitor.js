@@ -207,7 +207,24 @@
     document.querySelector("#drops tbody").replaceChildren(...rows.map(([k, v]) =>
       el("tr", {}, [el("td", {}, [k]), el("td", {}, [v])])));
     text("drops-total", (e.drops_total || 0) + (s.view_drops || 0));
+    renderHealth(s.health);
     for (const x of s.sensors) if (x.position) grow(x.position, 0.5);
+  }
+
+  function renderHealth(h) {
+    const box = document.getElementById("health");
+    if (!h) return;
+    const en = h.engine || {};
+    const figures = [["frame p99", fmt(en.frame_ms_p99, 2) + " ms"], ["memory", fmt(en.rss_mb, 0) + " MB"],
+      ["cpu", fmt(en.cpu_percent, 0) + " %"], ["kernel drops", en.kernel_drops ?? "–"]];
+    const synths = Object.entries(h.synths || {}).map(([name, p]) =>
+      el("li", { class: p.connected ? "ok" : "bad" }, [name + ": " + (p.connected ? "connected" : (p.reason || "reconnecting"))]));
+    box.className = h.ok ? "ok" : "bad";
+    box.replaceChildren(
+      el("p", { class: "verdict" }, [h.ok ? "all well" : h.problems.length + " problem(s)"]),
+      el("ul", { class: "problems" }, h.problems.map((p) => el("li", {}, [p]))),
+      el("ul", { class: "synths" }, synths),
+      el("table", {}, [el("tbody", {}, figures.map(([k, v]) => el("tr", {}, [el("td", {}, [k]), el("td", {}, [v])])))]));
   }
 
   function renderZones() {

@@ -67,7 +67,22 @@ def status_json(status: Status) -> dict[str, Any]:
                    "counts": engine.get("counts", {})},
         "views": views,
         "view_drops": sum(v["frames_dropped"] + v["events_dropped"] for v in views.values()),
+        "health": health_json(status.health),
     }
+
+
+def health_json(health: dict[str, Any]) -> dict[str, Any] | None:
+    """The show's health for the page: ok, the problems, the engine's figures."""
+    if not health:
+        return None
+    engine = health.get("engine", {})
+    return {"ok": bool(health.get("ok")), "problems": list(health.get("problems", []))[:20],
+            "time": health.get("time"),
+            "engine": {k: engine.get(k) for k in ("frame_ms_p99", "rss_mb", "cpu_percent",
+                                                  "kernel_drops", "uptime_s")},
+            "synths": {name: {"connected": p.get("connected"), "reason": p.get("reason")}
+                       for name, p in health.get("synths", {}).items()},
+            "calibrator": health.get("calibrator", {})}
 
 
 def _vec(value: Any, n: int | tuple[int, ...]) -> list[float] | None:

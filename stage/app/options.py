@@ -54,6 +54,11 @@ class ShowOptions:
     plugins: bool = True            # also run the installed views that start by themselves
     fused: str | None = None        # every fused frame as a JSON line (exact floats)
     status_line: bool = False       # one status line a second on the console
+    # health (live shows): checked every second, a summary line a minute, alerts
+    health: bool = True
+    alert_after_s: float | None = None   # default: the rig's alerts.after_s
+    alert_command: str | None = None     # default: the rig's alerts.command
+    alert_osc: str | None = None         # HOST:PORT; default: the rig's alerts.osc
     # how it ends
     duration: float | None = None
     end_with_source: bool = True    # a source that ends by itself ends the show

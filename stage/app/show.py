@@ -19,6 +19,7 @@ options give the same fused output bit for bit whichever command runs them.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -43,6 +44,7 @@ from ..views import ViewHost
 from . import offline as offline_mod
 from .options import ShowOptions
 from .report import Performance, ScoreSink
+from .health import HealthMonitor
 from .server import Server
 from .status_line import StatusLine
 
@@ -161,6 +163,7 @@ class Show:
         self.runtime: PieceRuntime | None = None
         self.narrator: Narrator | None = None
         self.status: StatusLine | None = None
+        self.health: HealthMonitor | None = None
         self.clock: Clock | None = None
         self._closers: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
@@ -307,6 +310,15 @@ class Show:
         if runtime is not None:
             engine.call_soon(lambda e: runtime.start(e.clock.now()))
         server.start()
+        if o.health:
+            alerts = self.rig.alerts
+            changes = {k: v for k, v in (("after_s", o.alert_after_s),
+                                         ("command", o.alert_command), ("osc", o.alert_osc))
+                       if v is not None}
+            if changes:
+                alerts = dataclasses.replace(alerts, **changes)
+            self.health = HealthMonitor(engine, self.host, self.calibrator, alerts,
+                                        self.status).start()
         if runtime is not None:
             self._threads.append(_every(PIECE_TICK_S, self.stop_event, lambda: _soon(
                 engine, lambda e: runtime.tick(e.clock.now()))))
@@ -390,6 +402,8 @@ class Show:
             self.source.stop()
         for closer in self._closers:
             closer()
+        if self.health is not None:
+            self.health.stop()
         if self.calibrator is not None:
             self.calibrator.stop()
         for thread in self._threads:
@@ -446,6 +460,8 @@ class Show:
         self.stop_event.set()
         if self.source is not None:
             self.source.stop()
+        if self.health is not None:
+            self.health.stop()
         if self.calibrator is not None:
             self.calibrator.stop()
         if self.server is not None:

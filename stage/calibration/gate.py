@@ -50,7 +50,8 @@ class JumpGate:
 
     def trust(self, sensor: str, trusted: bool) -> None:
         """Only views of trusted sensors (state ok) are compared against."""
-        self._trusted[self._sensor(sensor)] = trusted
+        k = self._sensor(sensor)  # first: it may grow (replace) the _trusted array
+        self._trusted[k] = trusted
 
     def check(self, sensor: str, user: int, t: float, centre: np.ndarray,
               ) -> tuple[list[str], float] | None:

@@ -19,7 +19,6 @@ changed and saved by ``apply_calibration`` on this thread.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -34,14 +33,15 @@ from ..frames import Body, FusedFrame, SensorFrame
 from .fusion import apply_transform, fuse_joints, torso_centre, vote_hand
 from ..joints import TORSO
 from ..rig import Rig, store_stage_transform
-from ..sensors.protocol import (FloorPlane, HandStateMsg, Inbound, JointCoordinates, LostUser,
-                                Message, NewUser, RegisterDevice, RegisterView, StatsQuery,
-                                decode_datagram, encode_message)
+from ..sensors.protocol import (FloorPlane, HandStateMsg, HealthQuery, Inbound, JointCoordinates,
+                                LostUser, NewUser, RegisterView, StatsQuery, ViewUnreachable,
+                                decode_datagram)
 from ..stats import DropCounter, LatencyWindow, format_drops
 from .callbacks import Callbacks
-from .output import Transport, ViewOutput
+from .output import Transport, ViewOutput, encode_stats
 from .rigstore import RigStore
-from .tracking import OffsetEstimator, Person, Track, Tracker
+from .clients import ClientRegistry, ClientState
+from .tracking import Person, Track, Tracker
 
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
@@ -58,21 +58,6 @@ class Call:
     fn: Callable[["Engine"], None]
 
 
-class ClientState:
-    def __init__(self, client: str, sensor_type: str, source: tuple[str, int], now: float,
-                 offset: OffsetEstimator) -> None:
-        self.id, self.type, self.source = client, sensor_type, source
-        self.registered = now
-        self.last_seen = now
-        self.frames = 0
-        self.tracks: dict[int, Track] = {}
-        self.offset = offset
-        self.transform: np.ndarray | None = None
-        self.warned_uncalibrated = False
-        self.floor: np.ndarray | None = None
-        self.active = True
-
-
 class Engine:
     """Kuatro's server core. Call ``process`` and ``tick`` from one thread only."""
 
@@ -80,11 +65,14 @@ class Engine:
                  transport: Transport | None = None, drops: DropCounter | None = None) -> None:
         self.rig = rig or Rig()
         self.clock = clock or MonotonicClock()
-        self.drops = drops or DropCounter()
+        self.drops = drops or DropCounter(self.rig.limits.max_drop_keys)
         self.queue: queue.Queue[Inbound] = queue.Queue(maxsize=8192)
-        self.clients: dict[str, ClientState] = {}
+        #: the clients (sensors) by id, the reference sensor, the clients' clocks
+        self.registry = ClientRegistry(self.rig, self.drops, self._drop_track)
         self.tracker = Tracker(self.rig.fusion, self.rig.smoothing)
-        self.output = ViewOutput(transport, self.rig.views)
+        self.output = ViewOutput(transport, self.rig.views, self.rig.limits,
+                                 self.rig.allow_views if transport is not None else None,
+                                 self.drops)
         #: called on the engine thread with every fused frame (copy-on-write: add and
         #: remove from any thread)
         self.listeners = Callbacks("listener")
@@ -93,14 +81,20 @@ class Engine:
         #: writes the rig file off the engine thread (see ``apply_calibration``)
         self.rig_store = RigStore()
         self.latency = LatencyWindow()
+        #: seconds the engine spent on each batch (health: frame time p99)
+        self.batch_time = LatencyWindow(1024)
+        #: the app's health messages for ``/stage/health`` (set by the app; engine thread)
+        self.health_messages: Callable[[], list[bytes]] | None = None
         self.counts = {"messages": 0, "frames": 0, "fused_frames": 0}
-        self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._stats_replies: list[tuple[str, int]] = []
+        self._health_replies: list[tuple[str, int]] = []
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
         #: written on the engine thread (via call_soon), shown in stats and monitors
         self.sensor_notes: dict[str, dict] = {}
         # engine clock -> wall clock, to report client clocks against ours in seconds
         self._wall_minus_clock = time.time() - self.clock.now()
+        if isinstance(self.clock, MonotonicClock):  # live: timetags can be judged against it
+            self.registry.wall_minus_clock = self._wall_minus_clock
         # person id -> arrival of the earliest frame whose fusion is not emitted yet
         self._dirty: dict[int, float] = {}
         self._hands_dirty: set[int] = set()  # persons whose hand vote may have changed
@@ -111,7 +105,16 @@ class Engine:
         self._started = self.clock.now()
         self._last_tick = self._started
         self._last_drop_report = self._started
-        self.reference = self.rig.reference
+
+    @property
+    def clients(self) -> dict[str, ClientState]:
+        """Known clients by id (the registry's; engine thread only)."""
+        return self.registry.clients
+
+    @property
+    def reference(self) -> str | None:
+        """The reference sensor: its space is stage space (None until one is chosen)."""
+        return self.registry.reference
 
     @property
     def persons(self) -> dict[int, Person]:
@@ -125,8 +128,7 @@ class Engine:
 
     def add_view(self, address: tuple[str, int]) -> None:
         """Send fused bodies to ``address`` too (before start, or on the engine thread)."""
-        if address not in self.output.views:
-            self.output.views.append(address)
+        self.output.add_static(address)
 
     # ------------------------------------------------------------ input
     def submit(self, item: Inbound) -> bool:
@@ -172,8 +174,13 @@ class Engine:
 
     def process(self, batch: list[Inbound]) -> None:
         """Apply a batch of inbound items in capture-time order, then emit once."""
-        timed = sorted(((self._capture_time(item), k, item) for k, item in enumerate(batch)),
-                       key=lambda e: (e[0], e[1]))
+        started = time.perf_counter()
+        timed = []
+        for k, item in enumerate(batch):
+            t = self.registry.capture_time(item)
+            if t is not None:  # None: a timetag far from the real time (counted: bad_time)
+                timed.append((t, k, item))
+        timed.sort(key=lambda e: (e[0], e[1]))
         for t, _, item in timed:
             self.counts["messages"] += 1
             try:
@@ -183,21 +190,18 @@ class Engine:
                 self.drops.add(_client_key(item), "internal_error")
         self._emit()
         if self._stats_replies:
-            reply = encode_message("/stage/stats", json.dumps(self.stats()))
+            # one datagram whatever the stats hold; only to addresses views may be at
+            reply = encode_stats(self.stats(), self.rig.limits.stats_reply_bytes)
             for address in self._stats_replies:
                 self.output.send(reply, address)
             self._stats_replies.clear()
-
-    def _capture_time(self, item: Inbound) -> float:
-        msg = item.message
-        client = getattr(msg, "client", None)
-        if item.timetag is None or client is None:
-            return item.arrival
-        estimator = self._offsets.get(client)
-        if estimator is None:
-            estimator = self._offsets[client] = OffsetEstimator()
-        offset = estimator.update(item.arrival, item.timetag)
-        return min(item.timetag + offset, item.arrival)
+        if self._health_replies:
+            messages = self.health_messages() if self.health_messages is not None else []
+            for address in self._health_replies:
+                for data in messages:
+                    self.output.send(data, address)
+            self._health_replies.clear()
+        self.batch_time.add(time.perf_counter() - started)
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message
@@ -207,14 +211,24 @@ class Engine:
         if isinstance(msg, RegisterView):
             self.output.register(msg, ((pid, p.centre, (p.hands[0], p.hands[1]))
                                        for pid, p in self.persons.items()
-                                       if p.announced and p.centre is not None))
+                                       if p.announced and p.centre is not None),
+                                 item.arrival, f"{item.source[0]}:{item.source[1]}")
             return
-        if isinstance(msg, StatsQuery):
+        if isinstance(msg, (StatsQuery, HealthQuery)):
             # answered after this batch's emission, so a reply never overtakes
-            # the fused output of frames that arrived before the query
-            self._stats_replies.append((item.source[0], msg.reply_port or item.source[1]))
+            # the fused output of frames that arrived before the query; replies go only
+            # to the asker's own address, and only where views may be
+            if not self.output.allowed(item.source[0]):
+                self.drops.add(f"{item.source[0]}:{item.source[1]}", "not_allowed")
+                return
+            replies = self._stats_replies if isinstance(msg, StatsQuery) else self._health_replies
+            if len(replies) < 64:
+                replies.append((item.source[0], msg.reply_port or item.source[1]))
             return
-        client = self._client(msg, item)
+        if isinstance(msg, ViewUnreachable):
+            self.output.unreachable(msg.host, msg.port)
+            return
+        client = self.registry.client(msg, item)
         if client is None:
             return
         if isinstance(msg, JointCoordinates):
@@ -239,42 +253,6 @@ class Engine:
             if track is not None:
                 self._drop_track(track, t)
 
-    def _client(self, msg: Message, item: Inbound) -> ClientState | None:
-        cid = msg.client  # type: ignore[union-attr]
-        now = item.arrival
-        if (not self.rig.allow_unknown_sensors and self.rig.sensors
-                and cid not in self.rig.sensors):
-            self.drops.add(cid, "not_allowed")
-            return None
-        state = self.clients.get(cid)
-        if isinstance(msg, RegisterDevice):
-            if state is None:
-                log.info("sensor %s (%s) registered from %s:%d", cid, msg.sensor_type, *item.source)
-            else:
-                log.info("sensor %s re-registered from %s:%d", cid, *item.source)
-        if state is None:
-            state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now,
-                                self._offsets.setdefault(cid, OffsetEstimator()))
-            self.clients[cid] = state
-            if not isinstance(msg, RegisterDevice):
-                log.info("sensor %s sending from %s:%d without /registerDevice; accepted",
-                         cid, *item.source)
-            self._set_transform(state)
-        elif not state.active:
-            log.info("sensor %s is back after %.1f s of silence", cid, now - state.last_seen)
-            state.active = True
-        if isinstance(msg, RegisterDevice):
-            state.type, state.source = msg.sensor_type, item.source
-        state.last_seen = max(state.last_seen, now)
-        return state
-
-    def _set_transform(self, state: ClientState) -> None:
-        if self.reference is None:
-            self.reference = state.id
-            log.info("sensor %s is the reference: its space is stage space", state.id)
-        state.transform = (self.rig.stage_frame.copy() if state.id == self.reference
-                           else self.rig.transform_for(state.id))
-
     def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
         """Use a new sensor->stage transform from now on (None: leave the sensor out)."""
         state = self.clients.get(client)
@@ -298,7 +276,13 @@ class Engine:
         and with ``path`` saves it (atomically, by the writer thread of
         ``rig_store``; ``wait``: until it is on disk).
         """
+        if not self.registry.may_persist(sensor):
+            log.warning("%s's calibration is in use but not written into the rig: it is not an "
+                        "allowed sensor", sensor)
+            return
         store_stage_transform(self.rig, sensor, to_stage, self.reference, method, fitness, rms_m)
+        if self.reference is not None:
+            self.registry.elected = False  # the rig now depends on it: it stays the reference
         if path is not None:
             self.rig_store.save(self.rig, path, f"{sensor}'s calibration")
             if wait:
@@ -450,20 +434,8 @@ class Engine:
         """Timeouts, person expiry and merging, the per-minute drop report."""
         now = self.clock.now() if now is None else now
         self._last_tick = now
-        timeout = self.rig.clients.timeout_s
-        for client in self.clients.values():
-            if client.active and now - client.last_seen > timeout:
-                client.active = False
-                n = len(client.tracks)
-                log.warning("sensor %s silent for %.1f s%s", client.id, now - client.last_seen,
-                            f": lost its {n} user(s)" if n else "")
-                for track in client.tracks.values():
-                    self._drop_track(track, now)
-                client.tracks.clear()
-            for user, track in list(client.tracks.items()):
-                if track.t != float("-inf") and now - track.t > timeout:
-                    del client.tracks[user]  # the client is alive but forgot /lostUser
-                    self._drop_track(track, now)
+        self.registry.timeouts(now)
+        self.output.expire(now)
         self._flush_pending(now)
         self.tracker.merge_close(now)
         self._lost.extend(self.tracker.expire(now))
@@ -513,6 +485,7 @@ class Engine:
                               "clock_ahead_s": None if c.offset.offset is None else
                               round(-c.offset.offset - self._wall_minus_clock, 4),
                               "calibration": self.sensor_notes.get(cid, {}),
+                              "restarts": c.restarts,
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": {pid: {"sensors": list(p.sensors()),
@@ -521,7 +494,10 @@ class Engine:
                         for pid, p in self.persons.items() if p.announced},
             "views": [f"{h}:{p}" for h, p in self.views],
             "counts": {**self.counts, "datagrams_out": self.output.datagrams_out,
-                       "send_errors": self.output.send_errors},
+                       "send_errors": self.output.send_errors,
+                       "views_expired": self.output.expired,
+                       "views_unreachable": self.output.dropped_unreachable,
+                       "clients_forgotten": self.registry.evicted},
             "drops": drops,
             "drops_total": sum(n for r in drops.values() for n in r.values()),
             "latency_ms": self.latency.summary_ms(),

@@ -5,18 +5,33 @@ person is found, ``/jointCoordinates id (jointName x y z confidence)*`` per
 fused frame, ``/handState id hand state`` when a hand's vote changes and
 ``/lostUser id``. Ids are the fused persons', never the clients'. Runs on the
 engine thread; the transport must not block.
+
+Views come from the rig and the command line (static: kept for the whole
+show) or from ``/registerView`` (docs/security.md): the target must be in
+the rig's ``allow: views`` list and numeric (``127.1`` and ``127.0.0.1``
+are one view), the table is capped (``limits.max_views``), a registration
+lasts ``limits.view_ttl_s`` unless renewed (a view that re-registers
+periodically keeps working, as Kuatro views do), and a view the kernel
+reports unreachable ``limits.view_send_errors`` times in a row is dropped.
+So nobody outside the allow-list can make the server send anything, and
+nobody inside it can make the server send for ever to a closed port.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+from dataclasses import dataclass
 from typing import Iterable, Protocol
 
 import numpy as np
 
 from ..joints import HandState
-from ..sensors.protocol import (RegisterView, encode_view_hand_state, encode_view_joints,
-                                encode_view_lost_user, encode_view_new_user)
+from ..network import Networks, canonical_ipv4
+from ..sensors.protocol import (RegisterView, encode_message, encode_view_hand_state,
+                                encode_view_joints, encode_view_lost_user, encode_view_new_user)
+from ..settings import LimitSettings
+from ..stats import DropCounter, OTHER
 
 log = logging.getLogger("stage.engine")
 
@@ -26,49 +41,149 @@ class Transport(Protocol):
         """Send one datagram; must not block and must not raise."""
 
 
+@dataclass
+class ViewEntry:
+    """A view registered over OSC."""
+
+    expires: float
+    registered: float
+    refused: int = 0          # ICMP refusals since it last (re-)registered
+    sent: int = 0
+
+
 class ViewOutput:
     """The views registered with the server and what is sent to them."""
 
-    def __init__(self, transport: Transport | None, views: Iterable[tuple[str, int]] = ()) -> None:
+    def __init__(self, transport: Transport | None, views: Iterable[tuple[str, int]] = (),
+                 limits: LimitSettings | None = None, allow: Networks | None = None,
+                 drops: DropCounter | None = None) -> None:
         self.transport = transport
-        self.views: list[tuple[str, int]] = list(dict.fromkeys(views))
+        self.limits = limits or LimitSettings()
+        self.allow = allow
+        self.drops = drops
+        self.static: list[tuple[str, int]] = list(dict.fromkeys(views))
+        self.registered: dict[tuple[str, int], ViewEntry] = {}
+        self.views: list[tuple[str, int]] = list(self.static)
         self.datagrams_out = 0
         self.send_errors = 0
+        self.expired = 0
+        self.dropped_unreachable = 0
+        self.refused = 0
+
+    def _update(self) -> None:
+        self.views = self.static + [v for v in self.registered if v not in self.static]
+
+    def add_static(self, address: tuple[str, int]) -> None:
+        if address not in self.static:
+            self.static.append(address)
+            self._update()
 
     # ------------------------------------------------------------ registration
     def register(self, msg: RegisterView, announced: Iterable[tuple[int, np.ndarray,
-                                                                    tuple[HandState, HandState]]]
-                 ) -> None:
+                                                                    tuple[HandState, HandState]]],
+                 now: float = 0.0, source: str = "?") -> None:
         """``/registerView`` or ``/unregisterView``; a new view learns who is on stage.
 
         announced: (person id, centre (3,), hands) of every person already found.
         """
-        target = (msg.host, msg.port)
+        host = canonical_ipv4(msg.host)
+        if host is None:
+            self._refuse(source, "not_allowed", f"view {msg.host[:64]}:{msg.port} refused: "
+                         "give a numeric IPv4 address")
+            return
+        target = (host, msg.port)
         if not msg.register:
-            if target in self.views:
-                self.views.remove(target)
+            if self.registered.pop(target, None) is not None:
+                self._update()
                 log.info("view %s:%d unregistered", *target)
             return
-        if target not in self.views:
-            self.views.append(target)
-            log.info("view %s:%d registered", *target)
+        if self.allow is not None and not self.allow.allows(host):
+            self._refuse(source, "not_allowed",
+                         f"view {host}:{msg.port} refused: not in the rig's allow: views")
+            return
+        entry = self.registered.get(target)
+        if entry is None:
+            if target in self.static:
+                return  # already sent to for the whole show
+            if len(self.registered) >= self.limits.max_views:
+                self._refuse(source, "too_many_views",
+                             f"view {host}:{msg.port} refused: {len(self.registered)} views "
+                             "registered already (limits: max_views)")
+                return
+            entry = self.registered[target] = ViewEntry(now + self.limits.view_ttl_s, now)
+            self._update()
+            log.info("view %s:%d registered (for %g s unless it registers again)", *target,
+                     self.limits.view_ttl_s)
+        else:
+            entry.expires = now + self.limits.view_ttl_s
+            entry.refused = 0
         for pid, centre, hands in announced:
             self.send(encode_view_new_user(pid, centre), target)
             for hand in (0, 1):
                 self.send(encode_view_hand_state(pid, hand, hands[hand]), target)
 
+    def _refuse(self, source: str, reason: str, text: str) -> None:
+        self.refused += 1
+        if self.drops is not None:
+            self.drops.add(source, reason)
+        # a refusal is logged at most once per 100, so a flood of them cannot fill the log
+        if self.refused % 100 == 1:
+            log.warning("%s (%d refused so far)", text, self.refused)
+
+    def expire(self, now: float) -> None:
+        """Drop registrations that were not renewed in time (engine tick)."""
+        gone = [v for v, e in self.registered.items() if now >= e.expires]
+        for view in gone:
+            del self.registered[view]
+            self.expired += 1
+            log.info("view %s:%d expired: it did not register again within %g s", *view,
+                     self.limits.view_ttl_s)
+        if gone:
+            self._update()
+
+    def unreachable(self, host: str, port: int) -> None:
+        """The kernel says a datagram to (host, port) was refused (nobody listens there)."""
+        self.send_errors += 1
+        entry = self.registered.get((host, port))
+        if entry is None:
+            return
+        entry.refused += 1
+        if entry.refused >= self.limits.view_send_errors:
+            del self.registered[(host, port)]
+            self.dropped_unreachable += 1
+            self._update()
+            log.warning("view %s:%d dropped: its port refused %d datagrams in a row (closed?)",
+                        host, port, entry.refused)
+
+    def allowed(self, host: str) -> bool:
+        """May replies (stats, health) go to ``host``?"""
+        return self.allow is None or self.allow.allows(host)
+
+    def describe(self, now: float) -> list[dict]:
+        """Per view: address, kind, seconds left, refusals (stats, health)."""
+        out: list[dict] = [{"address": f"{h}:{p}", "static": True} for h, p in self.static]
+        for (h, p), e in self.registered.items():
+            out.append({"address": f"{h}:{p}", "static": False,
+                        "expires_in_s": round(e.expires - now, 1), "refused": e.refused})
+        return out
+
     # ------------------------------------------------------------ messages
+    # (nothing is encoded when nobody would receive it: offline runs and view-less servers)
     def new_user(self, pid: int, centre: np.ndarray) -> None:
-        self.broadcast(encode_view_new_user(pid, centre))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_new_user(pid, centre))
 
     def joints(self, pid: int, joints: np.ndarray, conf: np.ndarray) -> None:
-        self.broadcast(encode_view_joints(pid, joints, conf))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_joints(pid, joints, conf))
 
     def hand(self, pid: int, hand: int, state: HandState) -> None:
-        self.broadcast(encode_view_hand_state(pid, hand, state))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_hand_state(pid, hand, state))
 
     def lost_user(self, pid: int) -> None:
-        self.broadcast(encode_view_lost_user(pid))
+        if self.views and self.transport is not None:
+            self.broadcast(encode_view_lost_user(pid))
 
     # ------------------------------------------------------------ sending
     def broadcast(self, data: bytes) -> None:
@@ -83,3 +198,54 @@ class ViewOutput:
             self.datagrams_out += 1
         except OSError:
             self.send_errors += 1
+
+
+# ---------------------------------------------------------------- the stats reply
+
+def encode_stats(stats: dict, limit: int) -> bytes:
+    """``/stage/stats JSON`` in one datagram of at most ``limit`` bytes, whatever the stats.
+
+    When the whole JSON does not fit, the biggest parts are cut down in turn
+    (drop keys to totals per reason, clients to the first ones by id,
+    persons and views to counts) and ``"truncated"`` says what was left out;
+    ``stage stats`` and monitors read the same keys either way.
+    """
+    data = encode_message("/stage/stats", json.dumps(stats, separators=(",", ":")))
+    if len(data) <= limit:
+        return data
+    out = dict(stats)
+    notes: list[str] = []
+    drops = out.get("drops") or {}
+    if drops:
+        totals: dict[str, int] = {}
+        for reasons in drops.values():
+            for reason, n in reasons.items():
+                totals[reason] = totals.get(reason, 0) + n
+        out["drops"] = {OTHER: totals}
+        notes.append(f"drops of {len(drops)} keys summed by reason")
+    clients = out.get("clients") or {}
+    for client in clients.values():
+        client.pop("drops", None)
+    for key in ("views", "persons"):
+        value = out.get(key)
+        if value and len(value) > 8:
+            out[key] = list(value)[:8] if isinstance(value, list) else dict(
+                list(value.items())[:8])
+            notes.append(f"{key}: first 8 of {len(value)}")
+    keep = len(clients)
+    while True:
+        if keep < len(clients):
+            out["clients"] = dict(sorted(clients.items())[:keep])
+        note = "; ".join(notes + ([f"clients: first {keep} of {len(clients)}"]
+                                  if keep < len(clients) else []))
+        out["truncated"] = note + " (the reply must fit one datagram)"
+        data = encode_message("/stage/stats", json.dumps(out, separators=(",", ":")))
+        if len(data) <= limit or keep == 0:
+            break
+        keep = keep // 2 if keep > 1 else 0
+    if len(data) > limit:  # nothing left to cut but numbers: the bare minimum
+        data = encode_message("/stage/stats", json.dumps(
+            {"uptime_s": stats.get("uptime_s"), "drops_total": stats.get("drops_total"),
+             "counts": stats.get("counts"), "truncated": "only the totals fit one datagram"},
+            separators=(",", ":")))
+    return data

@@ -324,6 +324,14 @@ SAFETY = Obj("Safety", {
     "osc_port": Field(Integer(1, 65535), doc="UDP port for /stage/section next|previous|NAME."),
 }, doc="Ways for the cellist or the operator to force a section change.")
 
+IDLE = Obj("Idle", {
+    "after": Field(Number(exclusive_minimum=0.0, unit="seconds"), required=True,
+                   doc="Nobody on stage for this long starts the idle section."),
+    "section": Field(NAME, required=True, doc="The attract section (a section of the piece)."),
+    "back": Field(NAME, doc="Where the piece goes when someone arrives: 'start' (default), "
+                            "'previous' (the section it left) or a section name."),
+}, doc="An attract/idle section for unattended exhibits: played while the room is empty.")
+
 PIECE = Obj("Piece", {
     "piece": Field(Text(), required=True, doc="The title."),
     "composer": Field(Text()),
@@ -348,4 +356,5 @@ PIECE = Obj("Piece", {
     "mappings": Field(ListOf(MAPPING, item_word="mapping"),
                       doc="Active in every section."),
     "safety": Field(SAFETY),
+    "idle": Field(IDLE),
 }, doc="A piece for stage: sections of triggers, phrases and mappings over tracked bodies.")

@@ -17,8 +17,8 @@ from ..joints import JOINT_INDEX, JOINTS, parse_hand_state
 from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
-from .model import (Condition, Defaults, Ending, Mapping, Phrase, Piece, Safety, Section,
-                    Trigger, Zone, curve_function)
+from .model import (Condition, Defaults, Ending, Idle, Mapping, Phrase, Piece, Safety,
+                    Section, Trigger, Zone, curve_function)
 from .loader_actions import ActionCompiler, joint_indices as _joint_indices, m as _m
 from .music import phrase_notes
 from .spec import did_you_mean
@@ -101,6 +101,15 @@ class _Compiler(ActionCompiler):
         if "safety" in data:
             s = data["safety"]
             piece.safety = Safety(keys=s.get("keys", False), osc_port=s.get("osc_port"))
+        if "idle" in data:
+            idle = data["idle"]
+            for key in ("section", "back"):
+                name = idle.get(key)
+                if name is not None and name not in self.section_names and not (
+                        key == "back" and name in ("start", "previous")):
+                    raise self.error(self._unknown("section", name, self.section_names),
+                                     _m(idle, key))
+            piece.idle = Idle(float(idle["after"]), idle["section"], idle.get("back", "start"))
         return piece
 
     # ------------------------------------------------------------ top level

@@ -425,6 +425,16 @@ class Safety:
 
 
 @dataclass
+class Idle:
+    """The attract section: ``section`` after ``after`` s with nobody on stage; someone
+    arriving goes ``back`` ('start', 'previous' or a section name)."""
+
+    after: float
+    section: str
+    back: str = "start"
+
+
+@dataclass
 class Piece:
     title: str
     path: str
@@ -447,6 +457,7 @@ class Piece:
     rehearsal: str | None = None     # absolute path of the simulator scenario, if any
     defaults: Defaults = field(default_factory=Defaults)
     safety: Safety = field(default_factory=Safety)
+    idle: Idle | None = None
 
     def section(self, name: str) -> Section:
         for s in self.sections:

@@ -94,10 +94,11 @@ class PieceRuntime:
         #: "notes" counts the notes that sound (scheduled, less those cancelled before
         #: their onset); "cancelled", "shortened" and "skipped" (phrases) are the rest
         self.counts = {"frames": 0, "fired": 0, "notes": 0, "cancelled": 0, "shortened": 0,
-                       "skipped": 0, "errors": 0, "section_changes": 0}
+                       "skipped": 0, "errors": 0, "section_changes": 0, "idle": 0}
         self.voices = Voices(piece.overlap, self._emit, self.counts)
         self.grid = Grid(0.0, piece.tempo, float(meter_beats(piece.meter)) if piece.meter else 4.0)
         self._firings = 0
+        self._before_idle: str | None = None    # the section the idle section interrupted
         self._last_error_log = float("-inf")
 
     @property
@@ -140,6 +141,7 @@ class PieceRuntime:
                 self._flush()
                 return
             self._clock_triggers(t, self._active_runs())
+            self._idle(t)
             self._apply_goto(t)
             self._flush()
         except Exception:
@@ -239,6 +241,7 @@ class PieceRuntime:
             if self.ending and mrun.mapping.kind == "cc":
                 continue      # the ending's fade owns the sound; OSC mappings go on
             mrun.update(self, t)
+        self._idle(t)
         self._apply_goto(t)
         self._flush()
 
@@ -323,6 +326,26 @@ class PieceRuntime:
                          f"{'; '.join(d for d in done if d)}")
 
     # ------------------------------------------------------------ sections
+    def _idle(self, t: float) -> None:
+        """The piece's attract section: entered when the room has been empty ``after`` s,
+        left (``back``) as soon as someone is on stage. A goto asked for in this frame wins."""
+        idle = self.piece.idle
+        if idle is None or self._pending_goto is not None:
+            return
+        in_idle = self.section.name == idle.section
+        if not in_idle and not self.persons and self.empty_since is not None \
+                and t - self.empty_since >= idle.after:
+            self._before_idle = self.section.name
+            self.counts["idle"] += 1
+            self._pending_goto = (idle.section, "idle", False)   # the phrase may finish
+        elif in_idle and self.persons and self._before_idle is not None:
+            back = idle.back
+            target = (self.piece.start if back == "start" else
+                      self._before_idle if back == "previous" else back)
+            self._before_idle = None
+            if target != self.section.name:
+                self._pending_goto = (target, "someone arrived", True)   # answer a visitor at once
+
     def _apply_goto(self, t: float) -> None:
         if self._pending_goto is None:
             return

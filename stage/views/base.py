@@ -74,6 +74,9 @@ class Status:
     sensors: dict[str, SensorStatus]
     views: dict[str, dict[str, Any]] = field(default_factory=dict)
     registered_views: tuple[tuple[str, int], ...] = ()
+    #: the show's health (``stage.app.health``: sensors, views, synths, engine), when a
+    #: live show checks it; {} otherwise
+    health: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)

@@ -55,6 +55,8 @@ class ViewHost:
         self.failed_plugins: list[PluginInfo] = []
         self.engine: Engine | None = None
         self._collector = StatusCollector()
+        #: the show's latest health (set by the app's health monitor), sent with the status
+        self.health: dict[str, Any] = {}
         self._last_status = float("-inf")
         self._status_pending = False
         self._scene = Scene()
@@ -206,7 +208,7 @@ class ViewHost:
             return None
         now = self.engine.clock.now()
         self._last_status = now
-        status = self._collector.collect(self.engine, self.stats(own=False))
+        status = self._collector.collect(self.engine, self.stats(own=False), self.health)
         for slot in self.slots:
             if slot.wants_status:
                 slot.offer_status(status)
