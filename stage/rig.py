@@ -31,7 +31,7 @@ import yaml
 from .errors import ConfigError
 from .geometry import invert
 from .network import parse_hostport
-from .settings import ClientSettings, FusionSettings, KalmanSettings
+from .settings import RETIRED_KEYS, ClientSettings, FusionSettings, KalmanSettings
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
 DEFAULT_PORT = 7770
@@ -203,11 +203,14 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"min_interval_s"}
+_ZERO_ALLOWED = {"noise_per_m"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     section = where.mapping(data.get(key), f"'{key}'")
+    for (owner, old), instead in RETIRED_KEYS.items():
+        if owner == key and old in section:
+            raise where.at_key(section, old, f"'{key}: {old}' is no longer used: {instead}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     where.check_keys(section, fields, f"'{key}'")
     values: dict[str, Any] = {}

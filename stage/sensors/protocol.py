@@ -105,6 +105,7 @@ class RegisterView:
     host: str
     port: int
     register: bool = True  # False for /unregisterView
+    rate_hz: float | None = None  # a fixed output rate asked for (stage addition); None: every update
 
 
 @dataclass(slots=True)
@@ -477,11 +478,19 @@ def _port(v: object) -> int:
 
 
 def _h_register_view(params: list, source: str, register: bool = True) -> RegisterView:
+    rate = None
+    if register and len(params) == 3:  # trailing rate in Hz: a stage addition
+        rate = params[2]
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)):
+            raise _Drop("bad_types")
+        if not (math.isfinite(rate) and 0 < rate <= 1000):
+            raise _Drop("out_of_range")
+        params = params[:2]
     _arity(params, 2)
     host = params[0]
     if not isinstance(host, str) or not host or len(host) > 255:
         raise _Drop("bad_types")
-    return RegisterView(host, _port(params[1]), register)
+    return RegisterView(host, _port(params[1]), register, None if rate is None else float(rate))
 
 
 def _h_unregister_view(params: list, source: str) -> RegisterView:

@@ -1,0 +1,251 @@
+"""The people on stage: calibrated sensor frames in, fused persons and their messages out.
+
+``People`` is the engine's fusion path, on the engine thread. Per batch of
+inbound items the engine hands it each calibrated frame (``frame``) and hand
+state (``hand``); at the end of the batch ``flush`` folds every frame into its
+person's filter -- all persons of the batch in one numpy step per wave
+(``fuser``) -- votes hands (``hands``) and sends each updated person once, at
+once: nothing waits for a later frame. ``tick`` merges and expires persons
+and serves views that asked for a fixed rate.
+
+Latency is recorded per input frame: from its datagram's arrival to the
+emission that includes it.
+"""
+
+from __future__ import annotations
+
+import logging
+import numpy as np
+
+from ..clock import Clock
+from ..frames import Body, FusedFrame
+from ..joints import JOINT_INDEX, TORSO, HandState
+from ..rig import Rig
+from ..stats import DropCounter, LatencyWindow
+from .callbacks import Callbacks
+from .fuser import Fuser, View
+from .fusion import apply_transform, torso_centre
+from .kalman import KalmanSettings, measurement_variance
+from .output import ViewOutput
+from .tracking import Person, Track, Tracker
+
+log = logging.getLogger("stage.engine")
+_TORSO = np.array(TORSO)
+_HAND_JOINT = (JOINT_INDEX["HandLeft"], JOINT_INDEX["HandRight"])
+#: smoothing off: a filter so loose that every joint is its latest measurement
+_UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
+
+
+class People:
+    """Persons, their filters and hand votes, and what views are sent (engine thread only)."""
+
+    def __init__(self, rig: Rig, clock: Clock, output: ViewOutput, listeners: Callbacks,
+                 drops: DropCounter, latency: LatencyWindow, counts: dict[str, int]) -> None:
+        self.rig, self.clock, self.output, self.listeners = rig, clock, output, listeners
+        self.drops, self.latency, self.counts = drops, latency, counts
+        self.tracker = Tracker(rig.fusion)
+        smoothing = rig.smoothing
+        if not rig.smoothing_enabled:
+            import dataclasses
+            smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
+        self.smoothing: KalmanSettings = smoothing
+        self.fuser = Fuser(smoothing, rig.fusion)
+        self._views: list[tuple[Person, View, Track]] = []
+        self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
+        self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
+        self._lost: list[int] = []
+
+    @property
+    def persons(self) -> dict[int, Person]:
+        return self.tracker.persons
+
+    # ------------------------------------------------------------ input
+    def frame(self, track: Track, transform: np.ndarray, joints: np.ndarray, conf: np.ndarray,
+              t: float, arrival: float) -> None:
+        """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
+        (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
+        track.joints = apply_transform(transform, joints)
+        track.conf = conf
+        track.t = t
+        seen = conf > 0
+        if not seen.any():
+            return  # nothing tracked in this frame: no position to associate or fuse
+        person = self.tracker.associate(track, t)
+        if not person.known.any():
+            # a person found in this batch: later views of the batch associate against this
+            # view until its filter is folded in at the end of the batch
+            person.joints = np.where(seen[:, None], track.joints, person.joints)
+            person.known = seen.copy()
+            person.t = t
+        distance = np.linalg.norm(track.joints - transform[:3, 3], axis=1)
+        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0), distance,
+                                                self.smoothing), np.nan)
+        self._views.append((person, View(track.key, t, track.joints, conf, r, arrival), track))
+        weighted = self.rig.fusion.hand_vote == "confidence"
+        for hand in (0, 1):
+            weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
+            person.voter.add(track.key, hand, track.hands[hand], weight, t)
+
+    def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
+        """A ``/handState`` of ``track`` captured at ``t``."""
+        track.hands[hand] = state
+        person = self.persons.get(track.person) if track.person is not None else None
+        if person is None:
+            return
+        weighted = self.rig.fusion.hand_vote == "confidence"
+        weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
+        person.voter.add(track.key, hand, state, weight, t)
+        self._hands_dirty.add(person.id)
+
+    def drop_track(self, track: Track, t: float) -> None:
+        pid = self.tracker.unbind(track, t)
+        person = self.persons.get(pid) if pid is not None else None
+        if person is not None:
+            person.voter.forget(track.key)
+            self._hands_dirty.add(pid)  # one voter fewer
+
+    # ------------------------------------------------------------ fusion
+    def flush(self) -> None:
+        """Fold the batch's frames into their persons, then send what changed."""
+        if self._views:
+            self._fold()
+        self._emit()
+
+    def _fold(self) -> None:
+        views, self._views = self._views, []
+        live = [(p, v, tr) for p, v, tr in views if self.persons.get(p.id) is p]
+        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v, _ in live])}
+        touched: dict[int, Person] = {}
+        for person, view, track in live:
+            if id(view) in late:
+                self.drops.add(view.key[0], "late")
+                continue
+            person.measure_size(view.joints, view.conf)
+            touched[person.id] = person
+            self._dirty.setdefault(person.id, []).append(view.arrival)
+        for person in touched.values():
+            self._update(person)
+            self.counts["fused_frames"] += 1
+
+    def _update(self, person: Person) -> None:
+        """The person's output skeleton from its filter, at the newest frame's capture time."""
+        t = max(person.t, person.filter.newest)
+        stale = self.rig.fusion.stale_s
+        conf = np.zeros_like(person.conf)
+        for tr in person.tracks:
+            if t - tr.t <= stale:
+                conf = np.maximum(conf, tr.conf)
+        pos, vel = person.filter.estimate(t)
+        # a joint a sensor sees whose filter has had a measurement lately: one whose
+        # latest frames were gated out is sent where the filter predicts it
+        fresh = t - person.filter.state.t <= stale
+        seen = (conf > 0) & fresh & np.isfinite(pos).all(axis=1)
+        person.joints = np.where(seen[:, None], pos, person.joints)
+        person.velocity = np.where(np.isfinite(vel), vel, 0.0)
+        person.conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
+        person.known |= seen
+        # the centre uses every torso joint ever seen, not just this frame's, so it
+        # does not jump when occlusion changes which joints a view reports
+        torso = person.known[_TORSO]
+        person.centre = (person.joints[_TORSO][torso].mean(axis=0) if torso.any()
+                         else torso_centre(person.joints, person.known.astype(float)))
+        person.t = t
+
+    # ------------------------------------------------------------ output
+    def _emit(self) -> None:
+        if not self._dirty and not self._lost and not self._hands_dirty:
+            return
+        now = self.clock.now()
+        new: list[int] = []
+        updated: list[int] = []
+        for pid in sorted(self._hands_dirty - self._dirty.keys()):
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            if self._send_hands(person, person.voter.update(max(person.t, self._hand_time(person)))):
+                updated.append(pid)
+        for pid, arrivals in self._dirty.items():
+            person = self.persons.get(pid)
+            if person is None or person.centre is None:
+                continue
+            if not person.announced:
+                person.announced = True
+                new.append(pid)
+                log.info("person %d found (seen by %s)", pid, ", ".join(person.sensors()))
+                self.output.new_user(pid, person.centre)
+            if person.tracks:
+                self.output.joints(pid, person.joints, person.conf)
+            self._send_hands(person, person.voter.update(person.t))
+            updated.append(pid)
+            sent = self.clock.now()
+            for arrival in arrivals:
+                self.latency.add(sent - arrival)
+        lost = self._lost
+        for pid in lost:
+            self.output.lost_user(pid)
+        self._dirty, self._lost = {}, []
+        self._hands_dirty.clear()
+        if self.listeners and (updated or lost):
+            self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
+                                           tuple(lost)))
+
+    @staticmethod
+    def _hand_time(person: Person) -> float:
+        """The newest hand report's capture time for ``person``."""
+        newest = float("-inf")
+        for q in person.voter.reports.values():
+            if q:
+                newest = max(newest, q[-1][0])
+        return newest
+
+    def _send_hands(self, person: Person, changed: list[int]) -> bool:
+        for hand in changed:
+            person.hands[hand] = person.voter.reported[hand]
+        sent = False
+        for hand in (0, 1):
+            if person.hands[hand] != person.sent_hands[hand]:
+                person.sent_hands[hand] = person.hands[hand]
+                self.output.hand(person.id, hand, person.hands[hand])
+                sent = True
+        return sent
+
+    def bodies(self) -> dict[int, "Body"]:
+        return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
+                          (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors())
+                for pid, p in self.persons.items() if p.announced and p.centre is not None}
+
+    # ------------------------------------------------------------ housekeeping
+    def tick(self, now: float) -> None:
+        """Merging and expiry of persons, then what is due to views."""
+        self.tracker.merge_close(now)
+        self._lost.extend(self.tracker.expire(now))
+        self._emit()
+        self.serve_fixed_rate(now)
+
+    def serve_fixed_rate(self, now: float) -> None:
+        """Views that asked for a fixed rate get every person predicted to ``now``."""
+        due = self.output.due(now)
+        if not due:
+            return
+        for pid, person in self.persons.items():
+            if not person.announced or person.centre is None or not person.tracks:
+                continue
+            pos, _ = person.filter.estimate(now)
+            joints = np.where((person.conf > 0)[:, None] & np.isfinite(pos), pos, person.joints)
+            self.output.joints(pid, joints, person.conf, due)
+
+    def stats(self) -> dict:
+        f = self.fuser.stats
+        return {"views": f.views, "late": f.late, "replays": f.replays,
+                "joints_disagreeing": f.disagreeing, "joints_downweighted": f.downweighted,
+                "joints_rejected": f.rejected, "joints_restarted": f.restarted}
+
+
+def fused_persons_stats(people: People) -> dict[int, dict]:
+    """Per announced person: sensors, position, trunk length (for ``/stage/stats``)."""
+    return {pid: {"sensors": list(p.sensors()),
+                  "position": None if p.centre is None else [round(float(v), 4) for v in p.centre],
+                  "size_m": None if p.size is None else round(p.size, 3)}
+            for pid, p in people.persons.items() if p.announced}
+
