@@ -72,7 +72,8 @@ class FilterpyImmAxis:
             self.last = t
             return
         dt = max(t - self.last, 0.0)
-        self.imm.M = transition(np.array([dt]), s)[:, :, 0]
+        p01, p10 = (float(p[0]) for p in transition(np.array([dt]), s))
+        self.imm.M = np.array([[1.0 - p01, p01], [p10, 1.0 - p10]])
         # filterpy mixes with the transition matrix given at the previous update: recompute
         # its mixing probabilities for this step's dt
         self.imm._compute_mixing_probabilities()
@@ -164,8 +165,8 @@ def test_matches_filterpys_imm_estimator_on_every_axis(same_time_p):
                 np.testing.assert_allclose(ours.velocities[i, axis], imm.x[1], rtol=0, atol=1e-8)
                 np.testing.assert_allclose(mu[:, i, axis], imm.mu, rtol=0, atol=1e-9)
                 for m, kf in enumerate(imm.filters):
-                    np.testing.assert_allclose(x[m, i, axis], kf.x, rtol=0, atol=1e-8)
-                    a, b, c = P[m, i, axis]
+                    np.testing.assert_allclose(x[:, m, i, axis], kf.x, rtol=0, atol=1e-8)
+                    a, b, c = P[:, m, i, axis]
                     np.testing.assert_allclose([[a, b], [b, c]], kf.P, rtol=1e-9, atol=1e-12)
         fast.append(ours.mode_probabilities[ours.initialised])
     fast = np.concatenate(fast)
@@ -202,42 +203,43 @@ def test_two_views_of_one_instant_in_turn_equal_filterpys_joint_update():
 def test_pure_functions_against_the_matrix_algebra():
     rng = np.random.default_rng(3)
     n = 4
-    x = rng.normal(size=(2, n, 3, 2))
+    x = rng.normal(size=(2, 2, n, 3))                       # [pos/vel, mode, point, axis]
     A = rng.normal(size=(2, n, 3, 2, 2))
-    Pm = A @ A.swapaxes(-1, -2) + np.eye(2)
-    P = np.stack([Pm[..., 0, 0], Pm[..., 0, 1], Pm[..., 1, 1]], axis=-1)
+    Pm = A @ A.swapaxes(-1, -2) + np.eye(2)                 # [mode, point, axis] 2x2
+    P = np.stack([Pm[..., 0, 0], Pm[..., 0, 1], Pm[..., 1, 1]])
     mu = rng.uniform(0.1, 1.0, size=(2, n, 3))
     mu /= mu.sum(axis=0)
     dt = rng.uniform(0.0, 0.1, n)
-    T = transition(dt, SETTINGS)
-    np.testing.assert_allclose(T.sum(axis=1), 1.0)
-    x0, P0, cbar = mix(x, P, mu, T)
+    p01, p10 = transition(dt, SETTINGS)
+    x0, P0, cbar = mix(x, P, mu, p01, p10)
     xp, Pp = predict(x0, P0, dt, np.array([2.0, 300.0]))
     z, r = rng.normal(size=(n, 3)), rng.uniform(1e-4, 1e-2, n)
     xu, Pu, muu = update(xp, Pp, cbar, z, r)
     for i in range(n):
+        T = np.array([[1 - p01[i], p01[i]], [p10[i], 1 - p10[i]]])
         for a in range(3):
-            cb = T[:, :, i].T @ mu[:, i, a]
+            cb = T.T @ mu[:, i, a]
             np.testing.assert_allclose(cbar[:, i, a], cb)
             F = np.array([[1.0, dt[i]], [0.0, 1.0]])
             lik = []
             for j, q in enumerate((2.0, 300.0)):
-                w = T[:, j, i] * mu[:, i, a] / cb[j]
-                xm = w @ x[:, i, a]
-                Pmix = sum(w[k] * (Pm[k, i, a] + np.outer(x[k, i, a] - xm, x[k, i, a] - xm))
-                           for k in range(2))
-                np.testing.assert_allclose(x0[j, i, a], xm, atol=1e-12)
+                w = T[:, j] * mu[:, i, a] / cb[j]
+                xs = [x[:, k, i, a] for k in range(2)]
+                xm = w[0] * xs[0] + w[1] * xs[1]
+                Pmix = sum(w[k] * (Pm[k, i, a] + np.outer(xs[k] - xm, xs[k] - xm)) for k in range(2))
+                np.testing.assert_allclose(x0[:, j, i, a], xm, atol=1e-12)
                 Q = Q_discrete_white_noise(dim=2, dt=dt[i], var=q)
                 xpr, Ppr = F @ xm, F @ Pmix @ F.T + Q
-                np.testing.assert_allclose(xp[j, i, a], xpr, atol=1e-12)
-                np.testing.assert_allclose(Pp[j, i, a], [Ppr[0, 0], Ppr[0, 1], Ppr[1, 1]], atol=1e-12)
+                np.testing.assert_allclose(xp[:, j, i, a], xpr, atol=1e-12)
+                np.testing.assert_allclose(Pp[:, j, i, a], [Ppr[0, 0], Ppr[0, 1], Ppr[1, 1]],
+                                           atol=1e-12)
                 h = np.array([[1.0, 0.0]])
                 S = Ppr[0, 0] + r[i]
                 K = Ppr @ h.T / S
                 y = z[i, a] - xpr[0]
-                np.testing.assert_allclose(xu[j, i, a], xpr + (K * y)[:, 0], atol=1e-12)
+                np.testing.assert_allclose(xu[:, j, i, a], xpr + (K * y)[:, 0], atol=1e-12)
                 Ppost = (np.eye(2) - K @ h) @ Ppr
-                np.testing.assert_allclose(Pu[j, i, a], [Ppost[0, 0], Ppost[0, 1], Ppost[1, 1]],
+                np.testing.assert_allclose(Pu[:, j, i, a], [Ppost[0, 0], Ppost[0, 1], Ppost[1, 1]],
                                            atol=1e-12)
                 lik.append(math.exp(-0.5 * y * y / S) / math.sqrt(2 * math.pi * S))
             post = cb * np.array(lik)
@@ -250,18 +252,19 @@ def test_pure_functions_against_the_matrix_algebra():
     xm, Pc = combine(x, P, mu)
     for i in range(n):
         for a in range(3):
-            mean = mu[:, i, a] @ x[:, i, a]
-            cov = sum(mu[k, i, a] * (Pm[k, i, a] + np.outer(x[k, i, a] - mean, x[k, i, a] - mean))
+            xs = [x[:, k, i, a] for k in range(2)]
+            mean = mu[0, i, a] * xs[0] + mu[1, i, a] * xs[1]
+            cov = sum(mu[k, i, a] * (Pm[k, i, a] + np.outer(xs[k] - mean, xs[k] - mean))
                       for k in range(2))
-            np.testing.assert_allclose(xm[i, a], mean, atol=1e-12)
-            np.testing.assert_allclose(Pc[i, a], [cov[0, 0], cov[0, 1], cov[1, 1]], atol=1e-12)
+            np.testing.assert_allclose(xm[:, i, a], mean, atol=1e-12)
+            np.testing.assert_allclose(Pc[:, i, a], [cov[0, 0], cov[0, 1], cov[1, 1]], atol=1e-12)
     # the gate: squared Mahalanobis distance from the mixture's prediction, over three axes
     d2 = gate_distance(xp, Pp, cbar, z, r)
     for i in range(n):
         total = 0.0
         for a in range(3):
-            mean = cbar[:, i, a] @ xp[:, i, a, 0]
-            var = cbar[:, i, a] @ (Pp[:, i, a, 0] + (xp[:, i, a, 0] - mean) ** 2)
+            mean = cbar[:, i, a] @ xp[0, :, i, a]
+            var = cbar[:, i, a] @ (Pp[0, :, i, a] + (xp[0, :, i, a] - mean) ** 2)
             total += (z[i, a] - mean) ** 2 / (var + r[i])
         assert d2[i] == pytest.approx(total, rel=1e-12)
 
@@ -302,7 +305,7 @@ def test_a_gross_error_is_rejected_and_twice_in_a_row_restarts_the_point():
     far = np.array([[1.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
     kf.step(1.0, far, np.ones(2))
     assert list(kf.last_outcome) == [REJECTED, ACCEPTED]
-    np.testing.assert_array_equal(kf.state.x[:, 0], before.x[:, 0])  # untouched
+    np.testing.assert_array_equal(kf.state.x[:, :, 0], before.x[:, :, 0])  # untouched
     assert kf.state.t[0] == before.t[0]
     kf.step(1.0 + 1 / 30, far + [[0.05, 0, 0], [0, 0, 0]], np.ones(2))
     assert list(kf.last_outcome) == [RESTARTED, ACCEPTED]
@@ -336,7 +339,7 @@ def test_time_going_backwards_does_not_extrapolate():
     # the same as an update with dt = 0: no prediction, no mode switching
     s = kf.settings
     r = measurement_variance(np.ones(3), 1.0, s)
-    x0, P0, cbar = mix(state.x, state.P, state.mu, transition(np.zeros(3), s))
+    x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(np.zeros(3), s))
     np.testing.assert_array_equal(x0, state.x)
     xu, Pu, muu = update(x0, P0, cbar, z, r)
     np.testing.assert_allclose(kf.state.x, xu, atol=1e-15)

@@ -81,6 +81,9 @@ class BodyFilter:
     def __init__(self, n: int = N_JOINTS) -> None:
         self.state = FilterState.empty(n)
         self.history: list[_Step] = []
+        #: after a fold: (t, (25, 3) position, (25, 3) velocity), the estimate at the newest
+        #: view's capture time, computed for a whole wave at once
+        self.output: tuple[float, np.ndarray, np.ndarray] | None = None
 
     @property
     def newest(self) -> float:
@@ -98,10 +101,10 @@ class BodyFilter:
         st = self.state
         dt = np.maximum(t - st.t, 0.0)
         dt = np.where(np.isnan(dt), 0.0, dt)
-        x0, P0, cbar = mix(st.x, st.P, st.mu, transition(dt, s))
+        x0, P0, cbar = mix(st.x, st.P, st.mu, *transition(dt, s))
         xp, Pp = predict(x0, P0, dt, np.array([s.quiet_noise, s.fast_noise]))
         xm, Pm = combine(xp, Pp, cbar)
-        return xm[..., 0], Pm[..., 0].mean(axis=1)
+        return xm[0], Pm[0].mean(axis=1)
 
 
 @dataclass
@@ -170,7 +173,7 @@ class Fuser:
     def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]]) -> None:
         n = N_JOINTS
         before = FilterState.concat([body.state for body, *_ in items])
-        work = before.copy()
+        work = FilterState(before.x, before.P, before.mu, before.t, before.held_z, before.held_t)
         t = np.repeat([view.t for _, view, _, _ in items], n)
         z = np.concatenate([view.joints for _, view, _, _ in items])
         r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
@@ -178,9 +181,11 @@ class Fuser:
         q = None if self.q_scale is None else np.tile(self.q_scale, len(items))
         outcome = step(work, t, z, r, self.s, q)
         self._count(outcome)
+        pos, vel = work.predicted(t)
         for k, (body, view, mask, anchor) in enumerate(items):
             a, b = k * n, (k + 1) * n
             body.state = work.view_rows(a, b)
+            body.output = (view.t, pos[a:b], vel[a:b])
             view.used = _USED[outcome[a:b]]
             if mask is None:
                 mask = np.isfinite(view.r)
@@ -224,7 +229,7 @@ class Fuser:
         state = hist[start].before if start < len(hist) else body.state
         views = [s.view for s in hist[start:p]] + [view] + [s.view for s in hist[p:]]
         del hist[start:]
-        state = state.copy()
+        state = FilterState(state.x, state.P, state.mu, state.t, state.held_z, state.held_t)
         k = 0
         while k < len(views):
             anchor = views[k].t
@@ -235,7 +240,8 @@ class Fuser:
             masks = self._choose(body, group, state, anchor) if len(group) > 1 else \
                 np.isfinite(group[0].r)[None]
             for v, mask in zip(group, masks):
-                before = state.copy()
+                before = FilterState(state.x, state.P, state.mu, state.t, state.held_z,
+                                     state.held_t)       # step replaces, never writes into
                 outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
                                np.where(mask, v.r, np.nan), self.s, self.q_scale)
                 self._count(outcome)
@@ -246,6 +252,7 @@ class Fuser:
                 hist.append(_Step(v, before, anchor, mask))
             k = g
         body.state = state
+        body.output = (body.newest, *state.predicted(body.newest))
 
     @staticmethod
     def _fits_before(body: BodyFilter, t: float) -> bool:

@@ -3,15 +3,18 @@
 Each sensor that sees a person reports each hand's state with every frame
 (the state it last sent counts as repeated with each skeleton, so a client
 that sends ``/handState`` only when it changes votes as often as one that
-sends it every frame). Reports older than four ``hand_memory_s`` are
-forgotten.
+sends it every frame). A report's weight decays by e every
+``hand_memory_s``; once it has decayed below e^-4 (four memories) it no longer
+counts.
 
 The vote for a hand at time t:
 
 1. each sensor with recent reports has one vote, worth the hand joint's
-   confidence (1 with ``hand_vote: plain``), shared among the states it
-   reported recently in proportion to ``exp(-age / hand_memory_s)``: one
-   misread frame among a sensor's last few counts for part of its vote only;
+   confidence in its newest frame (1 with ``hand_vote: plain``), shared among
+   the states it reported recently in proportion to their decayed weights
+   (ages counted from the sensor's own newest report, so a sensor whose frame
+   is a little older than another's is not worth less): one misread frame
+   among a sensor's last few counts for part of its vote only;
 2. only known states (open, closed, lasso) count while any sensor gives one
    a share: ``unknown`` and ``notTracked`` never outvote a known state;
 3. the known state with the largest total wins; between known states with
@@ -28,22 +31,29 @@ state at once -- there is nothing to flicker from.
 from __future__ import annotations
 
 import math
-from collections import deque
 
 from ..joints import HandState
 
-_KNOWN = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)
+
+#: a state's decayed weight below this (one report four memories old) no longer counts
+_FORGOTTEN = math.exp(-4.0)
 
 
 class HandVoter:
-    """The two hands of one person (engine thread only)."""
+    """The two hands of one person (engine thread only).
+
+    Per sensor and hand it keeps the decayed weight of each state it reported
+    (``shares``), updated in O(1) per report, so a vote costs a few operations per
+    sensor however often they report.
+    """
 
     __slots__ = ("memory_s", "hold_s", "reports", "reported", "_candidate")
 
     def __init__(self, memory_s: float, hold_s: float) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
-        #: (sensor key, hand) -> deque of [t, state, weight]
-        self.reports: dict[tuple[tuple[str, int], int], deque] = {}
+        #: (sensor key, hand) -> [newest report time, shares per state code (5), weight,
+        #: state of the newest report]
+        self.reports: dict[tuple[tuple[str, int], int], list] = {}
         #: what was last reported per hand (None: nothing yet)
         self.reported: list[HandState | None] = [None, None]
         self._candidate: list[tuple[HandState, float] | None] = [None, None]
@@ -51,18 +61,25 @@ class HandVoter:
     def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
             t: float) -> None:
         """One report; a second report by the same sensor at the same ``t`` replaces the first."""
-        q = self.reports.get((key, hand))
-        if q is None:
-            q = self.reports[(key, hand)] = deque()
-        if q and q[-1][0] == t:
-            q[-1] = [t, state, weight]
-        elif not q or t > q[-1][0]:
-            q.append([t, state, weight])
-        else:  # out of order: keep the deque sorted
-            at = len(q)
-            while at > 0 and q[at - 1][0] > t:
-                at -= 1
-            q.insert(at, [t, state, weight])
+        entry = self.reports.get((key, hand))
+        if entry is None:
+            shares = [0.0] * 5
+            shares[state] = 1.0
+            self.reports[(key, hand)] = [t, shares, weight, state]
+            return
+        newest, shares = entry[0], entry[1]
+        if t == newest:
+            shares[entry[3]] -= 1.0
+            shares[state] += 1.0
+            entry[2], entry[3] = weight, state
+        elif t > newest:
+            decay = math.exp(-(t - newest) / self.memory_s)
+            for k in range(5):
+                shares[k] *= decay
+            shares[state] += 1.0
+            entry[0], entry[2], entry[3] = t, weight, state
+        else:  # an older report, out of order: counts as old as it is
+            shares[state] += math.exp(-(newest - t) / self.memory_s)
 
     def forget(self, key: tuple[str, int]) -> None:
         """A sensor view left this person: its reports no longer vote."""
@@ -72,31 +89,30 @@ class HandVoter:
     def vote(self, hand: int, t: float) -> HandState:
         """The winning state of ``hand`` at ``t`` (rules in the module docstring)."""
         window = 4.0 * self.memory_s
-        tally = [0.0] * 5
+        o = c = l = 0.0
         not_tracked = False
-        for (_, h), q in list(self.reports.items()):
-            if h != hand:
+        for (_, h), (newest, shares, weight, _) in self.reports.items():
+            if h != hand or t - newest > window:
                 continue
-            while q and t - q[0][0] > window:
-                q.popleft()
-            if not q:
-                continue
-            shares = [0.0] * 5
-            total = 0.0
-            newest = q[-1][0]
-            for rt, state, _ in q:
-                # ages relative to this sensor's newest report: a sensor whose frame is a
-                # little older than another's is not worth less for it
-                w = math.exp(-(newest - rt) / self.memory_s)
-                shares[state] += w
-                total += w
-            weight = q[-1][2]
-            for state in _KNOWN:
-                tally[state] += weight * shares[state] / total
-            not_tracked = not_tracked or shares[HandState.NOT_TRACKED] > 0.0
-        best = max(_KNOWN, key=lambda s: (tally[s], s))
-        if tally[best] > 0.0:
-            return best
+            total = shares[0] + shares[1] + shares[2] + shares[3] + shares[4]
+            floor = _FORGOTTEN * total
+            scale = weight / total
+            so, sc, sl = shares[2], shares[3], shares[4]
+            if so > floor:
+                o += scale * so
+            if sc > floor:
+                c += scale * sc
+            if sl > floor:
+                l += scale * sl
+            if shares[1] > floor:
+                not_tracked = True
+        # the largest total wins; a tie between known states goes to the higher code
+        if l > 0.0 and l >= c and l >= o:
+            return HandState.LASSO
+        if c > 0.0 and c >= o:
+            return HandState.CLOSED
+        if o > 0.0:
+            return HandState.OPEN
         return HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN
 
     def update(self, t: float) -> list[int]:

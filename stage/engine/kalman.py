@@ -17,13 +17,17 @@ filter behaves the same whatever the rate of measurements (one sensor at
 
 Arrays, for N points (rows) and M = 2 modes (0 quiet, 1 fast)::
 
-    x   (M, N, 3, 2)  position, velocity per mode and axis; metres, m/s
-    P   (M, N, 3, 3)  covariance per mode and axis, packed [pp, pv, vv]
-    mu  (M, N, 3)     mode probabilities per axis
+    x   (2, M, N, 3)  x[0] position (m), x[1] velocity (m/s), per mode, point and axis
+    P   (3, M, N, 3)  covariance per mode, point and axis, packed: P[0] var(position),
+                      P[1] cov(position, velocity), P[2] var(velocity)
+    mu  (M, N, 3)     mode probabilities per point and axis
     t   (N,)          time the row's state refers to, s; NaN = never measured
 
-The 2x2 algebra is written in closed form over all rows at once (no Python
-loop, no ``np.linalg``). The pure functions (``transition``, ``mix``,
+Component first, so that every operation runs over one contiguous block of
+all modes, points and axes; the 2x2 algebra and the two-mode mixing are
+written in closed form over all rows at once (no Python loop, no
+``np.linalg``, no einsum): a step for six people (150 rows) is a few dozen
+numpy operations. The pure functions (``transition``, ``mix``,
 ``predict``, ``update``, ``gate_distance``, ``combine``) are tested against
 filterpy; ``step`` strings them together the way the engine and the
 benchmarks use them, with the outlier gate:
@@ -53,6 +57,7 @@ __all__ = ["KalmanSettings", "FilterState", "JointKalman", "transition", "mix", 
            "update", "gate_distance", "combine", "step", "initial_mu", "measurement_variance"]
 
 M = 2  # modes: 0 quiet, 1 fast
+_MU_FLOOR = 1e-300
 
 
 def initial_mu(s: KalmanSettings) -> np.ndarray:
@@ -74,26 +79,35 @@ def measurement_variance(conf: np.ndarray, distance: np.ndarray | float,
     return sd * sd / np.asarray(conf, dtype=float)
 
 
-def transition(dt: np.ndarray, s: KalmanSettings) -> np.ndarray:
-    """T (M, M, N): T[i, j] = P(mode j after ``dt`` | mode i now), dt (N,) seconds >= 0."""
-    p01 = -np.expm1(-s.quiet_to_fast_per_s * dt)
-    p10 = -np.expm1(-s.fast_to_quiet_per_s * dt)
-    return np.stack([np.stack([1.0 - p01, p01]), np.stack([p10, 1.0 - p10])])
+def transition(dt: np.ndarray, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(p01, p10), each (N,): the chance of switching quiet -> fast and fast -> quiet
+    within ``dt`` (N,) seconds >= 0; the transition matrix is [[1-p01, p01], [p10, 1-p10]]."""
+    return -np.expm1(-s.quiet_to_fast_per_s * dt), -np.expm1(-s.fast_to_quiet_per_s * dt)
 
 
-def mix(x: np.ndarray, P: np.ndarray, mu: np.ndarray, T: np.ndarray,
+def _outer(d: np.ndarray) -> np.ndarray:
+    """(3, ...) packed outer product of d = (2, ...) [position, velocity] differences."""
+    return np.stack([d[0] * d[0], d[0] * d[1], d[1] * d[1]])
+
+
+def mix(x: np.ndarray, P: np.ndarray, mu: np.ndarray, p01: np.ndarray, p10: np.ndarray,
         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """IMM mixing: (x0, P0, cbar), the mixed initial condition of each mode and the
-    predicted mode probabilities ``cbar[j] = sum_i T[i, j] mu[i]`` (M, N, 3)."""
-    Tn = T[:, :, :, None]                                    # (M, M, N, 1)
-    cbar = np.einsum("ijn,ina->jna", T, mu)
-    w = Tn * mu[:, None] / cbar[None]                        # w[i, j] = P(was i | now j)
-    x0 = np.einsum("ijna,inak->jnak", w, x)
-    d = x[:, None] - x0[None]                                # (i, j, N, 3, 2)
-    P0 = np.empty_like(P)
-    P0[..., 0] = np.einsum("ijna,ijna->jna", w, P[:, None, ..., 0] + d[..., 0] * d[..., 0])
-    P0[..., 1] = np.einsum("ijna,ijna->jna", w, P[:, None, ..., 1] + d[..., 0] * d[..., 1])
-    P0[..., 2] = np.einsum("ijna,ijna->jna", w, P[:, None, ..., 2] + d[..., 1] * d[..., 1])
+    predicted mode probabilities ``cbar[j] = sum_i T[i, j] mu[i]`` (M, N, 3).
+
+    With two modes the mixture of mode j is ``x_0 + w1j (x_1 - x_0)`` and its
+    covariance ``P_0 + w1j (P_1 - P_0) + w1j (1 - w1j) d d^T`` (d = x_1 - x_0),
+    where ``w1j = T[1, j] mu[1] / cbar[j]``.
+    """
+    p01 = p01[:, None]
+    p10 = p10[:, None]
+    a1 = p10 * mu[1]                        # T10 mu1
+    b1 = (1.0 - p10) * mu[1]                # T11 mu1
+    cbar = np.stack([(1.0 - p01) * mu[0] + a1, p01 * mu[0] + b1])
+    w1 = np.stack([a1, b1]) / cbar          # (M, N, 3): weight of mode 1 in each mixture
+    d = x[:, 1] - x[:, 0]                   # (2, N, 3)
+    x0 = x[:, 0, None] + w1 * d[:, None]
+    P0 = P[:, 0, None] + w1 * (P[:, 1] - P[:, 0])[:, None] + (w1 * (1.0 - w1)) * _outer(d)[:, None]
     return x0, P0, cbar
 
 
@@ -103,16 +117,24 @@ def predict(x: np.ndarray, P: np.ndarray, dt: np.ndarray, q: np.ndarray,
     (M, N), (m/s^2)^2: ``x' = F x``, ``P' = F P F^T + Q``. dt = 0 is an exact no-op."""
     q = np.asarray(q, dtype=float)
     q = q[:, None, None] if q.ndim == 1 else q[:, :, None]
-    dt = np.asarray(dt, dtype=float)[None, :, None]
-    a, b, c = P[..., 0], P[..., 1], P[..., 2]
-    x_new = x.copy()
-    x_new[..., 0] += dt * x[..., 1]
-    dt2 = dt * dt
-    qdt2 = q * dt2
+    dt = np.asarray(dt, dtype=float)[:, None]
+    a, b, c = P
+    x_new = np.empty_like(x)
+    np.multiply(x[1], dt, out=x_new[0])
+    x_new[0] += x[0]
+    x_new[1] = x[1]
+    qdt2 = q * (dt * dt)                                     # (M, N, 1)
     P_new = np.empty_like(P)
-    P_new[..., 0] = a + dt * (2.0 * b + dt * c) + 0.25 * qdt2 * dt2
-    P_new[..., 1] = b + dt * c + 0.5 * qdt2 * dt
-    P_new[..., 2] = c + qdt2
+    # pv' = b + dt c + q dt^3 / 2; pp' = a + 2 dt b + dt^2 c + q dt^4 / 4
+    #     = a + dt (b + pv') - q dt^4 / 4
+    np.add(c, 0.5 * qdt2, out=P_new[1])
+    P_new[1] *= dt
+    P_new[1] += b
+    np.add(b, P_new[1], out=P_new[0])
+    P_new[0] *= dt
+    P_new[0] += a
+    P_new[0] -= (0.25 * qdt2) * (dt * dt)
+    np.add(c, qdt2, out=P_new[2])
     return x_new, P_new
 
 
@@ -120,35 +142,32 @@ def update(x: np.ndarray, P: np.ndarray, cbar: np.ndarray, z: np.ndarray, r: np.
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Correct every mode with position measurements ``z`` (N, 3) of variance ``r`` (N,) m^2,
     and the mode probabilities by each mode's likelihood. Returns (x, P, mu)."""
-    a, b, c = P[..., 0], P[..., 1], P[..., 2]
-    r3 = np.asarray(r, dtype=float)[None, :, None]
-    y = z[None] - x[..., 0]                                  # (M, N, 3)
+    a, b, c = P
+    r3 = np.asarray(r, dtype=float)[:, None]
+    y = z - x[0]                                             # (M, N, 3)
     s = a + r3
-    k0 = a / s
-    k1 = b / s
-    g = r3 / s                                               # 1 - k0 without cancellation
-    x_new = np.empty_like(x)
-    x_new[..., 0] = x[..., 0] + k0 * y
-    x_new[..., 1] = x[..., 1] + k1 * y
-    P_new = np.empty_like(P)
-    P_new[..., 0] = a * g                                    # (I - K H) P, filterpy's Joseph
-    P_new[..., 1] = b * g                                    # form for the optimal gain
-    P_new[..., 2] = c - k1 * b
-    log_l = -0.5 * (np.log(2.0 * np.pi * s) + y * y / s)
-    log_l -= log_l.max(axis=0)                               # no underflow for big innovations
-    mu = cbar * np.exp(log_l)
-    mu /= mu.sum(axis=0)
-    return x_new, P_new, mu
+    inv = 1.0 / s
+    k1 = b * inv
+    g = r3 * inv                                             # 1 - k0 without cancellation
+    x_new = np.stack([x[0] + (a * inv) * y, x[1] + k1 * y])
+    # (I - K H) P, filterpy's Joseph form for the optimal gain
+    P_new = np.stack([a * g, b * g, c - k1 * b])
+    # mode probabilities: cbar times each mode's likelihood, normalised; the largest
+    # log-likelihood is taken out first so that nothing underflows for big innovations
+    log_l = -0.5 * (np.log(s) + y * y * inv)                 # (the 2 pi cancels)
+    w = cbar * np.exp(log_l - log_l.max(axis=0))
+    # never exactly 0 (as filterpy, whose likelihoods have a floor): a mode that can come
+    # back must not be divided by zero when there is no time to switch (dt = 0)
+    np.maximum(w, _MU_FLOOR, out=w)
+    return x_new, P_new, w / (w[0] + w[1])
 
 
 def combine(x: np.ndarray, P: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The IMM estimate: (N, 3, 2) mean [position, velocity] and (N, 3, 3) packed covariance."""
-    xm = np.einsum("mna,mnak->nak", mu, x)
-    d = x - xm[None]
-    Pm = np.empty(P.shape[1:])
-    Pm[..., 0] = np.einsum("mna,mna->na", mu, P[..., 0] + d[..., 0] * d[..., 0])
-    Pm[..., 1] = np.einsum("mna,mna->na", mu, P[..., 1] + d[..., 0] * d[..., 1])
-    Pm[..., 2] = np.einsum("mna,mna->na", mu, P[..., 2] + d[..., 1] * d[..., 1])
+    """The IMM estimate: (2, N, 3) mean [position, velocity] and (3, N, 3) packed covariance."""
+    w1 = mu[1]
+    d = x[:, 1] - x[:, 0]
+    xm = x[:, 0] + w1 * d
+    Pm = P[:, 0] + w1 * (P[:, 1] - P[:, 0]) + (w1 * (1.0 - w1)) * _outer(d)
     return xm, Pm
 
 
@@ -156,9 +175,11 @@ def gate_distance(xp: np.ndarray, Pp: np.ndarray, cbar: np.ndarray, z: np.ndarra
                   r: np.ndarray) -> np.ndarray:
     """(N,) squared Mahalanobis distance of ``z`` from the mixture's predicted position
     (the modes' predictions weighted by ``cbar``, their spread included), over 3 axes."""
-    mean = np.einsum("mna,mna->na", cbar, xp[..., 0])
-    var = np.einsum("mna,mna->na", cbar, Pp[..., 0] + (xp[..., 0] - mean[None]) ** 2)
-    y = z - mean
+    w1 = cbar[1]
+    p0 = xp[0, 0]
+    d = xp[0, 1] - p0
+    var = Pp[0, 0] + w1 * (Pp[0, 1] - Pp[0, 0] + (1.0 - w1) * d * d)
+    y = z - p0 - w1 * d
     return (y * y / (var + np.asarray(r, dtype=float)[:, None])).sum(axis=1)
 
 
@@ -177,7 +198,7 @@ class FilterState:
 
     @classmethod
     def empty(cls, n: int) -> "FilterState":
-        return cls(np.full((M, n, 3, 2), np.nan), np.full((M, n, 3, 3), np.nan),
+        return cls(np.full((2, M, n, 3), np.nan), np.full((3, M, n, 3), np.nan),
                    np.full((M, n, 3), np.nan), np.full(n, np.nan), np.full((n, 3), np.nan),
                    np.full(n, np.nan))
 
@@ -191,10 +212,13 @@ class FilterState:
 
     @classmethod
     def concat(cls, states: list["FilterState"]) -> "FilterState":
+        """One state of all the rows of ``states``, in order (new arrays; with one state, its
+        arrays themselves: ``step`` never writes into a state's arrays)."""
         if len(states) == 1:
-            return states[0].copy()
-        return cls(np.concatenate([s.x for s in states], axis=1),
-                   np.concatenate([s.P for s in states], axis=1),
+            s = states[0]
+            return cls(s.x, s.P, s.mu, s.t, s.held_z, s.held_t)
+        return cls(np.concatenate([s.x for s in states], axis=2),
+                   np.concatenate([s.P for s in states], axis=2),
                    np.concatenate([s.mu for s in states], axis=1),
                    np.concatenate([s.t for s in states]),
                    np.concatenate([s.held_z for s in states]),
@@ -202,26 +226,22 @@ class FilterState:
 
     def rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as a new state (copies)."""
-        return FilterState(self.x[:, start:stop].copy(), self.P[:, start:stop].copy(),
-                           self.mu[:, start:stop].copy(), self.t[start:stop].copy(),
-                           self.held_z[start:stop].copy(), self.held_t[start:stop].copy())
+        return self.view_rows(start, stop).copy()
 
     def view_rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as views into this state's arrays (no copy: for a state that
         will not be changed again)."""
-        return FilterState(self.x[:, start:stop], self.P[:, start:stop], self.mu[:, start:stop],
-                           self.t[start:stop], self.held_z[start:stop], self.held_t[start:stop])
+        return FilterState(self.x[:, :, start:stop], self.P[:, :, start:stop],
+                           self.mu[:, start:stop], self.t[start:stop], self.held_z[start:stop],
+                           self.held_t[start:stop])
 
     def assign(self, other: "FilterState", mask: np.ndarray | None = None) -> None:
         """Take ``other``'s rows (all, or where ``mask`` (N,) is true) in place."""
         if mask is None:
-            self.x[...], self.P[...], self.mu[...] = other.x, other.P, other.mu
-            self.t[...], self.held_z[...], self.held_t[...] = other.t, other.held_z, other.held_t
-            return
-        self.x[:, mask], self.P[:, mask], self.mu[:, mask] = (other.x[:, mask], other.P[:, mask],
-                                                              other.mu[:, mask])
-        self.t[mask], self.held_z[mask], self.held_t[mask] = (other.t[mask], other.held_z[mask],
-                                                              other.held_t[mask])
+            mask = slice(None)
+        self.x[:, :, mask], self.P[:, :, mask] = other.x[:, :, mask], other.P[:, :, mask]
+        self.mu[:, mask], self.t[mask] = other.mu[:, mask], other.t[mask]
+        self.held_z[mask], self.held_t[mask] = other.held_z[mask], other.held_t[mask]
 
     @property
     def initialised(self) -> np.ndarray:
@@ -229,8 +249,9 @@ class FilterState:
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """((N, 3) position m, (N, 3) velocity m/s) at each row's own time; NaN if unmeasured."""
-        xm = np.einsum("mna,mnak->nak", self.mu, self.x)
-        return xm[..., 0], xm[..., 1]
+        w1 = self.mu[1]
+        x = self.x
+        return x[0, 0] + w1 * (x[0, 1] - x[0, 0]), x[1, 0] + w1 * (x[1, 1] - x[1, 0])
 
     def predicted(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position and velocity at ``t`` (never extrapolated backwards), NaN if unmeasured."""
@@ -245,7 +266,10 @@ NOT_MEASURED, STARTED, ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED = range(6)
 
 def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
          s: KalmanSettings, q_scale: np.ndarray | None = None) -> np.ndarray:
-    """Fold one measurement per row into ``state``, in place; returns what happened (N,) int8.
+    """Fold one measurement per row into ``state``; returns what happened (N,) int8.
+
+    The state's arrays are replaced, never written into: a reference to the old
+    arrays (a snapshot for a replay) stays valid without a copy.
 
     t: (N,) capture time of each row's measurement, s; z: (N, 3) metres; r: (N,) per-axis
     variance, m^2 -- rows with r <= 0, r = inf, NaN or a non-finite z are not measured and
@@ -257,46 +281,48 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
     t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
-    valid = (r > 0) & np.isfinite(r) & np.isfinite(z).all(axis=1) & np.isfinite(t)
+    with np.errstate(invalid="ignore"):
+        valid = (r > 0) & np.isfinite(r) & np.isfinite(z.sum(axis=1)) & np.isfinite(t)
     outcome = np.zeros(n, dtype=np.int8)
-    init = state.initialised
-    fresh = valid & ~init
+    init = ~np.isnan(state.t)
     upd = valid & init
+    fresh = valid & ~init
     if upd.any():
-        rows = np.flatnonzero(upd) if not upd.all() else slice(None)
-        x, P, mu = state.x[:, rows], state.P[:, rows], state.mu[:, rows]
-        tz, zz, rr = t[rows], z[rows], r[rows]
-        dt = np.maximum(tz - state.t[rows], 0.0)
+        # every row is computed (rows without a measurement, or without a state, give NaN
+        # or junk) and only the measured ones are kept: one pass of whole-array operations
+        # is cheaper than gathering and scattering the rows
+        dt = np.where(upd, np.maximum(t - state.t, 0.0), 0.0)
         q = np.array([s.quiet_noise, s.fast_noise])
         if q_scale is not None:
-            q = q[:, None] * np.asarray(q_scale, dtype=float)[rows][None]
-        x0, P0, cbar = mix(x, P, mu, transition(dt, s))
-        xp, Pp = predict(x0, P0, dt, q)
-        d2 = gate_distance(xp, Pp, cbar, zz, rr)
+            q = q[:, None] * np.asarray(q_scale, dtype=float)[None]
         gate2 = s.gate_sigma ** 2
-        soft = d2 > gate2
-        r_eff = np.where(soft, rr * d2 / gate2, rr)
-        xu, Pu, muu = update(xp, Pp, cbar, zz, r_eff)
-        keep = d2 <= s.reject_sigma ** 2
-        result = np.where(soft, DOWNWEIGHTED, ACCEPTED).astype(np.int8)
-        if keep.all():
-            state.x[:, rows], state.P[:, rows], state.mu[:, rows] = xu, Pu, muu
-            state.t[rows] = np.maximum(tz, state.t[rows])
-            state.held_t[rows] = np.nan
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
+            xp, Pp = predict(x0, P0, dt, q)
+            d2 = gate_distance(xp, Pp, cbar, z, r)
+            # beyond the gate the variance grows with the distance: r d^2 / gate^2
+            xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
+            use = upd & (d2 <= s.reject_sigma ** 2)
+            outcome[upd] = np.where(d2[upd] > gate2, DOWNWEIGHTED, ACCEPTED)
+        if use.all():
+            state.x, state.P, state.mu = xu, Pu, muu
+            state.t = np.maximum(t, state.t)
         else:
-            idx = np.arange(n)[rows]
-            ok, bad = idx[keep], idx[~keep]
-            state.x[:, ok], state.P[:, ok], state.mu[:, ok] = xu[:, keep], Pu[:, keep], muu[:, keep]
-            state.t[ok] = np.maximum(tz[keep], state.t[ok])
-            state.held_t[ok] = np.nan
+            state.x = np.where(use[:, None], xu, state.x)
+            state.P = np.where(use[:, None], Pu, state.P)
+            state.mu = np.where(use[:, None], muu, state.mu)
+            state.t = np.where(use, np.maximum(t, state.t), state.t)
+        state.held_t = np.where(use, np.nan, state.held_t)
+        bad = np.flatnonzero(upd & ~use)
+        if len(bad):
             again = bad[~np.isnan(state.held_t[bad])]
             first = bad[np.isnan(state.held_t[bad])]
-            result[~keep] = REJECTED
+            outcome[bad] = REJECTED
+            state.held_z = state.held_z.copy()
             state.held_z[first], state.held_t[first] = z[first], t[first]
             if len(again):
                 _restart(state, again, z[again], t[again], r[again], s)
-                result[np.searchsorted(idx, again)] = RESTARTED
-        outcome[rows] = result
+                outcome[again] = RESTARTED
     if fresh.any():
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
@@ -309,19 +335,22 @@ def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r
     from the settings -- or, with ``v`` (k, 3) and ``dt`` (k,), a two-point start (velocity
     from two measurements ``dt`` apart, covariance [[r, r/dt], [r/dt, 2r/dt^2]])."""
     k = len(rows)
-    x = np.zeros((M, k, 3, 2))
-    x[..., 0] = z[None]
-    P = np.zeros((M, k, 3, 3))
-    P[..., 0] = r[None, :, None]
+    x = np.zeros((2, M, k, 3))
+    x[0] = z[None]
+    P = np.zeros((3, M, k, 3))
+    P[0] = r[None, :, None]
     if v is None:
-        P[..., 2] = s.initial_velocity_var
+        P[2] = s.initial_velocity_var
         mu = np.broadcast_to(initial_mu(s)[:, None, None], (M, k, 3))
     else:
-        x[..., 1] = v[None]
-        P[..., 1] = (r / dt)[None, :, None]
-        P[..., 2] = (2.0 * r / (dt * dt))[None, :, None]
-        mu = np.broadcast_to(np.array([0.0, 1.0])[:, None, None], (M, k, 3))
-    state.x[:, rows], state.P[:, rows], state.mu[:, rows] = x, P, mu
+        x[1] = v[None]
+        P[1] = (r / dt)[None, :, None]
+        P[2] = (2.0 * r / (dt * dt))[None, :, None]
+        mu = np.broadcast_to(np.array([_MU_FLOOR, 1.0])[:, None, None], (M, k, 3))
+    # copies first: the arrays may be shared with a snapshot (see ``step``)
+    state.x, state.P, state.mu = state.x.copy(), state.P.copy(), state.mu.copy()
+    state.t, state.held_t = state.t.copy(), state.held_t.copy()
+    state.x[:, :, rows], state.P[:, :, rows], state.mu[:, rows] = x, P, mu
     state.t[rows] = t
     state.held_t[rows] = np.nan
 
@@ -379,8 +408,8 @@ class JointKalman:
 
     @property
     def covariance(self) -> np.ndarray:
-        """(n, 3, 3) packed [pp, pv, vv] covariance of the IMM estimate, per axis."""
-        return combine(self.state.x, self.state.P, self.state.mu)[1]
+        """(n, 3, 3): per point and axis, the IMM estimate's packed covariance [pp, pv, vv]."""
+        return np.moveaxis(combine(self.state.x, self.state.P, self.state.mu)[1], 0, -1)
 
     @property
     def mode_probabilities(self) -> np.ndarray:

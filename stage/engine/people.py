@@ -32,6 +32,7 @@ from .tracking import Person, Track, Tracker
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
 _HAND_JOINT = (JOINT_INDEX["HandLeft"], JOINT_INDEX["HandRight"])
+_NO_R = np.full(25, np.nan)
 #: smoothing off: a filter so loose that every joint is its latest measurement
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
 
@@ -50,7 +51,7 @@ class People:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
         self.fuser = Fuser(smoothing, rig.fusion)
-        self._views: list[tuple[Person, View, Track]] = []
+        self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
         self._lost: list[int] = []
@@ -77,10 +78,9 @@ class People:
             person.joints = np.where(seen[:, None], track.joints, person.joints)
             person.known = seen.copy()
             person.t = t
-        distance = np.linalg.norm(track.joints - transform[:3, 3], axis=1)
-        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0), distance,
-                                                self.smoothing), np.nan)
-        self._views.append((person, View(track.key, t, track.joints, conf, r, arrival), track))
+        # the measurement variances are computed for the whole batch in _fold
+        view = View(track.key, t, track.joints, conf, _NO_R, arrival)
+        self._views.append((person, view, transform[:3, 3]))
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand in (0, 1):
             weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
@@ -102,6 +102,7 @@ class People:
         person = self.persons.get(pid) if pid is not None else None
         if person is not None:
             person.voter.forget(track.key)
+            person.recent.pop(track.key, None)
             self._hands_dirty.add(pid)  # one voter fewer
 
     # ------------------------------------------------------------ fusion
@@ -113,43 +114,68 @@ class People:
 
     def _fold(self) -> None:
         views, self._views = self._views, []
-        live = [(p, v, tr) for p, v, tr in views if self.persons.get(p.id) is p]
-        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v, _ in live])}
+        live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
+        # each joint's variance from its confidence and its distance from the sensor (whose
+        # position in stage space is the translation of its transform), all views at once
+        joints = np.stack([v.joints for _, v, _ in views])                  # (K, 25, 3)
+        conf = np.stack([v.conf for _, v, _ in views])                      # (K, 25)
+        offset = joints - np.stack([where for _, _, where in views])[:, None]
+        seen = conf > 0
+        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0),
+                                                np.sqrt((offset * offset).sum(axis=2)),
+                                                self.smoothing), np.nan)
+        for k, (_, view, _) in enumerate(views):
+            view.r = r[k]
+        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in live])}
         touched: dict[int, Person] = {}
-        for person, view, track in live:
+        for person, view in live:
             if id(view) in late:
                 self.drops.add(view.key[0], "late")
                 continue
             person.measure_size(view.joints, view.conf)
+            person.recent[view.key] = (view.t, view.conf)
             touched[person.id] = person
             self._dirty.setdefault(person.id, []).append(view.arrival)
-        for person in touched.values():
-            self._update(person)
-            self.counts["fused_frames"] += 1
+        if touched:
+            self._update(list(touched.values()))
+            self.counts["fused_frames"] += len(touched)
 
-    def _update(self, person: Person) -> None:
-        """The person's output skeleton from its filter, at the newest frame's capture time."""
-        t = max(person.t, person.filter.newest)
+    def _update(self, persons: list[Person]) -> None:
+        """Each person's output skeleton from its filter at its newest frame's capture time,
+        for all persons of a batch at once."""
         stale = self.rig.fusion.stale_s
-        conf = np.zeros_like(person.conf)
-        for tr in person.tracks:
-            if t - tr.t <= stale:
-                conf = np.maximum(conf, tr.conf)
-        pos, vel = person.filter.estimate(t)
+        t = np.array([max(p.t, p.filter.output[0]) for p in persons])
+        pos = np.stack([p.filter.output[1] for p in persons])           # (P, 25, 3)
+        vel = np.stack([p.filter.output[2] for p in persons])
+        row_t = np.stack([p.filter.state.t for p in persons])           # (P, 25)
+        conf = np.stack([self._recent_conf(p, tp, stale) for p, tp in zip(persons, t)])
         # a joint a sensor sees whose filter has had a measurement lately: one whose
         # latest frames were gated out is sent where the filter predicts it
-        fresh = t - person.filter.state.t <= stale
-        seen = (conf > 0) & fresh & np.isfinite(pos).all(axis=1)
-        person.joints = np.where(seen[:, None], pos, person.joints)
-        person.velocity = np.where(np.isfinite(vel), vel, 0.0)
-        person.conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
-        person.known |= seen
+        seen = (conf > 0) & (t[:, None] - row_t <= stale) & np.isfinite(pos).all(axis=2)
+        joints = np.where(seen[..., None], pos, np.stack([p.joints for p in persons]))
+        known = np.stack([p.known for p in persons]) | seen
+        conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
+        vel = np.where(np.isfinite(vel), vel, 0.0)
         # the centre uses every torso joint ever seen, not just this frame's, so it
         # does not jump when occlusion changes which joints a view reports
-        torso = person.known[_TORSO]
-        person.centre = (person.joints[_TORSO][torso].mean(axis=0) if torso.any()
-                         else torso_centre(person.joints, person.known.astype(float)))
-        person.t = t
+        torso = known[:, _TORSO]
+        n_torso = torso.sum(axis=1)
+        centres = (joints[:, _TORSO] * torso[..., None]).sum(axis=1) / np.maximum(n_torso, 1)[:, None]
+        for k, p in enumerate(persons):
+            p.joints, p.velocity, p.conf, p.known, p.t = joints[k], vel[k], conf[k], known[k], t[k]
+            p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
+
+    @staticmethod
+    def _recent_conf(person: Person, t: float, stale: float) -> np.ndarray:
+        """(25,) the best confidence of each joint among the person's views of the last
+        ``stale`` seconds (views that left the person are forgotten)."""
+        best = None
+        for key, (vt, conf) in list(person.recent.items()):
+            if t - vt > stale:
+                del person.recent[key]
+            else:
+                best = conf if best is None else np.maximum(best, conf)
+        return np.zeros(person.conf.shape) if best is None else best
 
     # ------------------------------------------------------------ output
     def _emit(self) -> None:
@@ -193,11 +219,7 @@ class People:
     @staticmethod
     def _hand_time(person: Person) -> float:
         """The newest hand report's capture time for ``person``."""
-        newest = float("-inf")
-        for q in person.voter.reports.values():
-            if q:
-                newest = max(newest, q[-1][0])
-        return newest
+        return max((entry[0] for entry in person.voter.reports.values()), default=float("-inf"))
 
     def _send_hands(self, person: Person, changed: list[int]) -> bool:
         for hand in changed:

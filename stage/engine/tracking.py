@@ -12,6 +12,7 @@ engine thread owns every object here.
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -35,7 +36,8 @@ def body_size(joints: np.ndarray, conf: np.ndarray) -> float | None:
     """Trunk length (m): SpineBase to Neck, which no pose stretches; None if either is unseen."""
     if conf[_NECK] <= 0 or conf[_BASE] <= 0:
         return None
-    return float(np.linalg.norm(joints[_NECK] - joints[_BASE]))
+    d = joints[_NECK] - joints[_BASE]
+    return math.sqrt(float(d @ d))
 
 
 class OffsetEstimator:
@@ -112,6 +114,8 @@ class Person:
     size: float | None = None               # trunk length, m (mean of the frames seen)
     size_n: int = 0
     merged: bool = False                    # folded into another person: never comes back
+    #: (client, user) -> (capture time, (25,) confidence) of each view's latest frame
+    recent: dict = field(default_factory=dict)
 
     @classmethod
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
@@ -137,8 +141,8 @@ class Person:
         if not mask.any():
             return None
         dt = min(max(t - self.t, 0.0), 0.5)
-        predicted = self.joints[mask] + self.velocity[mask] * dt
-        return float(np.linalg.norm(joints[mask] - predicted, axis=1).mean())
+        diff = joints[mask] - self.joints[mask] - self.velocity[mask] * dt
+        return float(np.sqrt((diff * diff).sum(axis=1)).mean())
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
