@@ -98,6 +98,7 @@ class Engine:
                              self.latency, self.counts)
         self._offsets: dict[str, OffsetEstimator] = {}  # per client id, kept across silences
         self._stats_replies: list[tuple[str, int]] = []
+        self._latency_marks: dict[tuple[str, int], int] = {}   # stats asker -> latency.count
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
         #: written on the engine thread (via call_soon), shown in stats and monitors
         self.sensor_notes: dict[str, dict] = {}
@@ -185,9 +186,15 @@ class Engine:
         except Exception:  # a bug must not end the show: log it, lose this batch's frames
             log.exception("error while fusing a batch; its frames are dropped")
         if self._stats_replies:
-            reply = encode_message("/stage/stats", json.dumps(self.stats()))
+            stats = self.stats()
             for address in self._stats_replies:
-                self.output.send(reply, address)
+                # latency since this asker's previous query: a benchmark's own window
+                stats["latency_since_last_query_ms"] = self.latency.summary_ms(
+                    self._latency_marks.get(address, 0))
+                if len(self._latency_marks) > 256:   # spoofed addresses must not grow memory
+                    self._latency_marks.clear()
+                self._latency_marks[address] = self.latency.count
+                self.output.send(encode_message("/stage/stats", json.dumps(stats)), address)
             self._stats_replies.clear()
 
     def _capture_time(self, item: Inbound) -> float:

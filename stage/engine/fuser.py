@@ -66,6 +66,10 @@ class _Step:
     before: FilterState           # the state before this view (never changed)
     anchor: float                 # capture time of the first view of its instant
     mask: np.ndarray              # (25,) joints the instant's consistency check let through
+    #: the mask is every joint the view sees (nothing of it was left out)
+    whole: bool = True
+    #: on the first view of an instant: the filter's prediction for the instant (cached)
+    prior: tuple[np.ndarray, np.ndarray] | None = None
 
 
 class BodyFilter:
@@ -156,8 +160,12 @@ class Fuser:
                     anchor = body.history[-1].anchor
                     start = self._instant_start(body, len(body.history) - 1)
                     members = body.history[start:]
-                    mask = self._choose(body, [m.view for m in members] + [view],
-                                        members[0].before, anchor)
+                    if all(m.whole for m in members) and self._agrees(view, members):
+                        # the views so far all agree and so does this one: all are used
+                        plain.append((body, view, np.isfinite(view.r), anchor))
+                        continue
+                    mask = self._choose(body, [m.view for m in members] + [view], members[0],
+                                        anchor)
                     if all(np.array_equal(mask[k], m.mask) for k, m in enumerate(members)):
                         plain.append((body, view, mask[-1], anchor))
                         continue
@@ -192,7 +200,8 @@ class Fuser:
             else:
                 view.excluded = int((np.isfinite(view.r) & ~mask).sum())
                 self.stats.disagreeing += view.excluded
-            body.history.append(_Step(view, before.view_rows(a, b), anchor, mask))
+            body.history.append(_Step(view, before.view_rows(a, b), anchor, mask,
+                                      view.excluded == 0))
 
     # ------------------------------------------------------------ instants and replays
     def _instant_start(self, body: BodyFilter, i: int) -> int:
@@ -202,15 +211,28 @@ class Fuser:
             i -= 1
         return i
 
-    def _choose(self, body: BodyFilter, views: list[View], before: FilterState,
+    def _agrees(self, view: View, members: list[_Step]) -> bool:
+        """Whether ``view`` agrees with every view of its instant on every joint both see
+        (the test of ``fusion.consistent_views``; the prior cannot change the choice then)."""
+        z = np.stack([m.view.joints for m in members])
+        r = np.stack([m.view.r for m in members])
+        d = z - view.joints
+        with np.errstate(invalid="ignore"):
+            d2 = (d * d).sum(axis=2) / (r + view.r + 2.0 * self.f.view_bias_m ** 2)
+        return not (d2 > self.s.gate_sigma ** 2).any()       # NaN (a joint unseen): no test
+
+    def _choose(self, body: BodyFilter, views: list[View], first: _Step,
                 anchor: float) -> np.ndarray:
-        """(G, 25) the joints of each view of one instant that agree with the rest."""
+        """(G, 25) the joints of each view of one instant that agree with the rest; ``first``
+        is the instant's first step (its state before, and the prediction cached on it)."""
         if len(views) == 1:
             return np.isfinite(views[0].r)[None]
-        saved = body.state
-        body.state = before
-        prior, var = body.prior(anchor, self.s)
-        body.state = saved
+        if first.prior is None:
+            saved = body.state
+            body.state = first.before
+            first.prior = body.prior(anchor, self.s)
+            body.state = saved
+        prior, var = first.prior
         z = np.stack([v.joints for v in views])
         r = np.stack([v.r for v in views])
         gate2 = self.s.gate_sigma ** 2
@@ -237,9 +259,9 @@ class Fuser:
             while g < len(views) and views[g].t - anchor <= self.f.group_s:
                 g += 1
             group = views[k:g]
-            masks = self._choose(body, group, state, anchor) if len(group) > 1 else \
-                np.isfinite(group[0].r)[None]
-            for v, mask in zip(group, masks):
+            first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
+            masks = self._choose(body, group, first, anchor)
+            for j, (v, mask) in enumerate(zip(group, masks)):
                 before = FilterState(state.x, state.P, state.mu, state.t, state.held_z,
                                      state.held_t)       # step replaces, never writes into
                 outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
@@ -249,7 +271,8 @@ class Fuser:
                 excluded = int((np.isfinite(v.r) & ~mask).sum())
                 self.stats.disagreeing += excluded - v.excluded
                 v.excluded = excluded
-                hist.append(_Step(v, before, anchor, mask))
+                hist.append(_Step(v, before, anchor, mask, excluded == 0,
+                                  first.prior if j == 0 else None))
             k = g
         body.state = state
         body.output = (body.newest, *state.predicted(body.newest))

@@ -22,10 +22,13 @@ The vote for a hand at time t:
    rule, section 4.1.3);
 4. with no known state: ``notTracked`` if any sensor said so, else ``unknown``.
 
-A change of the vote is reported only after the new state has won every vote
-for ``hand_hold_s`` (100 ms by default); a hand whose reported state is not
-a known state (a new person, a hand that was not seen) takes its first known
-state at once -- there is nothing to flicker from.
+A change of the vote is reported only after the new state has won the vote
+for ``hand_hold_s`` (100 ms by default) -- in all: a moment in which it loses
+counts against it rather than starting the count again, so one misread
+sensor frame during the hold delays the change by that moment only. A wrong
+state needs most sensors to misread it alike, together, for that long. A hand
+whose reported state is not a known state (a new person, a hand that was not
+seen) takes its first known state at once -- there is nothing to flicker from.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ class HandVoter:
     sensor however often they report.
     """
 
-    __slots__ = ("memory_s", "hold_s", "reports", "reported", "_candidate")
+    __slots__ = ("memory_s", "hold_s", "reports", "reported", "_candidate", "_last_t")
 
     def __init__(self, memory_s: float, hold_s: float) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
@@ -56,7 +59,9 @@ class HandVoter:
         self.reports: dict[tuple[tuple[str, int], int], list] = {}
         #: what was last reported per hand (None: nothing yet)
         self.reported: list[HandState | None] = [None, None]
+        #: per hand: (a state that is winning but not reported yet, for how long, s)
         self._candidate: list[tuple[HandState, float] | None] = [None, None]
+        self._last_t: float | None = None
 
     def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
             t: float) -> None:
@@ -88,6 +93,11 @@ class HandVoter:
 
     def vote(self, hand: int, t: float) -> HandState:
         """The winning state of ``hand`` at ``t`` (rules in the module docstring)."""
+        return self._vote(hand, t)[0]
+
+    def _vote(self, hand: int, t: float) -> tuple[HandState, float]:
+        """(winner, its share of the known states' total: 1 when every sensor says so; 0.5
+        for unknown and notTracked, which no hold should hurry)."""
         window = 4.0 * self.memory_s
         o = c = l = 0.0
         not_tracked = False
@@ -107,33 +117,42 @@ class HandVoter:
             if shares[1] > floor:
                 not_tracked = True
         # the largest total wins; a tie between known states goes to the higher code
+        total = o + c + l
         if l > 0.0 and l >= c and l >= o:
-            return HandState.LASSO
+            return HandState.LASSO, l / total
         if c > 0.0 and c >= o:
-            return HandState.CLOSED
+            return HandState.CLOSED, c / total
         if o > 0.0:
-            return HandState.OPEN
-        return HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN
+            return HandState.OPEN, o / total
+        return (HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN), 0.5
 
     def update(self, t: float) -> list[int]:
         """Vote both hands at ``t``; returns the hands whose reported state changes now."""
+        dt = 0.0 if self._last_t is None else max(t - self._last_t, 0.0)
+        self._last_t = t if self._last_t is None else max(t, self._last_t)
         changed = []
         for hand in (0, 1):
-            winner = self.vote(hand, t)
+            winner, share = self._vote(hand, t)
             current = self.reported[hand]
-            if winner == current:
-                self._candidate[hand] = None
-                continue
-            if current is None or current < HandState.OPEN and winner >= HandState.OPEN:
-                self.reported[hand] = winner
-                self._candidate[hand] = None
-                changed.append(hand)
-                continue
             cand = self._candidate[hand]
-            if cand is None or cand[0] != winner:
-                self._candidate[hand] = cand = (winner, t)
-            if t - cand[1] >= self.hold_s - 1e-9:
-                self.reported[hand] = winner
-                self._candidate[hand] = None
-                changed.append(hand)
+            if winner != current and (current is None or current < HandState.OPEN
+                                      and winner >= HandState.OPEN):
+                self._report(hand, winner, changed)
+                continue
+            if cand is not None and cand[0] == winner:
+                # the candidate keeps winning: the more sensors agree, the faster its time
+                # counts (twice as fast when all do, as fast when half the votes are its)
+                cand = (winner, cand[1] + dt * min(max(2.0 * share, 1.0), 2.0))
+            elif cand is not None and cand[1] - dt > 0.0:
+                cand = (cand[0], cand[1] - dt)          # a moment lost counts against it
+            else:
+                cand = None if winner == current else (winner, 0.0)
+            self._candidate[hand] = cand
+            if cand is not None and cand[1] >= self.hold_s - 1e-9:
+                self._report(hand, cand[0], changed)
         return changed
+
+    def _report(self, hand: int, state: HandState, changed: list[int]) -> None:
+        self.reported[hand] = state
+        self._candidate[hand] = None
+        changed.append(hand)
