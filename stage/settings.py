@@ -80,8 +80,9 @@ class FusionSettings:
                                  # fit), allowed for when views of an instant are compared
     replay_s: float = 0.15       # history kept per person to fold in frames that come late
     hand_vote: str = "confidence"  # or "plain": every report weighs 1, not the hand's confidence
-    hand_memory_s: float = 0.05  # a hand report's weight falls by e every this many seconds
+    hand_memory_s: float = 0.03  # a hand report's weight falls by e every this many seconds
     hand_hold_s: float = 0.1     # a hand's new state must win the vote this long to be reported
+                                 # (time counts up to twice as fast the more sensors agree)
     rejoin_s: float = 3.0        # a person lost this recently...
     rejoin_m: float = 0.75       # ...who reappears this close to where they were lost...
     rejoin_size_m: float = 0.05  # ...with a trunk length this close to theirs gets their id back

@@ -189,7 +189,7 @@ class People:
             person = self.persons.get(pid)
             if person is None or not person.announced:
                 continue
-            if self._send_hands(person, person.voter.update(max(person.t, self._hand_time(person)))):
+            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
                 updated.append(pid)
         for pid, arrivals in self._dirty.items():
             person = self.persons.get(pid)
@@ -215,11 +215,6 @@ class People:
         if self.listeners and (updated or lost):
             self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
                                            tuple(lost)))
-
-    @staticmethod
-    def _hand_time(person: Person) -> float:
-        """The newest hand report's capture time for ``person``."""
-        return max((entry[0] for entry in person.voter.reports.values()), default=float("-inf"))
 
     def _send_hands(self, person: Person, changed: list[int]) -> bool:
         for hand in changed:
