@@ -40,7 +40,7 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       measurement_noise: 1e-4      # variance of a confidence-1 joint up to 1 m away, m^2
       noise_per_m: 0.004           # added to its s.d. per metre beyond
       initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
-      gate_sigma: 3.0              # beyond this Mahalanobis distance a joint counts less
+      gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
       reject_sigma: 10.0           # beyond this it is not used
 
 Retired keys (``settings.RETIRED_KEYS``: ``fusion: min_interval_s``, ``fusion: outlier_m``,

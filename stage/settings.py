@@ -45,7 +45,7 @@ class KalmanSettings:
     # Joints of a performer rarely exceed ~1-2 m/s when first seen; 1 (m/s)^2 lets the
     # velocity converge within a few frames.
     initial_velocity_var: float = 1.0
-    gate_sigma: float = 3.0            # chi-square, 3 degrees of freedom: 97 % of good joints
+    gate_sigma: float = 2.5            # chi-square, 3 degrees of freedom: 90 % of good joints
     reject_sigma: float = 10.0         # a gross error (swapped limbs, a jump of a metre)
 
     def __post_init__(self) -> None:

@@ -303,7 +303,8 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
             # beyond the gate the variance grows with the distance: r d^2 / gate^2
             xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
             use = upd & (d2 <= s.reject_sigma ** 2)
-            outcome[upd] = np.where(d2[upd] > gate2, DOWNWEIGHTED, ACCEPTED)
+            outcome = np.where(upd, np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED),
+                               NOT_MEASURED).astype(np.int8)
         if use.all():
             state.x, state.P, state.mu = xu, Pu, muu
             state.t = np.maximum(t, state.t)

@@ -27,8 +27,7 @@ from .hands import HandVoter
 log = logging.getLogger("stage.engine")
 
 
-_TORSO_MASK = np.zeros(N_JOINTS, dtype=bool)
-_TORSO_MASK[list(TORSO)] = True
+_TORSO_IDX = np.array(TORSO)
 _NECK, _BASE = JOINT_INDEX["Neck"], JOINT_INDEX["SpineBase"]
 
 
@@ -135,13 +134,15 @@ class Person:
         so a view that sees only part of the body is not judged by a centre
         that jumps with what happens to be occluded.
         """
-        shared = (conf > 0) & self.known
-        on_torso = shared & _TORSO_MASK
-        mask = on_torso if on_torso.any() else shared
-        if not mask.any():
-            return None
+        on_torso = (conf[_TORSO_IDX] > 0) & self.known[_TORSO_IDX]
+        if on_torso.any():
+            idx = _TORSO_IDX[on_torso]
+        else:
+            idx = np.flatnonzero((conf > 0) & self.known)
+            if not len(idx):
+                return None
         dt = min(max(t - self.t, 0.0), 0.5)
-        diff = joints[mask] - self.joints[mask] - self.velocity[mask] * dt
+        diff = joints[idx] - self.joints[idx] - self.velocity[idx] * dt
         return float(np.sqrt((diff * diff).sum(axis=1)).mean())
 
     def sensors(self) -> tuple[str, ...]:
@@ -241,10 +242,15 @@ class Tracker:
         fs = self.fusion
         live = [p for p in self.persons.values() if p.centre is not None and p.tracks]
         close_now: set[tuple[int, int]] = set()
-        for i, a in enumerate(live):
-            for b in live[i + 1:]:
-                if np.linalg.norm(a.centre - b.centre) > fs.merge_m:
-                    continue
+        if len(live) < 2:
+            self._close_since.clear()
+            return
+        centres = np.stack([p.centre for p in live])
+        diff = centres[:, None] - centres[None]
+        near = (diff * diff).sum(axis=2) <= fs.merge_m ** 2      # every pair at once
+        for i, j in zip(*np.nonzero(np.triu(near, 1))):
+            a, b = live[i], live[j]
+            if a.tracks and b.tracks:
                 if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
                     continue  # one sensor sees both: two people
                 key = (min(a.id, b.id), max(a.id, b.id))
