@@ -5,7 +5,8 @@ arrival and capture times); output is Server-to-View datagrams handed to a
 ``Transport`` and ``FusedFrame`` objects handed to in-process listeners.
 Time comes from an injected clock, so tests and replays run with no sleeps.
 
-Per batch of inbound items, in capture-time order:
+Per batch of inbound items (the live thread hands over one datagram at a
+time), in capture-time order:
   sensor frame -> calibration transform -> track update -> association to a
   person (``tracking``); at the end of the batch every frame is one
   measurement update of its person's filter (``fuser``, ``kalman``), all
@@ -48,6 +49,8 @@ log = logging.getLogger("stage.engine")
 #: seconds between the engine thread's ticks (timeouts, expiry, merging); offline
 #: runs tick on the same grid so they give what a live run gives
 TICK_S = 0.02
+#: more datagrams than this waiting at once is a backlog: processed as one batch
+BACKLOG_DATAGRAMS = 12
 
 
 @dataclass(slots=True)
@@ -383,8 +386,12 @@ class Engine:
                 batch = self._take([self.queue.get(timeout=timeout)], limit=512)
             except queue.Empty:
                 batch = []
-            if batch:
-                self.process(batch)
+            # one datagram at a time, so that its frames go out as soon as they are folded in
+            # and not after everything else that came at the same instant (sensors in step);
+            # a backlog is taken in one go, sending each person once, to catch up
+            chunks = list(_by_datagram(batch))
+            for chunk in (chunks if len(chunks) <= BACKLOG_DATAGRAMS else [batch]):
+                self.process(chunk)
             now = self.clock.now()
             if now - self._last_tick >= tick_s:
                 self.tick(now)
@@ -415,6 +422,16 @@ class Engine:
             "latency_ms": self.latency.summary_ms(),
             "fusion": self.people.stats(),
         }
+
+
+def _by_datagram(batch: list[Inbound]):
+    """The batch in runs of items from one datagram (same arrival and sender), in order."""
+    start = 0
+    for k in range(1, len(batch) + 1):
+        if k == len(batch) or (batch[k].arrival, batch[k].source) != (batch[start].arrival,
+                                                                        batch[start].source):
+            yield batch[start:k]
+            start = k
 
 
 def _client_key(item: Inbound) -> str:
