@@ -549,3 +549,18 @@ def test_stats_give_latency_since_the_askers_last_query():
     assert replies[0]["latency_since_last_query_ms"]["n"] == 3
     assert replies[1]["latency_since_last_query_ms"]["n"] == 1
     assert replies[1]["latency_ms"]["n"] == 4
+
+
+def test_with_smoothing_off_each_joint_is_its_latest_measurement():
+    rig = Rig(views=[VIEW])
+    rig.smoothing_enabled = False          # the rig's smoothing: {enabled: false}
+    clock, out = ManualClock(100.0), RecordingTransport()
+    engine = Engine(rig, clock, out)
+    rng = np.random.default_rng(8)
+    for k in range(5):
+        body = standing_pose((0.2 * k, 2.5), 0.0) + rng.normal(0, 0.01, (25, 3))
+        send(engine, frame("kin", 0, body))
+        clock.advance(1 / FPS)
+        last = out.of("/jointCoordinates")[-1]
+        xyz = np.array([last[2 + 5 * j: 5 + 5 * j] for j in range(25)])
+        np.testing.assert_allclose(xyz, body, atol=1e-5)

@@ -1,11 +1,11 @@
 """The people on stage: calibrated sensor frames in, fused persons and their messages out.
 
 ``People`` is the engine's fusion path, on the engine thread. Per batch of
-inbound items the engine hands it each calibrated frame (``frame``) and hand
-state (``hand``); at the end of the batch ``flush`` folds every frame into its
-person's filter -- all persons of the batch in one numpy step per wave
-(``fuser``) -- votes hands (``hands``) and sends each updated person once, at
-once: nothing waits for a later frame. ``tick`` merges and expires persons
+inbound items (live: one datagram) the engine hands it each calibrated frame
+(``frame``) and hand state (``hand``); at the end of the batch ``flush`` folds
+every frame into its person's filter -- all persons of the batch in one numpy
+step per wave (``fuser``) -- votes hands (``hands``) and sends each updated
+person once, at once: nothing waits for a later frame. ``tick`` merges and expires persons
 and serves views that asked for a fixed rate.
 
 Latency is recorded per input frame: from its datagram's arrival to the
@@ -14,7 +14,9 @@ emission that includes it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+
 import numpy as np
 
 from ..clock import Clock
@@ -47,7 +49,6 @@ class People:
         self.tracker = Tracker(rig.fusion)
         smoothing = rig.smoothing
         if not rig.smoothing_enabled:
-            import dataclasses
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
         self.fuser = Fuser(smoothing, rig.fusion)
@@ -227,7 +228,7 @@ class People:
                 sent = True
         return sent
 
-    def bodies(self) -> dict[int, "Body"]:
+    def bodies(self) -> dict[int, Body]:
         return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
                           (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors())
                 for pid, p in self.persons.items() if p.announced and p.centre is not None}
