@@ -1,6 +1,6 @@
 """The rig file: the installer's description of sensors, calibration and ports.
 
-A rig never mentions music. Example (every key optional)::
+A rig never mentions music. Every key, each optional (defaults shown)::
 
     server: {host: 0.0.0.0, port: 7770}
     reference: kinect-a            # its space is stage space unless stage_frame is set
@@ -19,8 +19,37 @@ A rig never mentions music. Example (every key optional)::
     clients: {timeout_s: 1.0, max_messages_per_s: 3000}
     limits: {max_clients: 64, max_views: 32, view_ttl_s: 60}   # see LimitSettings
     alerts: {after_s: 60, command: "notify-installer", osc: "10.0.0.9:9999"}
-    fusion: {associate_m: 0.5, min_interval_s: 0.025, ...}   # see FusionSettings
-    smoothing: {enabled: true, process_noise: 4.0, measurement_noise: 1e-4}
+    fusion:                        # settings.FusionSettings
+      associate_m: 0.5             # an unbound view joins a person whose torso is this close
+      release_m: 0.8               # a bound view leaves its person beyond this...
+      release_frames: 3            # ...for this many frames in a row
+      merge_m: 0.3                 # two persons this close...
+      merge_s: 0.5                 # ...this long, never seen together by one sensor, are one
+      stale_s: 0.15                # a joint no view has reported for this long is not sent
+      lost_grace_s: 0.5            # a person with no views is kept this long
+      group_s: 0.005               # frames captured this close together are one instant
+      view_bias_m: 0.02            # a view's systematic error, when views of an instant compare
+      replay_s: 0.15               # history kept to fold in frames that come late
+      hand_vote: confidence        # or plain
+      hand_memory_s: 0.03          # a hand report's weight falls by e in this time
+      hand_hold_s: 0.1             # a hand's new state is sent once it has held this long
+      rejoin_s: 3.0                # a person lost this recently...
+      rejoin_m: 0.75               # ...back this close to where they were lost...
+      rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
+    smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
+      enabled: true                # false: each joint is its latest accepted measurement
+      quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2
+      fast_noise: 2000.0           # ...and of the fast one
+      quiet_to_fast_per_s: 1.5     # how often the motion switches model
+      fast_to_quiet_per_s: 3.2
+      measurement_noise: 1e-4      # variance of a confidence-1 joint up to 1 m away, m^2
+      noise_per_m: 0.004           # added to its s.d. per metre beyond
+      initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
+      gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
+      reject_sigma: 10.0           # beyond this it is not used
+
+Retired keys (``settings.RETIRED_KEYS``: ``fusion: min_interval_s``, ``fusion: outlier_m``,
+``smoothing: process_noise``) are refused with a line naming what replaced them.
 """
 
 from __future__ import annotations
@@ -36,7 +65,8 @@ import yaml
 from .errors import ConfigError
 from .geometry import invert
 from .network import Networks, parse_hostport
-from .settings import AlertSettings, ClientSettings, FusionSettings, KalmanSettings, LimitSettings
+from .settings import (RETIRED_KEYS, AlertSettings, ClientSettings, FusionSettings, KalmanSettings,
+                       LimitSettings)
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
 DEFAULT_PORT = 7770
@@ -251,11 +281,14 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"min_interval_s", "reference_after_s"}
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     section = where.mapping(data.get(key), f"'{key}'")
+    for (owner, old), instead in RETIRED_KEYS.items():
+        if owner == key and old in section:
+            raise where.at_key(section, old, f"'{key}: {old}' is no longer used: {instead}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     where.check_keys(section, fields, f"'{key}'")
     values: dict[str, Any] = {}

@@ -15,53 +15,94 @@ from .errors import ConfigError
 
 @dataclass(frozen=True)
 class KalmanSettings:
-    """Noise model of the joint filter.
+    """The joint filter (``stage.engine.kalman``): two motion models, the sensor noise, the gate.
 
-    process_noise: variance of the white-noise acceleration, (m/s^2)^2, per axis.
-    measurement_noise: variance of one axis of a confidence-1 measurement, m^2;
-        a measurement of confidence c has variance ``measurement_noise / c``.
-    initial_velocity_var: variance of the (unknown, taken as 0) velocity of a
-        newly seen point, (m/s)^2.
+    quiet_noise, fast_noise: white-noise acceleration variance of the quiet and the
+        fast motion model, (m/s^2)^2 per axis.
+    quiet_to_fast_per_s, fast_to_quiet_per_s: how often the motion switches model
+        (rates: the chance of a switch within dt is 1 - exp(-rate * dt)).
+    measurement_noise: variance of one axis of a confidence-1 joint at most 1 m from
+        its sensor, m^2; ``noise_per_m`` (m per m) is added to its s.d. per metre beyond,
+        and a joint of confidence c has variance / c.
+    initial_velocity_var: variance of the (unknown, taken as 0) velocity of a newly
+        seen joint, (m/s)^2.
+    gate_sigma: beyond this Mahalanobis distance from the prediction a joint's
+        variance is multiplied by (distance / gate_sigma)^2; reject_sigma: beyond this
+        it is not used at all.
     """
 
-    # 2 m/s^2 RMS acceleration: at 30 Hz with 1 cm noise, a tracking index
-    # sigma_a*dt^2/sigma_z of ~0.22. bench/bench_kalman.py measures ~37 % less
-    # jitter than the raw joints, no lag at constant velocity (~0.4 frame on a
-    # 1 Hz, 0.3 m swing), and a 1 m/s stop overshooting ~2 cm and settling in
-    # ~8 frames. Raise it for sharper moves, lower it for stiller pieces.
-    process_noise: float = 4.0
-    # Kinect v2 tracked joints jitter by about 1 cm per axis: (0.01 m)^2.
+    # Tuned on the CMU motion capture of subject 131 (walks, a hop, kicks; hands and feet
+    # reach 12 m/s) at 30 Hz with 1 cm noise, and 2 cm noise with 2 % outliers of
+    # 10-30 cm: bench/bench_smoothing.py, docs/smoothing.md.
+    quiet_noise: float = 5.0           # 2.2 m/s^2 RMS: standing, swaying, the torso walking
+    fast_noise: float = 2000.0         # 45 m/s^2 RMS: kicks, hops, arm swings
+    quiet_to_fast_per_s: float = 1.5   # about 5 % a frame at 30 Hz
+    fast_to_quiet_per_s: float = 3.2   # about 10 % a frame
+    # Kinect v2 tracked joints jitter by about 1 cm per axis near the sensor...
     measurement_noise: float = 1e-4
-    # Joints of a standing or walking performer rarely exceed ~1-2 m/s when first
-    # seen; 1 (m/s)^2 lets the velocity converge within a few frames.
+    # ...and more further away (the simulator's Kinect model assumes 4 mm per metre)
+    noise_per_m: float = 0.004
+    # Joints of a performer rarely exceed ~1-2 m/s when first seen; 1 (m/s)^2 lets the
+    # velocity converge within a few frames.
     initial_velocity_var: float = 1.0
+    gate_sigma: float = 2.5            # chi-square, 3 degrees of freedom: 90 % of good joints
+    reject_sigma: float = 10.0         # a gross error (swapped limbs, a jump of a metre)
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
             if (isinstance(value, bool) or not isinstance(value, Real)
-                    or not math.isfinite(value) or value <= 0):
+                    or not math.isfinite(value) or value < 0
+                    or (value == 0 and f.name != "noise_per_m")):
                 raise ConfigError(f"kalman {f.name} must be a finite number > 0, got {value!r}")
+        if self.reject_sigma < self.gate_sigma:
+            raise ConfigError("kalman reject_sigma must be at least gate_sigma")
 
 
 @dataclass(frozen=True)
 class FusionSettings:
+    """Who is who (association, merging, ids), how views of an instant are combined, hands.
+
+    Each sensor frame is folded into its person's filter at once (``stage.engine.fuser``);
+    the filter itself is ``KalmanSettings``.
+    """
+
     associate_m: float = 0.5     # an unbound view joins a person whose torso is this close
     release_m: float = 0.8       # a bound view leaves its person beyond this distance...
     release_frames: int = 3      # ...for this many frames in a row (hysteresis)
     merge_m: float = 0.3         # two persons this close...
     merge_s: float = 0.5         # ...for this long, never seen together by one sensor, are one
-    outlier_m: float = 0.10      # joint outlier margin beyond the median spread
-    stale_s: float = 0.15        # a view older than this is not averaged in
+    stale_s: float = 0.15        # a joint no view has reported for this long is not sent
     lost_grace_s: float = 0.5    # a person with no views is kept this long before /lostUser
-    min_interval_s: float = 0.025  # fuse a person at most this often (0: on every frame)
-    hand_vote: str = "plain"     # or "confidence": votes weighted by hand-joint confidence
+    group_s: float = 0.005       # frames captured this close together are one instant: their
+                                 # joints are checked against each other before they are fused
+    view_bias_m: float = 0.02    # each view's own systematic error (calibration, the sensor's
+                                 # fit), allowed for when views of an instant are compared
+    replay_s: float = 0.15       # history kept per person to fold in frames that come late
+    hand_vote: str = "confidence"  # or "plain": every report weighs 1, not the hand's confidence
+    hand_memory_s: float = 0.03  # a hand report's weight falls by e every this many seconds
+    hand_hold_s: float = 0.1     # a hand's new state must win the vote this long to be reported
+                                 # (time counts up to twice as fast the more sensors agree)
+    rejoin_s: float = 3.0        # a person lost this recently...
+    rejoin_m: float = 0.75       # ...who reappears this close to where they were lost...
+    rejoin_size_m: float = 0.05  # ...with a trunk length this close to theirs gets their id back
 
     def __post_init__(self) -> None:
         if self.hand_vote not in ("plain", "confidence"):
             raise ConfigError(f"'hand_vote' must be 'plain' or 'confidence', got '{self.hand_vote}'")
         if self.release_m < self.associate_m:
             raise ConfigError("'release_m' must be at least 'associate_m' (hysteresis)")
+
+
+#: rig keys that no longer exist, and what replaced them (one line each, for the error)
+RETIRED_KEYS: dict[tuple[str, str], str] = {
+    ("fusion", "min_interval_s"): "every sensor frame is now fused at once; there is no "
+    "interval to set (see fusion: group_s, replay_s and smoothing: in CHANGELOG.md)",
+    ("fusion", "outlier_m"): "outliers are now gated by the filter: smoothing: gate_sigma and "
+    "reject_sigma, and fusion: view_bias_m for views of one instant",
+    ("smoothing", "process_noise"): "the filter now has two motion models: smoothing: "
+    "quiet_noise and fast_noise",
+}
 
 
 @dataclass(frozen=True)

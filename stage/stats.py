@@ -99,14 +99,25 @@ class LatencyWindow:
         self._buf = np.zeros(size)
         self._n = 0
 
+    @property
+    def count(self) -> int:
+        """Samples added since the start (not only those still kept)."""
+        return self._n
+
     def add(self, seconds: float) -> None:
         self._buf[self._n % len(self._buf)] = seconds
         self._n += 1
 
-    def summary_ms(self) -> dict[str, float]:
+    def summary_ms(self, since: int | None = None) -> dict[str, float]:
+        """p50, p99 and max (ms) of the samples kept, or of those added after the
+        ``since``-th (``count`` at an earlier moment; as many of them as are still kept)."""
         n = min(self._n, len(self._buf))
+        if since is not None:
+            n = min(n, max(self._n - since, 0))
         if n == 0:
             return {"n": 0}
-        v = self._buf[:n] * 1e3
-        return {"n": self._n, "p50": float(np.percentile(v, 50)),
+        end = self._n % len(self._buf)
+        idx = (end - 1 - np.arange(n)) % len(self._buf)     # the newest n samples
+        v = self._buf[idx] * 1e3
+        return {"n": self._n if since is None else n, "p50": float(np.percentile(v, 50)),
                 "p99": float(np.percentile(v, 99)), "max": float(v.max())}

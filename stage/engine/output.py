@@ -15,6 +15,11 @@ periodically keeps working, as Kuatro views do), and a view the kernel
 reports unreachable ``limits.view_send_errors`` times in a row is dropped.
 So nobody outside the allow-list can make the server send anything, and
 nobody inside it can make the server send for ever to a closed port.
+
+By default a view gets every update of every person as it is fused. A view
+that registers with a rate (``/registerView ip port rateHz``) instead gets
+``/jointCoordinates`` of every person at that rate, each predicted to the
+moment it is sent (``due``, called by the engine's timer).
 """
 
 from __future__ import annotations
@@ -64,6 +69,8 @@ class ViewOutput:
         self.static: list[tuple[str, int]] = list(dict.fromkeys(views))
         self.registered: dict[tuple[str, int], ViewEntry] = {}
         self.views: list[tuple[str, int]] = list(self.static)
+        #: views that asked for a fixed rate: address -> (rate Hz, next send time or None)
+        self.rates: dict[tuple[str, int], tuple[float, float | None]] = {}
         self.datagrams_out = 0
         self.send_errors = 0
         self.expired = 0
@@ -93,6 +100,7 @@ class ViewOutput:
             return
         target = (host, msg.port)
         if not msg.register:
+            self.rates.pop(target, None)
             if self.registered.pop(target, None) is not None:
                 self._update()
                 log.info("view %s:%d unregistered", *target)
@@ -117,6 +125,12 @@ class ViewOutput:
         else:
             entry.expires = now + self.limits.view_ttl_s
             entry.refused = 0
+        if msg.rate_hz:
+            if target not in self.rates:
+                log.info("view %s:%d takes %g updates a second", *target, msg.rate_hz)
+            self.rates[target] = (msg.rate_hz, self.rates.get(target, (0.0, None))[1])
+        else:
+            self.rates.pop(target, None)
         for pid, centre, hands in announced:
             self.send(encode_view_new_user(pid, centre), target)
             for hand in (0, 1):
@@ -135,6 +149,7 @@ class ViewOutput:
         gone = [v for v, e in self.registered.items() if now >= e.expires]
         for view in gone:
             del self.registered[view]
+            self.rates.pop(view, None)
             self.expired += 1
             log.info("view %s:%d expired: it did not register again within %g s", *view,
                      self.limits.view_ttl_s)
@@ -150,6 +165,7 @@ class ViewOutput:
         entry.refused += 1
         if entry.refused >= self.limits.view_send_errors:
             del self.registered[(host, port)]
+            self.rates.pop((host, port), None)
             self.dropped_unreachable += 1
             self._update()
             log.warning("view %s:%d dropped: its port refused %d datagrams in a row (closed?)",
@@ -173,9 +189,44 @@ class ViewOutput:
         if self.views and self.transport is not None:
             self.broadcast(encode_view_new_user(pid, centre))
 
-    def joints(self, pid: int, joints: np.ndarray, conf: np.ndarray) -> None:
-        if self.views and self.transport is not None:
+    def joints(self, pid: int, joints: np.ndarray, conf: np.ndarray,
+               targets: list[tuple[str, int]] | None = None) -> None:
+        """To every view that takes every update (default), or to ``targets``."""
+        if targets is not None:
+            data = encode_view_joints(pid, joints, conf)
+            for view in targets:
+                self.send(data, view)
+            return
+        if not self.views or self.transport is None:
+            return
+        if not self.rates:
             self.broadcast(encode_view_joints(pid, joints, conf))
+            return
+        data = encode_view_joints(pid, joints, conf)
+        for view in self.views:
+            if view not in self.rates:
+                self.send(data, view)
+
+    # ------------------------------------------------------------ fixed rates
+    def due(self, now: float) -> list[tuple[str, int]]:
+        """The fixed-rate views whose next send is due at ``now`` (and schedule the next)."""
+        out = []
+        for view, (rate, next_t) in self.rates.items():
+            if next_t is None or now >= next_t:
+                out.append(view)
+                period = 1.0 / rate
+                # keep the grid; after a stall, start again from now
+                following = now + period if next_t is None or now - next_t > period \
+                    else next_t + period
+                self.rates[view] = (rate, following)
+        return out
+
+    def next_due(self) -> float | None:
+        """When the next fixed-rate send is due (None: no such view)."""
+        times = [t for _, t in self.rates.values()]
+        if not times:
+            return None
+        return min(float("-inf") if t is None else t for t in times)
 
     def hand(self, pid: int, hand: int, state: HandState) -> None:
         if self.views and self.transport is not None:

@@ -21,6 +21,7 @@ only (``/floorPlane clientID a b c d``, ``/unregisterView ip port``,
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from dataclasses import dataclass, field
@@ -112,6 +113,7 @@ class RegisterView:
     host: str
     port: int
     register: bool = True  # False for /unregisterView
+    rate_hz: float | None = None  # a fixed output rate asked for (stage addition); None: every update
 
 
 @dataclass(slots=True)
@@ -514,11 +516,19 @@ def _port(v: object) -> int:
 
 
 def _h_register_view(params: list, source: str, register: bool = True) -> RegisterView:
+    rate = None
+    if register and len(params) == 3:  # trailing rate in Hz: a stage addition
+        rate = params[2]
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)):
+            raise _Drop("bad_types")
+        if not (math.isfinite(rate) and 0 < rate <= 1000):
+            raise _Drop("out_of_range")
+        params = params[:2]
     _arity(params, 2)
     host = params[0]
     if not isinstance(host, str) or not host or len(host) > 255:
         raise _Drop("bad_types")
-    return RegisterView(host, _port(params[1]), register)
+    return RegisterView(host, _port(params[1]), register, None if rate is None else float(rate))
 
 
 def _h_unregister_view(params: list, source: str) -> RegisterView:
@@ -586,15 +596,36 @@ def encode_message(address: str, *args: object) -> bytes:
     return _pad(address.encode()) + _pad(b"".join(tags)) + b"".join(data)
 
 
+@functools.lru_cache(maxsize=256)
+def _block_layout(prefix_tags: bytes, selected: bytes) -> tuple[bytes, bytes, np.ndarray, np.ndarray]:
+    """The fixed part of a joint block for one set of joints: (address and type tags, the
+    joint names with room for their floats, where the floats go, which joints). Cached:
+    a skeleton stream uses few joint sets, and filling a template costs a fraction of
+    building the message (lru_cache is thread-safe)."""
+    idx = np.flatnonzero(np.frombuffer(selected, dtype=bool))
+    head = _ADDR_JOINTS + _pad(b"," + prefix_tags + b"sffff" * len(idx))
+    body = bytearray()
+    slots = []
+    for i in idx:
+        body += _NAME_BYTES[i]
+        slots.append(len(body))
+        body += bytes(16)
+    where = (np.array(slots, dtype=np.intp)[:, None] + np.arange(16)).ravel()
+    where.setflags(write=False)
+    idx.setflags(write=False)
+    return head, bytes(body), where, idx
+
+
 def _joint_block(prefix_tags: bytes, prefix: bytes, joints: np.ndarray, conf: np.ndarray,
                  mask: np.ndarray | None) -> bytes:
-    idx = np.flatnonzero(conf > 0 if mask is None else mask)
+    selected = np.ascontiguousarray(conf > 0 if mask is None else mask, dtype=bool)
+    head, template, where, idx = _block_layout(prefix_tags, selected.tobytes())
     values = np.empty((len(idx), 4), dtype=">f4")
     values[:, :3] = joints[idx]
     values[:, 3] = conf[idx]
-    rows = values.tobytes()
-    body = b"".join(_NAME_BYTES[i] + rows[16 * k:16 * k + 16] for k, i in enumerate(idx))
-    return _ADDR_JOINTS + _pad(b"," + prefix_tags + b"sffff" * len(idx)) + prefix + body
+    body = np.frombuffer(template, dtype=np.uint8).copy()
+    body[where] = values.view(np.uint8).ravel()
+    return head + prefix + body.tobytes()
 
 
 def encode_view_joints(user: int, joints: np.ndarray, conf: np.ndarray,
