@@ -268,3 +268,20 @@ def test_anticipate_on_a_trigger_that_cannot_is_a_clear_error():
         "rises_above: 1.9\n        joint: HandLeft", "hand: open")
     with pytest.raises(ConfigError, match="applies to enters, leaves, rises_above, falls_below"):
         loads_piece(text)
+
+
+def test_the_midi_view_ends_a_contradicted_note_and_leaves_other_cuts_to_its_rules():
+    from stage.events import Note
+    from stage_plugins.midi.schedule import MidiScheduler
+    sched = MidiScheduler()
+    sched.add(Note(1.0, "midi", 0, 60, 80, 4.0, play=7), 0.0)
+    sched.add(Note(1.0, "midi", 0, 64, 80, 4.0, play=8), 0.0)
+    sched.add(Note(3.0, "midi", 0, 67, 80, 1.0, play=7), 0.0)
+    sched.add(NoteCut(1.5, "midi", 0, 60, 1.0, 4.0, 0.5, 7, "contradicted"), 1.5)
+    sched.add(NoteCut(1.5, "midi", 0, 67, 3.0, 1.0, 0.0, 7, "contradicted"), 1.5)
+    sched.add(NoteCut(1.5, "midi", 0, 64, 1.0, 4.0, 0.5, 8, "silence"), 1.5)  # an account only
+    out = sched.due(10.0)
+    offs = [(o.t, o.data[1]) for o in out if o.data[0] & 0xF0 == 0x80]
+    assert (1.5, 60) in offs and (5.0, 64) in offs          # 64 keeps its own note-off
+    assert not any(o.data[1] == 67 for o in out)             # cancelled before its onset
+    assert sched.stats["cancelled"] == 1
