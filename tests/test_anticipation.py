@@ -285,3 +285,13 @@ def test_the_midi_view_ends_a_contradicted_note_and_leaves_other_cuts_to_its_rul
     assert (1.5, 60) in offs and (5.0, 64) in offs          # 64 keeps its own note-off
     assert not any(o.data[1] == 67 for o in out)             # cancelled before its onset
     assert sched.stats["cancelled"] == 1
+
+
+def test_the_monitor_status_carries_the_forecast_figures():
+    from stage.views.base import Status
+    from stage_plugins.monitor.state import status_json
+    engine = {"forecast": {"horizons_s": [0.05], "views_s": {}, "sd_mm": {"0.05": 31.2},
+                           "speed_capped": 2, "bones_fixed": 1, "made": 10}}
+    got = status_json(Status(1.0, engine, {}))["engine"]["forecast"]
+    assert got == {"horizons_s": [0.05], "views_s": {}, "sd_mm": {"0.05": 31.2},
+                   "speed_capped": 2, "bones_fixed": 1}
