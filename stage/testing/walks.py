@@ -11,8 +11,6 @@ a recording's would be; the truth is sampled from the same performer.
 
 from __future__ import annotations
 
-from dataclasses import replace as dc_replace
-
 import math
 import os
 from pathlib import Path
@@ -104,16 +102,9 @@ def cmu_walker(path: Path, *, height: float, mirrored: bool = False,
 
 
 def walkway(performer: Performer, duration: float) -> Scenario:
-    """Seed 003's walkway (the built-in ``walkway`` scenario's sensors) with this walker.
-
-    The sensors' pipeline delay is 0: the gait analyses are compared with the motion
-    capture step by step at the same timestamps (as seed 003 compared its Kinects with a
-    reference system on one clock), which a 60 ms shift of every frame would blur.
-    """
+    """Seed 003's walkway (the built-in ``walkway`` scenario's sensors) with this walker."""
     base = load_scenario("walkway")
-    sensors = [dc_replace(s, model=dc_replace(s.model, pipeline_delay_s=0.0,
-                                                pipeline_jitter_s=0.0)) for s in base.sensors]
-    return Scenario("walkway", sensors, [performer], [], base.reference, duration,
+    return Scenario("walkway", base.sensors, [performer], [], base.reference, duration,
                     "seed 003's walkway", None)
 
 
