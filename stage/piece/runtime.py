@@ -21,11 +21,11 @@ from typing import Callable
 import numpy as np
 
 from ..frames import FusedFrame
-from ..events import (ControlChange, Event, EventSink, SectionChange, TriggerContradicted,
-                      TriggerFired, ZoneState)
+from ..events import ControlChange, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
+from .anticipation import anticipate, contradicted
 from .mappings import MappingRun
-from .model import BODY, Piece, Section, Trigger, joint_label
+from .model import Piece, Section, Trigger, joint_label
 from .music import meter_beats
 from .sinks import FanoutSink, RecordingSink
 from .triggers import ClockDetector, Detector, Firing, Person, PresenceDetector, detector_for
@@ -158,7 +158,7 @@ class PieceRuntime:
             if self.ended:
                 self._flush()
                 return
-            self._contradicted(t)
+            contradicted(self, t)
             self._clock_triggers(t, self._active_runs())
             self._idle(t)
             self._apply_goto(t)
@@ -265,7 +265,7 @@ class PieceRuntime:
                 if chosen:
                     det.frame(t, chosen, firings)
                     if run.ahead is not None:
-                        self._anticipate(run, t, chosen)
+                        anticipate(self, run, t, chosen)
             if firings:
                 for f in firings:
                     if run.pending and run.pending.pop((f.person, f.joint), None) is not None:
@@ -273,7 +273,7 @@ class PieceRuntime:
                         continue
                     self._consider(run, f, t)
                 firings.clear()
-        self._contradicted(t)
+        contradicted(self, t)
         self._clock_triggers(t, runs)
         for mrun in (*self._maps[self.section.index], *self._global_maps):
             if self.ending and mrun.mapping.kind == "cc":
@@ -328,60 +328,6 @@ class PieceRuntime:
                 for f in firings:
                     self._consider(run, f, t)
                 firings.clear()
-
-    # ------------------------------------------------------------ anticipation
-    def _persons_ahead(self, horizon: float) -> dict[int, Person]:
-        """This frame's persons predicted ``horizon`` s ahead ({} if the engine sent none)."""
-        out = self._ahead.get(horizon)
-        if out is None:
-            bodies = self._frame.forecasts.get(horizon)
-            if bodies is None:
-                self.counts["forecast_missing"] += 1
-                bodies = {}
-            out = self._ahead[horizon] = {
-                pid: Person(b, self.min_conf, self.arrivals.get(pid, self._frame.t))
-                for pid, b in bodies.items()}
-        return out
-
-    def _anticipate(self, run: _TriggerRun, t: float, chosen: list[Person]) -> None:
-        """Fire ``run`` on crossings predicted ahead whose uncertainty is small enough."""
-        a = run.trigger.anticipate
-        ahead = self._persons_ahead(a.ahead)
-        predicted: list[Firing] = []
-        run.ahead.frame(t, [ahead[p.id] for p in chosen if p.id in ahead], predicted)
-        for f in predicted:
-            key = (f.person, f.joint)
-            if key in run.pending:
-                continue
-            sd = ahead[f.person].body.sd
-            # the torso centre moves like SpineMid (as its velocity does)
-            s = float(sd[1 if f.joint == BODY else f.joint]) if sd is not None else float("inf")
-            if not s <= a.max_sd:
-                self.counts["unsure"] += 1     # the measurements will fire it, if they cross
-                continue
-            if self._consider(run, f, t, a.ahead):
-                self.counts["anticipated"] += 1
-                run.pending[key] = (t, t + a.ahead + a.within, self._firings)
-
-    def _contradicted(self, t: float) -> None:
-        """Predicted crossings the measurements have not made in time: counted, told, and
-        their notes cut short where the trigger asks."""
-        for run in self._all_runs():
-            if not run.pending:
-                continue
-            trig = run.trigger
-            for key, (fired, deadline, firing) in list(run.pending.items()):
-                if t < deadline:
-                    continue
-                del run.pending[key]
-                self.counts["contradicted"] += 1
-                cut = trig.anticipate.cut and self.voices.retract(
-                    t, trig.name, firing, "contradicted") > 0
-                joint = None if key[1] is None else joint_label(key[1])
-                self._out.append(TriggerContradicted(t, self.section.name, trig.name, key[0],
-                                                     joint, fired, cut))
-                self._narrate(t, f"[{self.section.index + 1}] {trig.name}: predicted at "
-                                 f"{fired:.3f}, not measured" + ("; cut short" if cut else ""))
 
     # ------------------------------------------------------------ firing
     def _consider(self, run: _TriggerRun, f: Firing, t: float, anticipated: float = 0.0) -> bool:
