@@ -83,6 +83,22 @@ class TriggerFired:
     person: int | None = None
     joint: str | None = None
     value: float | None = None
+    #: > 0: fired on a crossing predicted this many seconds ahead, not yet measured
+    anticipated: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class TriggerContradicted:
+    """A trigger fired on a predicted crossing that the measurements did not make in time
+    (docs/anticipation.md); ``fired``: when it fired; ``cut``: its notes were cut short."""
+
+    t: float
+    section: str
+    trigger: str
+    person: int | None
+    joint: str | None
+    fired: float
+    cut: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,7 +174,8 @@ class ZoneState:
 
 
 Event = Union[Note, ControlChange, ProgramChange, AllNotesOff, OscOut, SectionChange,
-              TriggerFired, MappingValue, ZoneState, PhrasePlayed, PhraseSkipped, NoteCut]
+              TriggerFired, TriggerContradicted, MappingValue, ZoneState, PhrasePlayed,
+              PhraseSkipped, NoteCut]
 
 
 def to_json(event: Event) -> dict[str, Any]:

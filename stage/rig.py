@@ -47,6 +47,13 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
       gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
       reject_sigma: 10.0           # beyond this it is not used
+    forecast:                      # settings.ForecastSettings (docs/anticipation.md)
+      views_s: 0.0                 # the views above get each body predicted this far ahead
+      max_s: 0.2                   # the longest forecast a view or piece may ask for
+      torso_speed_m_s: 4.0         # a predicted joint moves at most this fast...
+      limb_speed_m_s: 8.0          # ...elbows, knees
+      extremity_speed_m_s: 12.0    # ...wrists, hands, ankles, feet
+      bone_tolerance: 0.1          # predicted bones keep their length within 10 %
 
 Retired keys (``settings.RETIRED_KEYS``: ``fusion: min_interval_s``, ``fusion: outlier_m``,
 ``smoothing: process_noise``) are refused with a line naming what replaced them.
@@ -65,7 +72,8 @@ import yaml
 from .errors import ConfigError
 from .geometry import invert
 from .network import Networks, parse_hostport
-from .settings import (RETIRED_KEYS, AlertSettings, ClientSettings, FusionSettings, KalmanSettings,
+from .settings import (RETIRED_KEYS, AlertSettings, ClientSettings, ForecastSettings,
+                       FusionSettings, KalmanSettings,
                        LimitSettings)
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
@@ -111,6 +119,7 @@ class Rig:
     fusion: FusionSettings = field(default_factory=FusionSettings)
     smoothing: KalmanSettings = field(default_factory=KalmanSettings)
     smoothing_enabled: bool = True
+    forecast: ForecastSettings = field(default_factory=ForecastSettings)
     path: str | None = None
 
     def transform_for(self, sensor: str) -> np.ndarray | None:
@@ -157,6 +166,7 @@ class Rig:
         out["alerts"] = dataclasses.asdict(self.alerts)
         out["fusion"] = dataclasses.asdict(self.fusion)
         out["smoothing"] = {"enabled": self.smoothing_enabled, **dataclasses.asdict(self.smoothing)}
+        out["forecast"] = dataclasses.asdict(self.forecast)
         return out
 
 
@@ -173,7 +183,7 @@ def load_rig(path: str) -> Rig:
     data = where.mapping(load_marked(path), "the rig")
     where.check_keys(data, ("server", "reference", "stage_frame", "sensors",
                             "allow_unknown_sensors", "allow", "views", "clients", "limits",
-                            "alerts", "fusion", "smoothing"),
+                            "alerts", "fusion", "smoothing", "forecast"),
                      "the rig")
     rig = Rig(path=path)
     server = where.mapping(data.get("server"), "'server'")
@@ -237,6 +247,7 @@ def load_rig(path: str) -> Rig:
             raise where.error(f"alerts: osc: {exc}", getattr(data.get("alerts"), "mark", None)
                               ) from None
     rig.fusion = _settings(where, data, "fusion", FusionSettings)
+    rig.forecast = _settings(where, data, "forecast", ForecastSettings)
     smoothing = where.mapping(data.get("smoothing"), "'smoothing'")
     enabled = smoothing.get("enabled", True)
     if not isinstance(enabled, bool):
@@ -281,7 +292,7 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m"}
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

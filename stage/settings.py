@@ -94,6 +94,35 @@ class FusionSettings:
             raise ConfigError("'release_m' must be at least 'associate_m' (hysteresis)")
 
 
+@dataclass(frozen=True)
+class ForecastSettings:
+    """How far ahead fused bodies may be predicted, and the bounds on a prediction
+    (``stage.engine.forecast``; docs/anticipation.md).
+
+    A forecast is the filter's state carried ``forecast_s`` past a body's capture time; a
+    joint's predicted move is capped by its speed limit (m/s) times the horizon, and every
+    bone keeps its length at capture time within ``bone_tolerance`` (a fraction).
+    """
+
+    views_s: float = 0.0              # forecast for the rig's and the command line's views
+    max_s: float = 0.2                # the longest forecast anybody may ask for
+    torso_speed_m_s: float = 4.0      # spine, neck, head, shoulders, hips
+    limb_speed_m_s: float = 8.0       # elbows, knees
+    extremity_speed_m_s: float = 12.0  # wrists, hands, thumbs, tips, ankles, feet (CMU 131:
+                                      # feet reach 12 m/s in kicks, docs/smoothing.md)
+    bone_tolerance: float = 0.1
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value) \
+                    or value < 0:
+                raise ConfigError(f"forecast {f.name} must be a finite number >= 0, got {value!r}")
+        if self.views_s > self.max_s:
+            raise ConfigError(f"forecast views_s ({self.views_s:g}) is beyond max_s "
+                              f"({self.max_s:g})")
+
+
 #: rig keys that no longer exist, and what replaced them (one line each, for the error)
 RETIRED_KEYS: dict[tuple[str, str], str] = {
     ("fusion", "min_interval_s"): "every sensor frame is now fused at once; there is no "

@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from stage.errors import ConfigError, StageError
-from stage.events import AllNotesOff, ControlChange, Event, Note, OutputDecl, ProgramChange
+from stage.events import (AllNotesOff, ControlChange, Event, Note, NoteCut, OutputDecl,
+                          ProgramChange)
 from stage.views import View, ViewContext
 
 from .ports import PortSink, choose_api
@@ -33,7 +34,7 @@ from .schedule import MidiScheduler, Out
 from .smf import SmfWriter
 from .synth import LiveSynth, WavRenderer
 
-_MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff)
+_MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff, NoteCut)
 CLOCK, START, STOP = b"\xf8", b"\xfa", b"\xfc"
 #: how often the ports are checked (a JACK server killed, a synth quit) and reopened
 CHECK_EVERY_S = 2.0

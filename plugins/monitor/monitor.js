@@ -204,6 +204,13 @@
     }
     const lat = e.latency_ms || {};
     if (lat.n) rows.push(["latency p99", lat.p99.toFixed(2) + " ms"]);
+    const fc = e.forecast || {};
+    for (const [h, sd] of Object.entries(fc.sd_mm || {})) {
+      rows.push(["forecast " + (1000 * Number(h)).toFixed(0) + " ms", "s.d. " + sd + " mm"]);
+    }
+    if (fc.speed_capped || fc.bones_fixed) {
+      rows.push(["forecast bounded", (fc.speed_capped || 0) + " speed, " + (fc.bones_fixed || 0) + " bones"]);
+    }
     document.querySelector("#drops tbody").replaceChildren(...rows.map(([k, v]) =>
       el("tr", {}, [el("td", {}, [k]), el("td", {}, [v])])));
     text("drops-total", (e.drops_total || 0) + (s.view_drops || 0));

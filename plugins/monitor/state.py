@@ -64,7 +64,11 @@ def status_json(status: Status) -> dict[str, Any]:
                    "persons": len(engine.get("persons", {})),
                    "drops_total": engine.get("drops_total", 0), "drops": reasons,
                    "latency_ms": engine.get("latency_ms", {}),
-                   "counts": engine.get("counts", {})},
+                   "counts": engine.get("counts", {}),
+                   # bodies predicted ahead (docs/anticipation.md): horizons and their s.d.
+                   "forecast": {k: engine.get("forecast", {}).get(k) for k in
+                                ("horizons_s", "views_s", "sd_mm", "speed_capped",
+                                 "bones_fixed")}},
         "views": views,
         "view_drops": sum(v["frames_dropped"] + v["events_dropped"] for v in views.values()),
         "health": health_json(status.health),

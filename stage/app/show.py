@@ -234,6 +234,8 @@ class Show:
             self.narrator = Narrator(self.out, origin=self._started_at, direct=not threaded)
             sink = FanoutSink(self.host, self.events_file, self.recorded, self.score)
             self.runtime = PieceRuntime(self.piece, sink, seed=self.seed, narrator=self.narrator)
+            for horizon in sorted(self.piece.horizons()):   # forecast_s, anticipate
+                engine.people.want_forecast(horizon)
             engine.listeners.append(self.runtime)
         if o.status_line:
             self.status = StatusLine(engine, out=self.out)

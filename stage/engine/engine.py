@@ -73,7 +73,7 @@ class Engine:
         self.registry = ClientRegistry(self.rig, self.drops, self._drop_track)
         self.output = ViewOutput(transport, self.rig.views, self.rig.limits,
                                  self.rig.allow_views if transport is not None else None,
-                                 self.drops)
+                                 self.drops, self.rig.forecast.views_s, self.rig.forecast.max_s)
         #: called on the engine thread with every fused frame (copy-on-write: add and
         #: remove from any thread)
         self.listeners = Callbacks("listener")
@@ -397,6 +397,7 @@ class Engine:
             "drops_total": sum(n for r in drops.values() for n in r.values()),
             "latency_ms": self.latency.summary_ms(),
             "fusion": self.people.stats(),
+            "forecast": self.people.forecast_stats(),
         }
 
 

@@ -20,6 +20,12 @@ By default a view gets every update of every person as it is fused. A view
 that registers with a rate (``/registerView ip port rateHz``) instead gets
 ``/jointCoordinates`` of every person at that rate, each predicted to the
 moment it is sent (``due``, called by the engine's timer).
+
+A view may also ask for a forecast (``/registerView ip port rateHz forecastS``,
+rate 0 for every update; the rig's ``forecast: views_s`` for the rig's and the
+command line's views): it then gets each body predicted that far past its
+capture time (``stage.engine.forecast``; docs/anticipation.md), bounded, instead
+of the body as measured. ``forecasts`` holds who asked for what.
 """
 
 from __future__ import annotations
@@ -61,7 +67,8 @@ class ViewOutput:
 
     def __init__(self, transport: Transport | None, views: Iterable[tuple[str, int]] = (),
                  limits: LimitSettings | None = None, allow: Networks | None = None,
-                 drops: DropCounter | None = None) -> None:
+                 drops: DropCounter | None = None, forecast_s: float = 0.0,
+                 max_forecast_s: float = 0.2) -> None:
         self.transport = transport
         self.limits = limits or LimitSettings()
         self.allow = allow
@@ -71,6 +78,13 @@ class ViewOutput:
         self.views: list[tuple[str, int]] = list(self.static)
         #: views that asked for a fixed rate: address -> (rate Hz, next send time or None)
         self.rates: dict[tuple[str, int], tuple[float, float | None]] = {}
+        #: views that asked for a forecast: address -> seconds ahead (> 0)
+        self.forecasts: dict[tuple[str, int], float] = {}
+        self.static_forecast_s = forecast_s
+        self.max_forecast_s = max_forecast_s
+        if forecast_s > 0:
+            self.forecasts.update({v: forecast_s for v in self.static})
+        self._targets: dict[float, list[tuple[str, int]]] | None = None
         self.datagrams_out = 0
         self.send_errors = 0
         self.expired = 0
@@ -79,11 +93,24 @@ class ViewOutput:
 
     def _update(self) -> None:
         self.views = self.static + [v for v in self.registered if v not in self.static]
+        self._targets = None
 
     def add_static(self, address: tuple[str, int]) -> None:
         if address not in self.static:
             self.static.append(address)
+            if self.static_forecast_s > 0:
+                self.forecasts[address] = self.static_forecast_s
             self._update()
+
+    def forecast_targets(self) -> dict[float, list[tuple[str, int]]]:
+        """Horizon -> the views taking every update that want bodies that far ahead."""
+        if self._targets is None:
+            out: dict[float, list[tuple[str, int]]] = {}
+            for view, h in self.forecasts.items():
+                if view in self.views and view not in self.rates:
+                    out.setdefault(h, []).append(view)
+            self._targets = out
+        return self._targets
 
     # ------------------------------------------------------------ registration
     def register(self, msg: RegisterView, announced: Iterable[tuple[int, np.ndarray,
@@ -101,6 +128,9 @@ class ViewOutput:
         target = (host, msg.port)
         if not msg.register:
             self.rates.pop(target, None)
+            if target not in self.static:
+                self.forecasts.pop(target, None)
+            self._targets = None
             if self.registered.pop(target, None) is not None:
                 self._update()
                 log.info("view %s:%d unregistered", *target)
@@ -125,6 +155,15 @@ class ViewOutput:
         else:
             entry.expires = now + self.limits.view_ttl_s
             entry.refused = 0
+        if target not in self.static:
+            ahead = min(msg.forecast_s or 0.0, self.max_forecast_s)
+            if ahead > 0:
+                if self.forecasts.get(target) != ahead:
+                    log.info("view %s:%d takes bodies forecast %g s ahead", *target, ahead)
+                self.forecasts[target] = ahead
+            else:
+                self.forecasts.pop(target, None)
+        self._targets = None
         if msg.rate_hz:
             if target not in self.rates:
                 log.info("view %s:%d takes %g updates a second", *target, msg.rate_hz)
@@ -150,6 +189,7 @@ class ViewOutput:
         for view in gone:
             del self.registered[view]
             self.rates.pop(view, None)
+            self.forecasts.pop(view, None)
             self.expired += 1
             log.info("view %s:%d expired: it did not register again within %g s", *view,
                      self.limits.view_ttl_s)
@@ -166,6 +206,7 @@ class ViewOutput:
         if entry.refused >= self.limits.view_send_errors:
             del self.registered[(host, port)]
             self.rates.pop((host, port), None)
+            self.forecasts.pop((host, port), None)
             self.dropped_unreachable += 1
             self._update()
             log.warning("view %s:%d dropped: its port refused %d datagrams in a row (closed?)",
@@ -181,6 +222,11 @@ class ViewOutput:
         for (h, p), e in self.registered.items():
             out.append({"address": f"{h}:{p}", "static": False,
                         "expires_in_s": round(e.expires - now, 1), "refused": e.refused})
+        for entry in out:
+            h, p = entry["address"].rsplit(":", 1)
+            ahead = self.forecasts.get((h, int(p)))
+            if ahead:
+                entry["forecast_s"] = ahead
         return out
 
     # ------------------------------------------------------------ messages
@@ -199,12 +245,12 @@ class ViewOutput:
             return
         if not self.views or self.transport is None:
             return
-        if not self.rates:
+        if not self.rates and not self.forecasts:
             self.broadcast(encode_view_joints(pid, joints, conf))
             return
         data = encode_view_joints(pid, joints, conf)
         for view in self.views:
-            if view not in self.rates:
+            if view not in self.rates and view not in self.forecasts:
                 self.send(data, view)
 
     # ------------------------------------------------------------ fixed rates

@@ -20,11 +20,13 @@ import logging
 import numpy as np
 
 from ..clock import Clock
+from ..errors import ConfigError
 from ..frames import Body, FusedFrame
 from ..joints import JOINT_INDEX, TORSO, HandState
 from ..rig import Rig
 from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
+from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
 from .fusion import apply_transform, torso_centre
 from .kalman import KalmanSettings, measurement_variance
@@ -52,6 +54,11 @@ class People:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
         self.fuser = Fuser(smoothing, rig.fusion)
+        #: bodies predicted ahead of their capture time (docs/anticipation.md): the
+        #: horizons listeners asked for (horizon -> how many asked), and the views'
+        self.forecaster = Forecaster(smoothing, rig.forecast)
+        self.horizons: dict[float, int] = {}
+        self._forecasts: dict[tuple[int, float], Forecast] = {}   # this emission's
         self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
@@ -178,6 +185,52 @@ class People:
                 best = conf if best is None else np.maximum(best, conf)
         return np.zeros(person.conf.shape) if best is None else best
 
+    # ------------------------------------------------------------ forecasts
+    def want_forecast(self, horizon: float) -> None:
+        """From now on every ``FusedFrame`` carries its bodies predicted ``horizon`` s ahead
+        (``frame.forecasts[horizon]``); engine thread. 0 asks for nothing."""
+        horizon = self.check_horizon(horizon)
+        if horizon > 0:
+            self.horizons[horizon] = self.horizons.get(horizon, 0) + 1
+
+    def drop_forecast(self, horizon: float) -> None:
+        n = self.horizons.get(horizon, 0) - 1
+        if n > 0:
+            self.horizons[horizon] = n
+        else:
+            self.horizons.pop(horizon, None)
+
+    def check_horizon(self, horizon: float) -> float:
+        """``horizon`` as a float, or a ConfigError naming the rig's limit."""
+        h = float(horizon)
+        if not (0.0 <= h <= self.rig.forecast.max_s):
+            raise ConfigError(f"forecast {horizon!r} s: must be between 0 and the rig's "
+                              f"forecast: max_s ({self.rig.forecast.max_s:g} s)")
+        return h
+
+    def forecast(self, person: Person, horizon: float) -> Forecast:
+        """``person`` predicted ``horizon`` s past its capture time (cached per emission)."""
+        key = (person.id, horizon)
+        fc = self._forecasts.get(key)
+        if fc is None:
+            fc = self._forecasts[key] = self.forecaster.predict(
+                person.filter.state, person.t, person.joints, person.conf > 0, horizon)
+        return fc
+
+    def _forecast_bodies(self, horizon: float) -> dict[int, Body]:
+        out = {}
+        for pid, p in self.persons.items():
+            if not p.announced or p.centre is None:
+                continue
+            fc = self.forecast(p, horizon)
+            known = p.known
+            torso = known[_TORSO]
+            centre = (fc.joints[_TORSO] * torso[:, None]).sum(axis=0) / max(int(torso.sum()), 1) \
+                if torso.any() else p.centre.copy()
+            out[pid] = Body(pid, fc.joints, p.conf.copy(), fc.velocity, (p.hands[0], p.hands[1]),
+                            centre, p.sensors(), p.t, horizon, fc.sd)
+        return out
+
     # ------------------------------------------------------------ output
     def _emit(self) -> None:
         if not self._dirty and not self._lost and not self._hands_dirty:
@@ -203,6 +256,9 @@ class People:
                 self.output.new_user(pid, person.centre)
             if person.tracks:
                 self.output.joints(pid, person.joints, person.conf)
+                for horizon, targets in self.output.forecast_targets().items():
+                    self.output.joints(pid, self.forecast(person, horizon).joints, person.conf,
+                                       targets)
             self._send_hands(person, person.voter.update(person.t))
             updated.append(pid)
             sent = self.clock.now()
@@ -214,8 +270,10 @@ class People:
         self._dirty, self._lost = {}, []
         self._hands_dirty.clear()
         if self.listeners and (updated or lost):
+            forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
             self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
-                                           tuple(lost)))
+                                           tuple(lost), forecasts))
+        self._forecasts.clear()
 
     def _send_hands(self, person: Person, changed: list[int]) -> bool:
         for hand in changed:
@@ -230,7 +288,7 @@ class People:
 
     def bodies(self) -> dict[int, Body]:
         return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
-                          (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors())
+                          (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors(), p.t)
                 for pid, p in self.persons.items() if p.announced and p.centre is not None}
 
     # ------------------------------------------------------------ housekeeping
@@ -242,22 +300,40 @@ class People:
         self.serve_fixed_rate(now)
 
     def serve_fixed_rate(self, now: float) -> None:
-        """Views that asked for a fixed rate get every person predicted to ``now``."""
+        """Views that asked for a fixed rate get every person predicted to ``now`` (plus
+        their forecast, if they asked for one: bounded as every forecast is)."""
         due = self.output.due(now)
         if not due:
             return
+        ahead: dict[float, list[tuple[str, int]]] = {}
+        for view in due:
+            ahead.setdefault(self.output.forecasts.get(view, 0.0), []).append(view)
         for pid, person in self.persons.items():
             if not person.announced or person.centre is None or not person.tracks:
                 continue
-            pos, _ = person.filter.estimate(now)
-            joints = np.where((person.conf > 0)[:, None] & np.isfinite(pos), pos, person.joints)
-            self.output.joints(pid, joints, person.conf, due)
+            for horizon, views in ahead.items():
+                if horizon > 0:
+                    fc = self.forecaster.predict(person.filter.state, person.t, person.joints,
+                                                 person.conf > 0, max(now - person.t, 0) + horizon)
+                    self.output.joints(pid, fc.joints, person.conf, views)
+                    continue
+                pos, _ = person.filter.estimate(now)
+                joints = np.where((person.conf > 0)[:, None] & np.isfinite(pos), pos,
+                                  person.joints)
+                self.output.joints(pid, joints, person.conf, views)
 
     def stats(self) -> dict:
         f = self.fuser.stats
         return {"views": f.views, "late": f.late, "replays": f.replays,
                 "joints_disagreeing": f.disagreeing, "joints_downweighted": f.downweighted,
                 "joints_rejected": f.rejected, "joints_restarted": f.restarted}
+
+    def forecast_stats(self) -> dict:
+        """What ``/stage/stats`` says of forecasts: who asks for which horizon, how many were
+        made and bounded, and the latest mean s.d. per horizon."""
+        views = {f"{h}:{p}": s for (h, p), s in self.output.forecasts.items()}
+        return {"horizons_s": sorted(self.horizons), "views_s": views,
+                **self.forecaster.stats()}
 
 
 def fused_persons_stats(people: People) -> dict[int, dict]:

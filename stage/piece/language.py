@@ -88,6 +88,23 @@ OUTPUT = AnyOf((
     }, doc="Where events of this name go."),
 ))
 
+#: the longest anticipation or forecast a piece may ask for (the rig's forecast: max_s default)
+MAX_AHEAD_S = 0.2
+AHEAD = Number(minimum=0.0, maximum=MAX_AHEAD_S, unit="seconds")
+ANTICIPATE = AnyOf((AHEAD, Obj("Anticipate", {
+    "ahead": Field(AHEAD, required=True, doc="How far ahead of the measurements to look."),
+    "max_sd": Field(Number(exclusive_minimum=0.0, unit="metres"),
+                    doc="A predicted crossing fires only while the prediction's position s.d. "
+                        "is at most this (default 0.1)."),
+    "within": Field(Number(exclusive_minimum=0.0, unit="seconds"),
+                    doc="A predicted crossing the measurements have not made this long after "
+                        "the predicted moment counts as contradicted (default 0.1)."),
+    "cut": Field(Boolean(), doc="Cut short what a contradicted firing played (default false)."),
+}, doc="How boldly a trigger fires on what the filter predicts.")),
+    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut}",
+    doc="Fire on a crossing predicted this far ahead (enters, leaves, rises_above, "
+        "falls_below; docs/anticipation.md). 0: off.")
+
 DEFAULTS = Obj("Defaults", {
     "cooldown": Field(SECONDS, doc="A trigger does not fire again for this long (default 0.5)."),
     "hysteresis": Field(Number(minimum=0.0, unit="metres"),
@@ -104,6 +121,8 @@ DEFAULTS = Obj("Defaults", {
     "speed_range": Field(RANGE, doc="Joint speeds (m/s) mapped to velocity_range (default [0.3, 3])."),
     "velocity_range": Field(RANGE, doc="Velocities for 'velocity: speed' (default [40, 120])."),
     "arpeggiate": Field(ARPEGGIATE),
+    "anticipate": Field(ANTICIPATE, doc="Every trigger that can anticipate does, unless it "
+                                        "says otherwise (default 0: none)."),
 }, doc="Defaults for every trigger and phrase of the piece.")
 
 ZONE = Obj("Zone", {
@@ -266,6 +285,7 @@ TRIGGER = Obj("Trigger", {
     "probability": Field(Number(0.0, 1.0), doc="Chance that a firing sounds (seeded)."),
     "while": Field(CONDITION, doc="Fires only while this holds."),
     "quantize": Field(QUANTIZE),
+    "anticipate": Field(ANTICIPATE),
     "do": Field(ACTIONS, required=True),
 }, one_of=TRIGGER_KINDS, one_of_what=" (what to watch for)", label=_named("trigger"),
     doc="When a joint does something, do these actions.")
@@ -340,6 +360,9 @@ PIECE = Obj("Piece", {
                    doc="Default 60."),
     "meter": Field(Text(pattern=r"\d+/(1|2|4|8|16)", expected="a meter like 3/4")),
     "quantize": Field(QUANTIZE),
+    "forecast_s": Field(AHEAD, doc="Triggers and mappings see every body predicted this far "
+                                   "past its capture time (default 0: as measured; "
+                                   "docs/anticipation.md)."),
     "ending": Field(ENDING),
     "seed": Field(Integer(0), doc="Seed of the aleatoric choices (--seed overrides)."),
     "rehearsal": Field(Text(), doc="Simulator scenario for 'stage play --sim' (relative to "

@@ -17,7 +17,7 @@ from ..joints import JOINT_INDEX, JOINTS, parse_hand_state
 from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
-from .model import (Condition, Defaults, Ending, Idle, Mapping, Phrase, Piece, Safety,
+from .model import (ANTICIPATING, Anticipation, Condition, Defaults, Ending, Idle, Mapping, Phrase, Piece, Safety,
                     Section, Trigger, Zone, curve_function)
 from .loader_actions import ActionCompiler, joint_indices as _joint_indices, m as _m
 from .music import phrase_notes
@@ -84,7 +84,7 @@ class _Compiler(ActionCompiler):
             title=data["piece"], path=self.path, outputs=self.outputs, zones=self.zones,
             phrases=self.phrases, composer=data.get("composer", ""), about=data.get("about", ""),
             tempo=self.tempo, meter=self.meter, seed=data.get("seed"), defaults=self.defaults,
-            quantize=quantize, overlap=dict(self.overlap),
+            quantize=quantize, overlap=dict(self.overlap), forecast_s=data.get("forecast_s", 0.0),
             sections=[self._section(k, s) for k, s in enumerate(sections)])
         if "ending" in data:
             e = data["ending"]
@@ -124,7 +124,19 @@ class _Compiler(ActionCompiler):
         if "velocity_range" in values and not all(1 <= v <= 127 for v in values["velocity_range"]):
             raise self.error("'velocity_range' in 'defaults' must be within 1-127",
                              _m(d, "velocity_range"))
+        if "anticipate" in values:
+            values["anticipate"] = self._anticipation(d["anticipate"])
         return Defaults(**values)
+
+    def _anticipation(self, value) -> Anticipation | None:
+        """``anticipate:`` as written (seconds, or a mapping), None for 0."""
+        if isinstance(value, dict):
+            a = Anticipation(float(value["ahead"]), float(value.get("max_sd", Anticipation.max_sd)),
+                             float(value.get("within", Anticipation.within)),
+                             bool(value.get("cut", False)))
+        else:
+            a = Anticipation(float(value))
+        return a if a.ahead > 0 else None
 
     def _quantize(self, d: dict, what: str) -> str | None:
         """The ``quantize`` of a piece, section or trigger (None when not given)."""
@@ -280,6 +292,14 @@ class _Compiler(ActionCompiler):
                        once=t.get("once", False), probability=t.get("probability", 1.0),
                        line=(t["__mark__"] or (0, 0))[0], quantize=self._quantize(t, label))
         value, vmark = t[kind], _m(t, kind)
+        if "anticipate" in t:
+            trig.anticipate = self._anticipation(t["anticipate"])
+            if trig.anticipate is not None and kind not in ANTICIPATING:
+                raise self.error(f"'anticipate' applies to {', '.join(ANTICIPATING)} triggers "
+                                 f"(a predicted crossing of a position), not '{kind}'",
+                                 _m(t, "anticipate"))
+        elif kind in ANTICIPATING:
+            trig.anticipate = d.anticipate
         if kind in ("appears", "disappears") and value is not True:
             raise self.error(f"write '{kind}: true' to use this trigger", vmark)
         if kind == "step" and value not in (True, "gait"):

@@ -24,6 +24,20 @@ def joint_label(index: int) -> str:
 
 
 @dataclass(frozen=True)
+class Anticipation:
+    """A trigger that fires on a crossing predicted ``ahead`` s past the measurements."""
+
+    ahead: float
+    max_sd: float = 0.1         # m: the prediction's position s.d. must be at most this
+    within: float = 0.1         # s after the predicted moment before it counts as contradicted
+    cut: bool = False           # cut short what a contradicted firing played
+
+
+#: trigger kinds that can anticipate (a crossing of a position: zones and heights)
+ANTICIPATING = ("enters", "leaves", "rises_above", "falls_below")
+
+
+@dataclass(frozen=True)
 class Defaults:
     cooldown: float = 0.5
     hysteresis: float = 0.05
@@ -36,6 +50,7 @@ class Defaults:
     speed_range: tuple[float, float] = (0.3, 3.0)
     velocity_range: tuple[float, float] = (40.0, 120.0)
     arpeggiate: float = 0.0          # seconds between the voices of a chord (0: together)
+    anticipate: Anticipation | None = None
 
     def velocity_for(self, speed: float) -> int:
         """A note velocity from a joint speed (m/s), linear over the two ranges, clamped."""
@@ -323,6 +338,7 @@ class Trigger:
     line: int = 0
     quantize: str | None = None        # beat | bar | none; None: the section's or piece's
     gait: bool = False                 # step: gait (seed 003's foot events), not step: true
+    anticipate: Anticipation | None = None
 
     def describe(self) -> str:
         joints = "+".join(joint_label(j) for j in self.joints) if self.joints else ""
@@ -458,6 +474,16 @@ class Piece:
     defaults: Defaults = field(default_factory=Defaults)
     safety: Safety = field(default_factory=Safety)
     idle: Idle | None = None
+    forecast_s: float = 0.0          # triggers and mappings see bodies this far ahead
+
+    def horizons(self) -> set[float]:
+        """Every forecast (s) the piece needs from the engine."""
+        out = {self.forecast_s}
+        for trig in self.triggers + [t for s in self.sections for t in s.triggers]:
+            if trig.anticipate is not None:
+                out.add(trig.anticipate.ahead)
+        out.discard(0.0)
+        return out
 
     def section(self, name: str) -> Section:
         for s in self.sections:

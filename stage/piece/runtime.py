@@ -23,6 +23,7 @@ import numpy as np
 from ..frames import FusedFrame
 from ..events import ControlChange, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
+from .anticipation import anticipate, contradicted
 from .mappings import MappingRun
 from .model import Piece, Section, Trigger, joint_label
 from .music import meter_beats
@@ -41,17 +42,25 @@ Narrator = Callable[[float, str], None]
 class _TriggerRun:
     """A trigger with its detector and the state that decides whether a firing sounds."""
 
-    __slots__ = ("trigger", "detector", "last", "fired_in_visit")
+    __slots__ = ("trigger", "detector", "last", "fired_in_visit", "ahead", "pending")
 
     def __init__(self, trigger: Trigger) -> None:
         self.trigger = trigger
         self.detector: Detector = detector_for(trigger)
         self.last: dict = {}
         self.fired_in_visit = False
+        #: anticipation: the same detector on the bodies predicted ahead, and the firings
+        #: made on a prediction the measurements have not yet confirmed:
+        #: (person, joint) -> (fired at, contradicted unless measured by, firing number)
+        self.ahead: Detector | None = detector_for(trigger) if trigger.anticipate else None
+        self.pending: dict[tuple, tuple[float, float, int]] = {}
 
     def reset(self) -> None:
         self.detector.reset()
         self.fired_in_visit = False
+        if self.ahead is not None:
+            self.ahead.reset()
+            self.pending.clear()
 
 
 class PieceRuntime:
@@ -94,7 +103,16 @@ class PieceRuntime:
         #: "notes" counts the notes that sound (scheduled, less those cancelled before
         #: their onset); "cancelled", "shortened" and "skipped" (phrases) are the rest
         self.counts = {"frames": 0, "fired": 0, "notes": 0, "cancelled": 0, "shortened": 0,
-                       "skipped": 0, "errors": 0, "section_changes": 0, "idle": 0}
+                       "skipped": 0, "errors": 0, "section_changes": 0, "idle": 0,
+                       # anticipation (docs/anticipation.md): fired on a prediction, then
+                       # confirmed or contradicted by the measurements; predicted crossings
+                       # too uncertain to fire on; frames without the forecast asked for
+                       "anticipated": 0, "confirmed": 0, "contradicted": 0, "unsure": 0,
+                       "forecast_missing": 0}
+        #: the piece sees every body this far past its capture time (0: as measured)
+        self.forecast_s = piece.forecast_s
+        self._ahead: dict[float, dict[int, Person]] = {}   # this frame's predicted persons
+        self._frame: FusedFrame | None = None
         self.voices = Voices(piece.overlap, self._emit, self.counts)
         self.grid = Grid(0.0, piece.tempo, float(meter_beats(piece.meter)) if piece.meter else 4.0)
         self._firings = 0
@@ -140,6 +158,7 @@ class PieceRuntime:
             if self.ended:
                 self._flush()
                 return
+            contradicted(self, t)
             self._clock_triggers(t, self._active_runs())
             self._idle(t)
             self._apply_goto(t)
@@ -200,7 +219,16 @@ class PieceRuntime:
             return
         min_conf, arrivals = self.min_conf, self.arrivals
         persons = {}
-        for pid, body in frame.bodies.items():
+        bodies = frame.bodies
+        if self.forecast_s > 0:
+            ahead = frame.forecasts.get(self.forecast_s)
+            if ahead is None:
+                self.counts["forecast_missing"] += 1   # the engine was not asked: as measured
+            else:
+                bodies = ahead
+        self._frame = frame
+        self._ahead = {}
+        for pid, body in bodies.items():
             since = arrivals.get(pid)
             if since is None:
                 since = arrivals[pid] = t
@@ -212,6 +240,10 @@ class PieceRuntime:
                 arrivals.pop(pid, None)
             for run in self._all_runs():
                 run.detector.forget(frame.lost)
+                if run.ahead is not None:
+                    run.ahead.forget(frame.lost)
+                    for key in [k for k in run.pending if k[0] in frame.lost]:
+                        del run.pending[key]   # the person is gone: nothing to contradict
         if persons:
             self.empty_since = None
         elif self.empty_since is None:
@@ -232,10 +264,16 @@ class PieceRuntime:
                 chosen = plist if trig.performer == "any" else self._select(trig.performer)
                 if chosen:
                     det.frame(t, chosen, firings)
+                    if run.ahead is not None:
+                        anticipate(self, run, t, chosen)
             if firings:
                 for f in firings:
+                    if run.pending and run.pending.pop((f.person, f.joint), None) is not None:
+                        self.counts["confirmed"] += 1   # measured as predicted: fired already
+                        continue
                     self._consider(run, f, t)
                 firings.clear()
+        contradicted(self, t)
         self._clock_triggers(t, runs)
         for mrun in (*self._maps[self.section.index], *self._global_maps):
             if self.ending and mrun.mapping.kind == "cc":
@@ -292,38 +330,43 @@ class PieceRuntime:
                 firings.clear()
 
     # ------------------------------------------------------------ firing
-    def _consider(self, run: _TriggerRun, f: Firing, t: float) -> None:
+    def _consider(self, run: _TriggerRun, f: Firing, t: float, anticipated: float = 0.0) -> bool:
+        """Whether the firing sounds (cooldown, once, after, while, probability), and if so
+        its actions."""
         trig = run.trigger
         if trig.after and t - self.section_start < trig.after:
-            return
+            return False
         if trig.once and run.fired_in_visit:
-            return
+            return False
         person = self.persons.get(f.person) if f.person is not None else None
         if trig.condition is not None and not holds(trig.condition, person, f.joint):
-            return
+            return False
         scope = trig.cooldown_per
         key = None if scope == "trigger" else f.person if scope == "performer" else (f.person, f.joint)
         last = run.last.get(key)
         if last is not None and t - last < trig.cooldown:
-            return
+            return False
         run.last[key] = t
         if trig.probability < 1.0 and self.rng.random() >= trig.probability:
             self._narrate(t, f"[{self.section.index + 1}] {trig.name}: (silence, by chance)")
-            return
+            return False
         run.fired_in_visit = True
         self.counts["fired"] += 1
         self._firings += 1
         joint = None if f.joint is None else joint_label(f.joint)
         self._out.append(TriggerFired(t, self.section.name, trig.name, f.person, joint,
-                                      None if f.value is None else round(float(f.value), 4)))
+                                      None if f.value is None else round(float(f.value), 4),
+                                      anticipated))
         quantize = trig.quantize or self.section.quantize or self.piece.quantize
         ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed,
                           quantize, self._firings, f.detail)
         done = [self.actions.act(a, ctx) for a in trig.actions]
         who = "" if f.person is None else f" [person {f.person}" + (
             f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"
-        self._narrate(t, f"[{self.section.index + 1}] {trig.name}{who} -> "
+        ahead = f" (predicted {anticipated * 1000:.0f} ms ahead)" if anticipated else ""
+        self._narrate(t, f"[{self.section.index + 1}] {trig.name}{who}{ahead} -> "
                          f"{'; '.join(d for d in done if d)}")
+        return True
 
     # ------------------------------------------------------------ sections
     def _idle(self, t: float) -> None:

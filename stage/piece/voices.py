@@ -251,6 +251,24 @@ class Voices:
             kept.append(p)
         self.planned = kept
 
+    def retract(self, t: float, trigger: str, firing: int, why: str) -> int:
+        """Cut short, from ``t``, what firing number ``firing`` of ``trigger`` played (its notes
+        not yet ended: a NoteCut each, which the MIDI view honours); returns how many."""
+        cut = 0
+        kept = []
+        for p in self.planned:
+            if p.trigger == trigger and p.firing == firing:
+                for s in p.notes:
+                    if s.end > t + EPS and not (s.cut and s.duration <= 0.0):
+                        self._shorten(s, t, why)
+                        cut += 1
+                if p.start >= t - EPS:
+                    continue
+                p.end = min(p.end, t)
+            kept.append(p)
+        self.planned = kept
+        return cut
+
     def prune(self, now: float) -> None:
         """Forget what has ended (a show may run for weeks)."""
         self.planned = [p for p in self.planned if p.end > now - EPS]

@@ -114,6 +114,7 @@ class RegisterView:
     port: int
     register: bool = True  # False for /unregisterView
     rate_hz: float | None = None  # a fixed output rate asked for (stage addition); None: every update
+    forecast_s: float | None = None  # bodies predicted this far ahead (stage addition); None: 0
 
 
 @dataclass(slots=True)
@@ -516,7 +517,15 @@ def _port(v: object) -> int:
 
 
 def _h_register_view(params: list, source: str, register: bool = True) -> RegisterView:
-    rate = None
+    rate = forecast = None
+    if register and len(params) == 4 and isinstance(params[3], float):
+        # rate (0: every update) and forecast in seconds (a float): stage additions
+        forecast = params[3]
+        if not (math.isfinite(forecast) and 0 <= forecast <= 1.0):
+            raise _Drop("out_of_range")
+        params = params[:3]
+        if params[2] == 0 and not isinstance(params[2], bool):
+            params = params[:2]
     if register and len(params) == 3:  # trailing rate in Hz: a stage addition
         rate = params[2]
         if isinstance(rate, bool) or not isinstance(rate, (int, float)):
@@ -528,7 +537,8 @@ def _h_register_view(params: list, source: str, register: bool = True) -> Regist
     host = params[0]
     if not isinstance(host, str) or not host or len(host) > 255:
         raise _Drop("bad_types")
-    return RegisterView(host, _port(params[1]), register, None if rate is None else float(rate))
+    return RegisterView(host, _port(params[1]), register, None if rate is None else float(rate),
+                        None if forecast is None else round(float(forecast), 6))  # float32 on the wire
 
 
 def _h_unregister_view(params: list, source: str) -> RegisterView:

@@ -186,6 +186,10 @@ class ViewHost:
     def attach(self, engine: Engine) -> "ViewHost":
         """Listen to ``engine``'s fused frames and collect its status; call before start()."""
         self.engine = engine
+        for slot in self.slots:
+            ahead = float(getattr(slot.view, "forecast_s", 0.0) or 0.0)
+            if ahead > 0 and slot.wants_frames:
+                engine.people.want_forecast(ahead)
         engine.listeners.append(self._on_frame)
         return self
 
@@ -197,7 +201,10 @@ class ViewHost:
         """Engine thread: enqueue only."""
         for slot in self.slots:
             if slot.wants_frames:
-                slot.offer_frame(frame)
+                ahead = getattr(slot.view, "forecast_s", 0.0)
+                bodies = frame.forecasts.get(ahead) if ahead else None
+                slot.offer_frame(frame if bodies is None else FusedFrame(
+                    frame.t, bodies, frame.updated, frame.new, frame.lost, frame.forecasts))
         if frame.t - self._last_status >= self.status_interval_s:
             self.collect_status()
 
