@@ -31,7 +31,7 @@ SQRT2 = math.sqrt(2.0)
 #: predicted across it by its jitter, so hands need a measured approach of 1 m/s; the
 #: torso (zones) moves smoothly and fires on the bare prediction.
 GROUP_DEFAULTS: dict[str, tuple[float, float | None]] = {
-    "legs": (0.95, None), "arms": (0.0, 1.0), "torso": (0.0, None)}
+    "legs": (0.94, None), "arms": (0.0, 1.0), "torso": (0.0, None)}
 _LEGS = {"KneeLeft", "KneeRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
 _ARMS = {"ElbowLeft", "ElbowRight", "WristLeft", "WristRight", "HandLeft", "HandRight",
          "HandTipLeft", "HandTipRight", "ThumbLeft", "ThumbRight"}
