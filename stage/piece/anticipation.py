@@ -2,8 +2,10 @@
 
 A trigger with ``anticipate`` keeps a second detector that watches each body as the
 engine predicts it ``ahead`` s past its capture time (``FusedFrame.forecasts``). A
-predicted crossing fires when that joint's predicted s.d. is at most ``max_sd``
-(else it is ``unsure`` and the measurements decide); the measured crossing then only
+predicted crossing waits, re-checked each frame, until it is sure enough (``sure``:
+the joint's predicted s.d. at most ``max_sd``, the Gaussian probability of being past
+the border at least ``min_p``, the measured approach at least ``trend``; the last two
+default by joint group, ``GROUP_DEFAULTS``), then fires; the measured crossing then only
 confirms it (the runtime drops that firing); one the measurements have not made
 ``within`` s after the predicted moment is contradicted: counted, told as a
 ``TriggerContradicted`` event, and its notes cut short where the trigger asks.
