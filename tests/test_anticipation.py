@@ -361,18 +361,43 @@ def test_group_defaults_and_what_a_trigger_says():
 
 
 def test_zone_depth_and_margins_by_hand():
-    from stage.piece.anticipation import margin
+    from stage.piece.anticipation import depth, margin
     from stage.piece.model import Zone
     box = Zone("b", "box", low=(-1.0, 0.0, 0.0), high=(1.0, 2.0, 1.0))
-    assert box.depth(0.0, 1.0, 0.25) == pytest.approx(0.25)     # nearest: z - 0
-    assert box.depth(0.0, 1.0, -0.3) == pytest.approx(-0.3)
+    assert depth(box, 0.0, 1.0, 0.25) == pytest.approx(0.25)     # nearest: z - 0
+    assert depth(box, 0.0, 1.0, -0.3) == pytest.approx(-0.3)
     cyl = Zone("c", "cylinder", centre=(0.0, 0.0), radius=1.0, bottom=0.0, top=2.0)
-    assert cyl.depth(0.6, 1.0, 0.8) == pytest.approx(0.0)        # on the rim (0.6, 0.8)
-    assert cyl.depth(0.0, 1.9, 0.0) == pytest.approx(0.1)
+    assert depth(cyl, 0.6, 1.0, 0.8) == pytest.approx(0.0)        # on the rim (0.6, 0.8)
+    assert depth(cyl, 0.0, 1.9, 0.0) == pytest.approx(0.1)
     sph = Zone("s", "sphere", centre=(0.0, 1.0, 0.0), radius=0.5)
-    assert sph.depth(0.0, 1.0, 0.3) == pytest.approx(0.2)
+    assert depth(sph, 0.0, 1.0, 0.3) == pytest.approx(0.2)
     rt, _ = runtime()
     trig = rt.piece.sections[0].triggers[0]                    # rises_above 1.9, HandLeft
     from stage.piece.triggers import Person
     p = Person(body(2.0, 0.0, hand_vy=1.5), 0.5, 0.0)
     assert margin(trig, p, J["HandLeft"]) == pytest.approx((0.1, 1.5))
+
+
+def test_a_zone_margin_is_the_depth_and_its_rate_along_the_velocity():
+    from stage.piece.anticipation import margin
+    from stage.piece.model import BODY
+    from stage.piece.triggers import Person
+    text = """
+piece: z
+zones:
+  box: {shape: box, min: [-1, 0, 0], max: [1, 2, 1]}
+sections:
+  - name: s
+    triggers:
+      - {name: in, enters: box, anticipate: 0.05, do: [{note: C4}]}
+      - {name: out, leaves: box, anticipate: 0.05, do: [{note: C4}]}
+"""
+    enters, leaves = loads_piece(text).sections[0].triggers
+    joints = standing()
+    vel = np.zeros((25, 3))
+    vel[J["SpineMid"], 2] = 2.0       # the torso centre moves like SpineMid: 2 m/s along z
+    b = Body(1, joints, np.ones(25), vel, OPEN, np.array([0.0, 1.0, 0.25]), ("a",))
+    p = Person(b, 0.5, 0.0)
+    # 0.25 m inside (nearest border z = 0), going deeper at 2 m/s
+    assert margin(enters, p, BODY) == pytest.approx((0.25, 2.0))
+    assert margin(leaves, p, BODY) == pytest.approx((-0.25, -2.0))

@@ -18,7 +18,7 @@ import math
 from typing import TYPE_CHECKING
 
 from ..events import TriggerContradicted
-from .model import BODY, Anticipation, Trigger, joint_label
+from .model import BODY, Anticipation, Trigger, Zone, joint_label
 from .triggers import Firing, Person
 
 if TYPE_CHECKING:
@@ -65,6 +65,19 @@ def persons_ahead(rt: PieceRuntime, horizon: float) -> dict[int, Person]:
     return out
 
 
+def depth(zone: Zone, x: float, y: float, z: float) -> float:
+    """Signed metres inside ``zone``: the smallest slack to any border (> 0 inside, < 0
+    outside; outside, at most the true distance)."""
+    if zone.shape == "cylinder":
+        dx, dz = x - zone.centre[0], z - zone.centre[1]
+        return min(zone.radius - math.sqrt(dx * dx + dz * dz), y - zone.bottom, zone.top - y)
+    if zone.shape == "sphere":
+        dx, dy, dz = x - zone.centre[0], y - zone.centre[1], z - zone.centre[2]
+        return zone.radius - math.sqrt(dx * dx + dy * dy + dz * dz)
+    lo, hi = zone.low, zone.high
+    return min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y, z - lo[2], hi[2] - z)
+
+
 def margin(trig: Trigger, p: Person, j: int) -> tuple[float, float] | None:
     """How far (m) ``p``'s joint ``j`` is past ``trig``'s border in the firing direction
     (> 0: crossed), and how fast (m/s) it moves that way; None where unseen."""
@@ -83,9 +96,9 @@ def margin(trig: Trigger, p: Person, j: int) -> tuple[float, float] | None:
             level, vlevel = r[1], p.vel(trig.threshold_joint)[1]
         return sign * (pos[1] - level), sign * (v[1] - vlevel)
     sign = 1.0 if kind == "enters" else -1.0
-    d = trig.zone.depth(pos[0], pos[1], pos[2])
+    d = depth(trig.zone, pos[0], pos[1], pos[2])
     # the depth's rate along the velocity (a 1 ms step: the depth is piecewise linear)
-    ahead = trig.zone.depth(pos[0] + v[0] * 1e-3, pos[1] + v[1] * 1e-3, pos[2] + v[2] * 1e-3)
+    ahead = depth(trig.zone, pos[0] + v[0] * 1e-3, pos[1] + v[1] * 1e-3, pos[2] + v[2] * 1e-3)
     return sign * d, sign * (ahead - d) * 1e3
 
 

@@ -94,18 +94,6 @@ class Zone:
         return (lo[0] - margin <= x <= hi[0] + margin and lo[1] - margin <= y <= hi[1] + margin
                 and lo[2] - margin <= z <= hi[2] + margin)
 
-    def depth(self, x: float, y: float, z: float) -> float:
-        """Signed metres inside the zone: the smallest slack to any border (> 0 inside,
-        < 0 outside; outside, at most the true distance)."""
-        if self.shape == "cylinder":
-            dx, dz = x - self.centre[0], z - self.centre[1]
-            return min(self.radius - math.sqrt(dx * dx + dz * dz), y - self.bottom, self.top - y)
-        if self.shape == "sphere":
-            dx, dy, dz = x - self.centre[0], y - self.centre[1], z - self.centre[2]
-            return self.radius - math.sqrt(dx * dx + dy * dy + dz * dz)
-        lo, hi = self.low, self.high
-        return min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y, z - lo[2], hi[2] - z)
-
     def scene(self) -> dict:
         """The zone as views draw it: {"name", "shape", + parameters in stage metres}."""
         out: dict[str, Any] = {"name": self.name, "shape": self.shape}
