@@ -305,13 +305,15 @@ def plot(table: dict, settings: list, path: str) -> None:
     ref = table[("none", 0.0)]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
     xs = [0.0] + [h * 1000 for h in HORIZONS]
+    names = {"forecast": "forecast_s", "anticipate": "anticipate, group defaults"}
+    b.axhline(ref["all"]["false"] * 1.1, color="grey", lw=0.5)   # the goal: +10 % at most
     for mode, style in (("forecast", "-"), ("anticipate", "--")):
         keys = [("none", 0.0)] + [(mode, h) for h in HORIZONS]
         for trig, colour in (("hand", "C0"), ("foot", "C1"), ("zone", "C2"), ("all", "k")):
             a.plot(xs, [ref[trig]["p50_ms"] - table[k][trig]["p50_ms"] for k in keys], style,
-                   color=colour, marker="o", label=f"{trig} ({mode})")
+                   color=colour, marker="o", label=f"{trig} ({names[mode]})")
             b.plot(xs, [table[k][trig]["false"] for k in keys], style, color=colour, marker="o",
-                   label=f"{trig} ({mode})")
+                   label=f"{trig} ({names[mode]})")
     a.set_xlabel("forecast, ms")
     a.set_ylabel("earlier than no forecast, ms (median)")
     a.axhline(30, color="grey", lw=0.5)
