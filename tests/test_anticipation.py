@@ -193,17 +193,23 @@ def runtime(anticipate: str = "anticipate: {ahead: 0.05, max_sd: 0.05, cut: true
     return PieceRuntime(loads_piece(PIECE.format(top=top, anticipate=anticipate)), sink), sink
 
 
-def body(hand_y: float, t: float, sd: float | None = None, horizon: float = 0.0) -> Body:
+def body(hand_y: float, t: float, sd: float | None = None, horizon: float = 0.0,
+         hand_vy: float = 2.0) -> Body:
+    """A standing body with its left hand at ``hand_y`` m rising at ``hand_vy`` m/s (a hand
+    group's anticipation wants a measured approach of 1 m/s by default)."""
     joints = with_joint(standing(), "HandLeft", [0.2, hand_y, 0.0])
-    return Body(1, joints, np.ones(25), np.zeros((25, 3)), OPEN, joints[0].copy(), ("a",), t,
+    vel = np.zeros((25, 3))
+    vel[J["HandLeft"], 1] = hand_vy
+    return Body(1, joints, np.ones(25), vel, OPEN, joints[0].copy(), ("a",), t,
                 horizon, None if sd is None else np.full(25, sd))
 
 
-def feed_frames(rt: PieceRuntime, frames: list[tuple[float, float, float | None, float]]) -> None:
+def feed_frames(rt: PieceRuntime, frames: list[tuple], hand_vy: float = 2.0) -> None:
     """(t, measured hand height, predicted hand height or None, predicted s.d.)"""
     for k, (t, y, ahead, sd) in enumerate(frames):
-        forecasts = {} if ahead is None else {0.05: {1: body(ahead, t, sd, 0.05)}}
-        rt(FusedFrame(t, {1: body(y, t)}, (1,), (1,) if k == 0 else (), (), forecasts))
+        forecasts = {} if ahead is None else {0.05: {1: body(ahead, t, sd, 0.05, hand_vy)}}
+        rt(FusedFrame(t, {1: body(y, t, hand_vy=hand_vy)}, (1,), (1,) if k == 0 else (), (),
+                      forecasts))
 
 
 def fired(sink):
@@ -257,6 +263,8 @@ def test_a_piece_forecast_triggers_on_the_predicted_bodies():
     ("anticipate: {max_sd: 0.1}", "needs 'ahead'"),
     ("anticipate: {ahead: 0.05, max_sd: 0}", "greater than 0"),
     ("anticipate: {ahead: 0.05, sure: 1}", "unknown key 'sure'"),
+    ("anticipate: {ahead: 0.05, min_p: 1.5}", "min_p"),
+    ("anticipate: {ahead: 0.05, trend: fast}", "trend"),
 ])
 def test_bad_anticipation_is_a_clear_error(text, message):
     with pytest.raises(ConfigError, match=message):
@@ -295,3 +303,101 @@ def test_the_monitor_status_carries_the_forecast_figures():
     got = status_json(Status(1.0, engine, {}))["engine"]["forecast"]
     assert got == {"horizons_s": [0.05], "views_s": {}, "sd_mm": {"0.05": 31.2},
                    "speed_capped": 2, "bones_fixed": 1}
+
+
+# ---------------------------------------------------------------- how sure (issue 15, false triggers)
+
+def test_a_predicted_crossing_waits_until_its_probability_is_high_enough():
+    # predicted 0.05 m past 1.9 with s.d. 0.05: z = 1, P = 0.841 < 0.9: it waits; next frame
+    # 0.10 m past: z = 2, P = 0.977: it fires there, still ahead of the measurements
+    rt, sink = runtime("anticipate: {ahead: 0.05, min_p: 0.9}")
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.05), (0.033, 1.5, 1.95, 0.05),
+                     (0.067, 1.8, 2.0, 0.05), (0.1, 1.95, 2.1, 0.05)])
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.067, 0.05)]
+    assert rt.counts["unsure"] == 1 and rt.counts["confirmed"] == 1
+    # with min_p 0.8 the first (P = 0.841) is enough
+    rt2, sink2 = runtime("anticipate: {ahead: 0.05, min_p: 0.8}")
+    feed_frames(rt2, [(0.0, 1.0, 1.0, 0.05), (0.033, 1.5, 1.95, 0.05)])
+    assert [e.t for e in fired(sink2)] == [0.033]
+
+
+def test_a_waiting_prediction_that_falls_back_is_dropped_and_never_fires():
+    rt, sink = runtime("anticipate: {ahead: 0.05, min_p: 0.9}")
+    # past by 0.05 (P 0.841, waits), then 1.84: more than the hysteresis (0.05) back
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.05), (0.033, 1.5, 1.95, 0.05),
+                     (0.067, 1.6, 1.84, 0.05), (0.1, 1.7, 1.88, 0.05)])
+    assert fired(sink) == [] and rt.counts["contradicted"] == 0
+    assert rt.counts["unsure"] == 1
+    assert not any(run.waiting for run in rt._all_runs())
+
+
+def test_the_trend_asks_for_a_measured_approach():
+    # the measured hand rises at 0.5 m/s: below a trend of 1 m/s, so the measurements decide
+    rt, sink = runtime("anticipate: {ahead: 0.05, trend: 1.0}")
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01),
+                     (0.067, 1.8, 2.1, 0.01), (0.1, 1.95, 2.1, 0.01)], hand_vy=0.5)
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.1, 0.0)]
+    # hands default to a trend of 1 m/s (GROUP_DEFAULTS): the same with plain 'anticipate'
+    rt2, sink2 = runtime("anticipate: 0.05")
+    feed_frames(rt2, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01),
+                      (0.067, 1.8, 2.1, 0.01), (0.1, 1.95, 2.1, 0.01)], hand_vy=0.5)
+    assert [e.t for e in fired(sink2)] == [0.1]
+
+
+def test_group_defaults_and_what_a_trigger_says():
+    from stage.piece.anticipation import group, rule
+    from stage.piece.model import BODY, Anticipation
+    bare = Anticipation(0.05)
+    assert group(J["FootLeft"]) == group(J["KneeRight"]) == "legs"
+    assert group(J["HandRight"]) == group(J["ElbowLeft"]) == "arms"
+    assert group(J["Head"]) == group(BODY) == "torso"
+    assert rule(bare, J["FootLeft"]) == (0.94, None)
+    assert rule(bare, J["HandLeft"]) == (0.0, 1.0)
+    assert rule(bare, BODY) == (0.0, None)
+    assert rule(Anticipation(0.05, min_p=0.5, trend=0.2), J["FootLeft"]) == (0.5, 0.2)
+    # backwards compatible: 'anticipate: 0.05' leaves both to the groups
+    piece = loads_piece(PIECE.format(top="", anticipate="anticipate: 0.05"))
+    assert piece.sections[0].triggers[0].anticipate == bare
+
+
+def test_zone_depth_and_margins_by_hand():
+    from stage.piece.anticipation import depth, margin
+    from stage.piece.model import Zone
+    box = Zone("b", "box", low=(-1.0, 0.0, 0.0), high=(1.0, 2.0, 1.0))
+    assert depth(box, 0.0, 1.0, 0.25) == pytest.approx(0.25)     # nearest: z - 0
+    assert depth(box, 0.0, 1.0, -0.3) == pytest.approx(-0.3)
+    cyl = Zone("c", "cylinder", centre=(0.0, 0.0), radius=1.0, bottom=0.0, top=2.0)
+    assert depth(cyl, 0.6, 1.0, 0.8) == pytest.approx(0.0)        # on the rim (0.6, 0.8)
+    assert depth(cyl, 0.0, 1.9, 0.0) == pytest.approx(0.1)
+    sph = Zone("s", "sphere", centre=(0.0, 1.0, 0.0), radius=0.5)
+    assert depth(sph, 0.0, 1.0, 0.3) == pytest.approx(0.2)
+    rt, _ = runtime()
+    trig = rt.piece.sections[0].triggers[0]                    # rises_above 1.9, HandLeft
+    from stage.piece.triggers import Person
+    p = Person(body(2.0, 0.0, hand_vy=1.5), 0.5, 0.0)
+    assert margin(trig, p, J["HandLeft"]) == pytest.approx((0.1, 1.5))
+
+
+def test_a_zone_margin_is_the_depth_and_its_rate_along_the_velocity():
+    from stage.piece.anticipation import margin
+    from stage.piece.model import BODY
+    from stage.piece.triggers import Person
+    text = """
+piece: z
+zones:
+  box: {shape: box, min: [-1, 0, 0], max: [1, 2, 1]}
+sections:
+  - name: s
+    triggers:
+      - {name: in, enters: box, anticipate: 0.05, do: [{note: C4}]}
+      - {name: out, leaves: box, anticipate: 0.05, do: [{note: C4}]}
+"""
+    enters, leaves = loads_piece(text).sections[0].triggers
+    joints = standing()
+    vel = np.zeros((25, 3))
+    vel[J["SpineMid"], 2] = 2.0       # the torso centre moves like SpineMid: 2 m/s along z
+    b = Body(1, joints, np.ones(25), vel, OPEN, np.array([0.0, 1.0, 0.25]), ("a",))
+    p = Person(b, 0.5, 0.0)
+    # 0.25 m inside (nearest border z = 0), going deeper at 2 m/s
+    assert margin(enters, p, BODY) == pytest.approx((0.25, 2.0))
+    assert margin(leaves, p, BODY) == pytest.approx((-0.25, -2.0))

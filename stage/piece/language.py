@@ -100,8 +100,16 @@ ANTICIPATE = AnyOf((AHEAD, Obj("Anticipate", {
                     doc="A predicted crossing the measurements have not made this long after "
                         "the predicted moment counts as contradicted (default 0.1)."),
     "cut": Field(Boolean(), doc="Cut short what a contradicted firing played (default false)."),
+    "min_p": Field(Number(0.0, 1.0),
+                   doc="A predicted crossing fires only once the probability that the joint is "
+                       "past the border at the predicted moment (Gaussian: the predicted margin "
+                       "over its s.d.) is at least this; until then it waits (default: "
+                       "docs/anticipation.md)."),
+    "trend": Field(Number(unit="m/s"),
+                   doc="A predicted crossing fires only while the measured joint moves towards "
+                       "the border at least this fast (default: none)."),
 }, doc="How boldly a trigger fires on what the filter predicts.")),
-    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut}",
+    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut, min_p, trend}",
     doc="Fire on a crossing predicted this far ahead (enters, leaves, rises_above, "
         "falls_below; docs/anticipation.md). 0: off.")
 

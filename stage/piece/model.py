@@ -31,6 +31,12 @@ class Anticipation:
     max_sd: float = 0.1         # m: the prediction's position s.d. must be at most this
     within: float = 0.1         # s after the predicted moment before it counts as contradicted
     cut: bool = False           # cut short what a contradicted firing played
+    #: the probability (Gaussian: the predicted margin past the border over its s.d.) that
+    #: the joint is past the border at the predicted moment must be at least this
+    #: (None: its joint group's default, ``anticipation.GROUP_DEFAULTS``)
+    min_p: float | None = None
+    #: m/s the measured joint must move towards the border (None: its group's default)
+    trend: float | None = None
 
 
 #: trigger kinds that can anticipate (a crossing of a position: zones and heights)

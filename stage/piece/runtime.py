@@ -42,7 +42,7 @@ Narrator = Callable[[float, str], None]
 class _TriggerRun:
     """A trigger with its detector and the state that decides whether a firing sounds."""
 
-    __slots__ = ("trigger", "detector", "last", "fired_in_visit", "ahead", "pending")
+    __slots__ = ("trigger", "detector", "last", "fired_in_visit", "ahead", "pending", "waiting")
 
     def __init__(self, trigger: Trigger) -> None:
         self.trigger = trigger
@@ -54,6 +54,8 @@ class _TriggerRun:
         #: (person, joint) -> (fired at, contradicted unless measured by, firing number)
         self.ahead: Detector | None = detector_for(trigger) if trigger.anticipate else None
         self.pending: dict[tuple, tuple[float, float, int]] = {}
+        #: predicted crossings not yet sure enough to fire: (person, joint) -> first seen at
+        self.waiting: dict[tuple, float] = {}
 
     def reset(self) -> None:
         self.detector.reset()
@@ -61,6 +63,7 @@ class _TriggerRun:
         if self.ahead is not None:
             self.ahead.reset()
             self.pending.clear()
+            self.waiting.clear()
 
 
 class PieceRuntime:
@@ -244,6 +247,8 @@ class PieceRuntime:
                     run.ahead.forget(frame.lost)
                     for key in [k for k in run.pending if k[0] in frame.lost]:
                         del run.pending[key]   # the person is gone: nothing to contradict
+                    for key in [k for k in run.waiting if k[0] in frame.lost]:
+                        del run.waiting[key]
         if persons:
             self.empty_since = None
         elif self.empty_since is None:
@@ -268,6 +273,8 @@ class PieceRuntime:
                         anticipate(self, run, t, chosen)
             if firings:
                 for f in firings:
+                    if run.waiting:
+                        run.waiting.pop((f.person, f.joint), None)   # measured: no more waiting
                     if run.pending and run.pending.pop((f.person, f.joint), None) is not None:
                         self.counts["confirmed"] += 1   # measured as predicted: fired already
                         continue
