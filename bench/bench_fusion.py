@@ -151,7 +151,7 @@ def main() -> int:
           f"{'PASS' if worst_lag <= 1 else 'FAIL'}")
     print(f"fused error below the best single sensor in every row (shipped): "
           f"{'PASS' if not worse else 'FAIL'}; worst {max(r['fused_error_mm'] for r in shipped):.1f} mm "
-          f"(issue 10: 9.7-10.2 mm before, without outliers)")
+          f"(the tree before issue 10 on this script: bench/README.md)")
     return 0
 
 

@@ -261,6 +261,46 @@ def test_fast_path_agrees_with_the_general_decoder():
     assert fast_hits > 100
 
 
+def test_fast_path_in_kinect_order_agrees_with_the_general_decoder():
+    """All 25 joints in JOINTS order (what Kinect clients send) take a shortcut in the fast
+    path; it accepts exactly what the general decoder accepts, with equal values."""
+    from stage.sensors.protocol import (Decoded, _decode_message, _fast_joint_coordinates,
+                                        _parse_message)
+    rng = np.random.default_rng(12)
+    fast_hits = 0
+    for k in range(300):
+        names = list(JOINTS)
+        if k % 7 == 0:
+            names[3] = "Nose"                                 # unknown joint, same slot
+        if k % 11 == 0:
+            names[5], names[6] = names[6], names[5]           # another order
+        args = ["kin" if k % 3 else 3, int(rng.integers(-1, 8))]
+        for n, name in enumerate(names):
+            xyz = rng.normal(0, 8 if k % 5 == 0 else 1, size=3)
+            c = float(rng.choice([0.0, 0.5, 1.0, 1.2]) if k % 13 == 0 else rng.choice([0.5, 1.0]))
+            if k % 17 == 0 and n == 24:
+                xyz[2] = np.inf
+            args += [str(name), *map(float, xyz), c]
+        data = build("/jointCoordinates", *args)
+        if k % 19 == 0:
+            data = data[:-4]
+        general = Decoded()
+        try:
+            _decode_message(_parse_message(data), None, general, "x:1")
+        except Exception:
+            general.drops.append(("x:1", "malformed"))
+        fast = _fast_joint_coordinates(data)
+        if fast is None:
+            assert general.drops or k % 11 == 0
+            continue
+        fast_hits += 1
+        assert general.drops == [] and len(general.messages) == 1
+        slow = general.messages[0][0]
+        assert (fast.client, fast.user) == (slow.client, slow.user)
+        assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
+    assert fast_hits > 100
+
+
 def test_hand_state_fast_path_agrees_with_the_general_decoder():
     from stage.sensors.protocol import Decoded, _decode_message, _fast_hand_state, _parse_message
     hits = 0

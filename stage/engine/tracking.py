@@ -143,7 +143,9 @@ class Person:
                 return None
         dt = min(max(t - self.t, 0.0), 0.5)
         diff = joints[idx] - self.joints[idx] - self.velocity[idx] * dt
-        return float(np.sqrt((diff * diff).sum(axis=1)).mean())
+        # sum / count is what .mean() computes, without its Python-level wrapper (this runs
+        # for every view and candidate person)
+        return float(np.sqrt((diff * diff).sum(axis=1)).sum() / len(idx))
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
