@@ -40,11 +40,12 @@ import numpy as np
 from ..engine.engine import Engine
 from ..frames import SensorFrame
 from ..errors import CalibrationError
-from .fitness import fitness_from_mse
+from .fitness import fitness_from_median
 from .gate import CopyDetector, JumpGate
+from .judge import PairWindow, Verdict, judge, judge_suspect
 from .live import LiveSettings, View, new_pairs, torso_centre
 from .methods import CalibrationResult, calibrate
-from .scoring import grid, score
+from .scoring import distances, grid
 from .pairs import PairSet
 from .worker import EngineWorker
 
@@ -58,7 +59,7 @@ class LiveEvent:
 
     t: float
     sensor: str
-    kind: str       # suspect | restored | calibrated | rejected | identical | failed
+    kind: str       # suspect | restored | calibrated | rejected | identical | held
     detail: str
     matrix: np.ndarray | None = None   # sensor -> stage, for calibrated
     fitness: float | None = None
@@ -84,7 +85,8 @@ class _State:
     busy: bool = False
     epoch: int = 0                      # bumped on every state change (stale decisions lose)
     noted: dict | None = None
-    history: deque = field(default_factory=deque)   # (t, sum w d^2, sum w) per poll
+    window: PairWindow | None = None    # a suspect's distances with its last good transform
+    residual: float | None = None       # m, the robust residual behind ``fitness``
 
 
 class LiveCalibrator(EngineWorker):
@@ -109,6 +111,9 @@ class LiveCalibrator(EngineWorker):
         s = self.settings
         self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
         self._monitored_to = -INF
+        self._window = PairWindow(s.window_s)   # trusted pairs' joint distances
+        self._held_since: float | None = None   # everything looked wrong at once since then
+        self._jumps: dict[str, tuple[float, set]] = {}   # sensor -> (frame time, users jumped)
         self._copies = CopyDetector(self.settings.identical_frames)
         self._pending: dict[str, int] = {}  # requested before the sensor was seen
         self._request_all: int | None = None
@@ -220,16 +225,36 @@ class LiveCalibrator(EngineWorker):
         return st
 
     def _check_jump(self, frame: SensorFrame, st: _State) -> None:
-        """Quarantine at once a sensor whose torso jumped away from sensors it agreed with."""
+        """Quarantine at once a sensor whose views jumped away from sensors they agreed with.
+
+        One view jumping is a bump only when it is all the sensor sees; with
+        several people, a bump moves every view of the sensor in the same
+        frame, while one view alone jumping is the sensor giving a freed user
+        id to another person (a Kinect reuses its body indices): that view's
+        old agreements are forgotten instead.
+        """
         m = frame.transform
         c = torso_centre(frame.joints, frame.conf)
         if c is None or m is None:
             return
-        jumped = self._gate.check(frame.sensor, frame.user, frame.t, m[:3, :3] @ c + m[:3, 3])
-        if jumped is not None:
-            sensors, distance = jumped
-            self._quarantine(st, frame.t, f"its view jumped {distance:.2f} m away from "
-                                          f"{', '.join(sensors)} (moved or bumped?)")
+        sid, user, t = frame.sensor, frame.user, frame.t
+        jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
+        if jumped is None:
+            return
+        others = [u for (s2, u), buf in self._buffers.items()
+                  if s2 == sid and u != user and buf and t - buf[-1][0].t <= 0.1]
+        first, users = self._jumps.get(sid, (t, set()))
+        if abs(t - first) > 0.02:        # a jump of an earlier frame: start counting again
+            first, users = t, set()
+        users.add(user)
+        self._jumps[sid] = (first, users)
+        if others and len(users) < 2:
+            self._gate.forget(sid, user)  # one view of several: another person took its id
+            return
+        sensors, distance = jumped
+        self._quarantine(st, t, f"{'its view' if not others else f'{len(users)} of its views'} "
+                                f"jumped {distance:.2f} m away from {', '.join(sensors)} "
+                                "(moved or bumped?)")
 
     def _flag_identical(self, pair: tuple[str, str], t: float) -> None:
         a, b = pair
@@ -245,15 +270,24 @@ class LiveCalibrator(EngineWorker):
         log.warning("sensor %s %s", copy, reason)
         self._event(LiveEvent(t, copy, "identical", reason))
         if st.state == "ok":
-            self._quarantine(st, t, reason)
+            self._quarantine(st, t, reason, force=True)
         else:
             st.reason = reason
             st.epoch += 1
             st.pairs = None
             self._note(st)
 
-    def _quarantine(self, st: _State, t: float, reason: str) -> None:
-        """Leave a sensor out of fusion (caller holds the lock)."""
+    def _quarantine(self, st: _State, t: float, reason: str, force: bool = False) -> bool:
+        """Leave a sensor out of fusion (caller holds the lock); False when held back.
+
+        Never more than half of the calibrated sensors at once (``force``: a
+        copy, which is not a sensor): when more would be suspect, everything
+        looks wrong at once (a crowd hiding everybody, or the reference moved)
+        and the last good calibrations stay in use, which the note says.
+        """
+        if not force and not self._room_for_suspect():
+            self._hold(t, [st], reason)
+            return False
         if st.transform is not None:
             st.last_good = st.transform
         st.state, st.reason, st.since = "suspect", reason, t
@@ -262,7 +296,7 @@ class LiveCalibrator(EngineWorker):
         st.collect_from = st.collected_to = t
         st.below_since = st.above_since = None
         st.epoch += 1
-        st.history.clear()
+        st.window = PairWindow(self.settings.window_s)
         sid = st.sensor
         self._gate.trust(sid, False)
         self._act(lambda e: e.set_calibration(sid, None))
@@ -270,6 +304,34 @@ class LiveCalibrator(EngineWorker):
                     sid, reason)
         self._event(LiveEvent(t, sid, "suspect", reason, fitness=st.fitness))
         self._note(st)
+        return True
+
+    def _calibrated(self) -> list[_State]:
+        """Sensors with a calibration, in use or last good (copies are not sensors)."""
+        return [st for st in self._states.values() if st.duplicate_of is None and (
+            st.state == "ok" and st.transform is not None
+            or st.state in ("suspect", "recalibrating") and st.last_good is not None)]
+
+    def _room_for_suspect(self, more: int = 1) -> bool:
+        """Whether ``more`` sensors can be left out with at least half still trusted."""
+        cal = self._calibrated()
+        trusted = sum(st.state == "ok" for st in cal)
+        return trusted - more >= (len(cal) + 1) // 2 and trusted - more >= 1
+
+    def _hold(self, t: float, states: list[_State], why: str) -> None:
+        """Everything looks wrong at once: keep the last good calibrations, and say so."""
+        names = ", ".join(st.sensor for st in states)
+        text = (f"keeping the last good calibrations: {names} disagree{'s' if len(states) == 1 else ''}"
+                f" too ({why}), but leaving {'it' if len(states) == 1 else 'them'} out would "
+                "leave less than half of the sensors trusted (a crowd hiding everybody, or the "
+                "reference moved?)")
+        for st in states:
+            st.reason = text
+            self._note(st)
+        if self._held_since is None:
+            self._held_since = t
+            log.warning("%s", text)
+            self._event(LiveEvent(t, states[0].sensor, "held", text))
 
     # ------------------------------------------------------------ helpers
     def _note_of(self, st: _State) -> dict:
@@ -355,58 +417,85 @@ class LiveCalibrator(EngineWorker):
 
     def _monitor(self, now: float, t0: float, t1: float, views: dict[str, list[View]],
                  states: dict, epochs: dict) -> None:
-        """Score every sensor on the frames of (t0, t1]; decide who is suspect or restored."""
+        """Judge every sensor on the frames of (t0, t1]; decide who is suspect or restored.
+
+        See ``judge``: a sensor is suspect when it disagrees with the others
+        while they agree among themselves, for ``hold_s``; never more than
+        half of the calibrated sensors at once.
+        """
         s = self.settings
         at = grid(t0, t1)
         if not len(at):
             return
-        sums = score(views, states, at, s.match_m)
+        trusted, suspects = distances(views, states, at, s.match_m)
         with self._lock:
+            changed = {sid for sid, st in self._states.items() if st.epoch != epochs.get(sid)}
+            self._window.add(t1, {k: v for k, v in trusted.items() if not set(k) & changed})
+            ok = [sid for sid, st in self._states.items() if st.state == "ok"
+                  and st.transform is not None and st.duplicate_of is None]
+            verdict = judge(self._window, ok, self._reference, s.suspect_below, s.suspect_ratio)
             candidates = []
-            for sid, st in self._states.items():
-                if st.epoch != epochs.get(sid):
-                    continue
-                sse, w = sums.get(sid, (0.0, 0.0))
-                if w > 0:
-                    st.history.append((t1, sse, w))
-                while st.history and st.history[0][0] <= t1 - s.window_s:
-                    st.history.popleft()
-                total_w = sum(h[2] for h in st.history)
-                if total_w <= 0:
+            for sid in ok:
+                st = self._states[sid]
+                if sid not in verdict.fitness:
                     continue  # nobody to compare with: no verdict
-                st.fitness = float(fitness_from_mse(sum(h[1] for h in st.history) / total_w))
-                if st.state == "ok":
-                    if st.fitness < s.suspect_below:
-                        st.below_since = now if st.below_since is None else st.below_since
-                        if now - st.below_since >= s.hold_s:
-                            candidates.append(st)
-                    else:
-                        st.below_since = None
-                elif (st.state == "suspect" and st.last_good is not None and not st.busy
-                      and st.duplicate_of is None):
-                    if st.fitness >= s.restore_above:
-                        st.above_since = now if st.above_since is None else st.above_since
-                        if now - st.above_since >= s.restore_s:
-                            self._restore(st, now)
-                    else:
-                        st.above_since = None
+                st.fitness, st.residual = verdict.fitness[sid], verdict.residual[sid]
+                if sid in verdict.outliers:
+                    st.below_since = now if st.below_since is None else st.below_since
+                    if now - st.below_since >= s.hold_s:
+                        candidates.append(st)
+                else:
+                    st.below_since = None
+                    if st.reason.startswith("keeping the last good"):
+                        st.reason = "calibrated; agrees with the others again"
                 self._note(st)
-            if candidates:
-                # with two sensors both look wrong to each other: blame the lowest, and on a
-                # near tie not the reference (stage space is its space)
-                worst = min(candidates, key=lambda c: (round(c.fitness / 0.05),
-                                                       c.sensor == self._reference))
-                self._quarantine(worst, now, f"fitness {worst.fitness:.2f} stayed below "
-                                             f"{s.suspect_below} for {s.hold_s:g} s")
+            for sid, st in self._states.items():
+                if (st.state != "suspect" or st.last_good is None or st.busy
+                        or st.duplicate_of is not None or sid in changed or st.window is None):
+                    continue
+                st.window.add(t1, {k: v for k, v in suspects.items() if k[0] == sid})
+                r, lvl = judge_suspect(st.window, sid, self._window, ok, verdict.outliers)
+                if not np.isfinite(r):
+                    continue
+                st.residual, st.fitness = r, float(fitness_from_median(r))
+                if st.fitness >= s.restore_above or (np.isfinite(lvl)
+                                                     and r <= s.restore_ratio * lvl):
+                    st.above_since = now if st.above_since is None else st.above_since
+                    if now - st.above_since >= s.restore_s:
+                        self._restore(st, now, lvl)
+                else:
+                    st.above_since = None
+                self._note(st)
+            self._decide(now, candidates, verdict)
 
-    def _restore(self, st: _State, now: float) -> None:
+    def _decide(self, now: float, candidates: list[_State], verdict: Verdict) -> None:
+        """Quarantine the worst candidate, or hold everything when too many look wrong."""
+        s = self.settings
+        if not candidates:
+            if not verdict.outliers:
+                self._held_since = None
+            return
+        if not self._room_for_suspect(len(verdict.outliers)):
+            self._hold(now, candidates, "; ".join(verdict.why(c.sensor) for c in candidates))
+            return
+        worst = max(candidates, key=lambda c: (verdict.residual.get(c.sensor, 0.0),
+                                               c.sensor != self._reference))
+        self._quarantine(worst, now, f"fitness {worst.fitness:.2f} stayed below "
+                                     f"{s.suspect_below} for {s.hold_s:g} s: "
+                                     f"{verdict.why(worst.sensor)}")
+
+    def _restore(self, st: _State, now: float, level: float = float("nan")) -> None:
         m = st.last_good
         st.state, st.transform, st.pairs, st.since = "ok", m, None, now
-        st.reason = f"its old transform fits again (fitness {st.fitness:.2f}): restored"
+        like = (f", as close as the others agree ({level * 100:.0f} cm)"
+                if np.isfinite(level) else "")
+        st.reason = (f"its old transform fits again (fitness {st.fitness:.2f}, median "
+                     f"{(st.residual or 0) * 100:.0f} cm{like}): restored")
         st.above_since = st.below_since = None
         st.epoch += 1
-        st.history.clear()
+        st.window = None
         sid = st.sensor
+        self._window.forget(sid)
         self._gate.trust(sid, True)
         self._act(lambda e: e.set_calibration(sid, m))
         log.info("sensor %s: %s", sid, st.reason)
@@ -472,7 +561,8 @@ class LiveCalibrator(EngineWorker):
                 st.reason = (f"{verb} by {result.method}: fitness {result.fitness:.2f}, rms "
                              f"{result.rms_m * 1000:.0f} mm, {result.pairs} pairs")
                 st.epoch += 1
-                st.history.clear()
+                st.window = None
+                self._window.forget(sid)
                 self._gate.trust(sid, True)
                 self._act(lambda e: e.set_calibration(sid, m))
                 log.info("sensor %s %s", sid, st.reason)

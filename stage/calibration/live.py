@@ -39,9 +39,11 @@ class LiveSettings:
     pairs: int = 300              # pairs for a first calibration (~10 s at 30 Hz)
     heal_pairs: int = 90          # pairs for a re-calibration (~3 s)
     window_s: float = 0.5
-    suspect_below: float = 0.5    # fitness 0.5 = joints 10 cm apart on average
+    suspect_below: float = 0.5    # fitness 0.5 = joints 8.9 cm apart (median; 10 cm rms-like)
+    suspect_ratio: float = 2.0    # ... and twice as far as the others agree among themselves
     hold_s: float = 0.3
-    restore_above: float = 0.7    # hysteresis: 0.7 = 6.5 cm
+    restore_above: float = 0.7    # hysteresis: 0.7 = 5.8 cm (median)
+    restore_ratio: float = 1.25   # ... or as close as the others agree (x 1.25)
     restore_s: float = 1.0
     accept_above: float = 0.7
     gate_m: float = 0.30
@@ -78,12 +80,26 @@ class View:
 
     @classmethod
     def of(cls, entries: list[tuple[SensorFrame, int | None]]) -> "View":
-        """From (frame, person id) entries, as the observer buffers them."""
+        """From (frame, person id) entries, as the observer buffers them.
+
+        Only the newest run of one identity is kept: a sensor gives a freed
+        user id to the next body it acquires (a Kinect's body index 0-5 does
+        the same), so one (sensor, user) buffer can hold two people one after
+        the other. A run ends where the frames are more than ``IDENTITY_GAP_S``
+        apart, where the torso moves ``IDENTITY_JUMP_M`` between two frames
+        (nobody moves 30 cm in a frame), or where the engine bound the view to
+        another person. Mixing two people in one view made every sensor that
+        saw either of them look wrong to the monitor.
+        """
         entries = sorted(entries, key=lambda e: e[0].t)  # batches may interleave slightly
         frames = [f for f, _ in entries]
         t = np.array([f.t for f in frames])
         raw = np.stack([f.joints for f in frames])
         conf = np.stack([f.conf for f in frames])
+        first = _identity_start(t, raw, conf, [p for _, p in entries])
+        if first:
+            entries, frames = entries[first:], frames[first:]
+            t, raw, conf = t[first:], raw[first:], conf[first:]
         stage = np.full_like(raw, np.nan)
         # frames share transform objects; place each run of one transform at once
         start = 0
@@ -99,6 +115,32 @@ class View:
     def between(self, t0: float, t1: float) -> np.ndarray:
         """Indices of frames with t0 < t <= t1."""
         return np.flatnonzero((self.t > t0) & (self.t <= t1))
+
+
+#: a (sensor, user) view is a new identity after a gap this long (s) ...
+IDENTITY_GAP_S = 0.25
+#: ... or a torso jump this large between consecutive frames (m), see View.of
+IDENTITY_JUMP_M = 0.30
+
+
+def _identity_start(t: np.ndarray, raw: np.ndarray, conf: np.ndarray,
+                    persons: list[int | None]) -> int:
+    """Index of the first frame of the newest run of one identity (frames in time order)."""
+    n = len(t)
+    if n < 2:
+        return 0
+    brk = np.diff(t) > IDENTITY_GAP_S                      # brk[k]: between frame k and k + 1
+    c = torso_centre(raw, conf)                            # (n, 3), NaN where no torso
+    seen = np.flatnonzero(np.isfinite(c[:, 0]))
+    if len(seen) > 1:  # consecutive frames with a torso, however many torso-less ones between
+        jump = np.linalg.norm(np.diff(c[seen], axis=0), axis=1) > IDENTITY_JUMP_M
+        brk[seen[1:][jump] - 1] = True
+    known = [(k, p) for k, p in enumerate(persons) if p is not None]
+    for (k0, p0), (k1, p1) in zip(known, known[1:]):
+        if p0 != p1:
+            brk[k1 - 1] = True
+    cut = np.flatnonzero(brk)
+    return int(cut[-1]) + 1 if len(cut) else 0
 
 
 @dataclass
