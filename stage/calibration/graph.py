@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import apply, invert, matrix, nearest_rotation
+from .fitness import GAUSS_RMS_PER_MEDIAN
 from .methods import CalibrationResult
 from .pairs import PairSet
 
@@ -36,7 +37,11 @@ class Edge:
 
     @property
     def cost(self) -> float:
-        return float(self.result.rms_m) ** 2 + 1e-6  # the epsilon prefers fewer hops on ties
+        """The edge's error variance on the robust scale (m^2): independent errors add their
+        variances along a chain; the epsilon prefers fewer hops on ties."""
+        median = self.result.median_m
+        scale = median if np.isfinite(median) else self.result.rms_m / GAUSS_RMS_PER_MEDIAN
+        return float(GAUSS_RMS_PER_MEDIAN * scale) ** 2 + 1e-6
 
 
 @dataclass

@@ -129,8 +129,8 @@ class Verdict:
     def why(self, sensor: str) -> str:
         """Words for an outlier: its residual against the others' agreement."""
         r, lvl = self.residual.get(sensor, NAN), self.level.get(sensor, NAN)
-        text = (f"its joints are {r * 100:.0f} cm (median) from "
-                f"{', '.join(self.partners.get(sensor, [])) or 'the others'}'")
+        partners = ", ".join(self.partners.get(sensor, [])) or "the others"
+        text = f"its joints are {r * 100:.0f} cm (median) from {partners}'s"
         if np.isfinite(lvl):
             text += f", while the others agree within {lvl * 100:.0f} cm"
         return text
