@@ -14,8 +14,9 @@ in 60 different places. So a pair set is judged by
 
 ``Gates`` are the defaults both the offline and the live calibrations use:
 at least ``min_pairs`` paired frames, ``min_poses`` distinct poses, and a
-fit with fitness ``min_fitness`` or better (fitness from the median joint
-distance, see ``fitness``); each refusal names its cause with the counts.
+good fit, or a poor one whose timing the lag search found unambiguous
+(fitness from the median joint distance, see ``fitness``); each refusal
+names its cause with the counts.
 """
 
 from __future__ import annotations
@@ -86,11 +87,23 @@ def count_poses(joints: np.ndarray, weight: np.ndarray, step_m: float = POSE_STE
 
 @dataclass(frozen=True)
 class Gates:
-    """What a pair set and its fit need before a calibration is used (documented defaults)."""
+    """What a pair set and its fit need before a calibration is used (documented defaults).
 
-    min_pairs: int = 10        # paired frames: a third of a second at 30 Hz
-    min_poses: int = 5         # distinct poses (POSE_STEP_M apart)
-    min_fitness: float = 0.5   # fitness 0.5 = a median joint distance of 8.9 cm
+    Two tiers of fit: GOOD (fitness ``min_fitness`` or better) is used as it
+    is; POOR (down to ``poor_fitness``) only when the lag search found the
+    two streams' timing unambiguous (confidence ``min_lag_confidence`` or
+    more: one clear minimum, so the two sensors really watched the same
+    motion at the same time). Real short takes fit at 5-25 cm (median) even
+    at their brute-force optimum, so a single good/bad line either refused
+    most of them or let anything through; two sensors watching different
+    people at the same time fit at 70 cm or more and their timing is flat.
+    """
+
+    min_pairs: int = 10           # paired frames: a third of a second at 30 Hz
+    min_poses: int = 5            # distinct poses (POSE_STEP_M apart)
+    min_fitness: float = 0.5      # good: a median joint distance of 8.9 cm or less
+    poor_fitness: float = 0.1     # poor but usable: 26.6 cm or less, with clear timing
+    min_lag_confidence: float = 0.2
 
     def too_little(self, pairs: int, poses: int) -> str | None:
         """Why these pairs are not enough, or None."""
@@ -101,10 +114,25 @@ class Gates:
                     f"{self.min_poses}; the person hardly moved)")
         return None
 
-    def too_poor(self, fitness: float, median_m: float) -> str | None:
-        """Why a fit is not good enough, or None."""
-        if not fitness >= self.min_fitness:
+    def too_poor(self, fitness: float, median_m: float,
+                 lag_confidence: float | None = None) -> str | None:
+        """Why a fit is not good enough, or None (see the class docstring)."""
+        if fitness >= self.min_fitness:
+            return None
+        good = median_from_fitness(self.min_fitness) * 100
+        if not fitness >= self.poor_fitness:
             return (f"fit too poor: median joint distance {median_m * 100:.1f} cm (fitness "
-                    f"{fitness:.2f} < {self.min_fitness:g}, i.e. more than "
-                    f"{median_from_fitness(self.min_fitness) * 100:.1f} cm)")
+                    f"{fitness:.2f} < {self.poor_fitness:g}, i.e. more than "
+                    f"{median_from_fitness(self.poor_fitness) * 100:.1f} cm: not the same "
+                    "person seen twice)")
+        if lag_confidence is None or lag_confidence < self.min_lag_confidence:
+            timing = ("no lag search" if lag_confidence is None
+                      else f"lag search confidence {lag_confidence:.2f} < "
+                           f"{self.min_lag_confidence:g}")
+            return (f"fit too poor: median joint distance {median_m * 100:.1f} cm (fitness "
+                    f"{fitness:.2f} < {self.min_fitness:g}, more than {good:.1f} cm) and the "
+                    f"timing does not confirm it ({timing})")
         return None
+
+    def is_poor(self, fitness: float) -> bool:
+        return fitness < self.min_fitness

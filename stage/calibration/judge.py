@@ -10,7 +10,9 @@ keeps the last ``window_s`` of them and decides, per sensor:
   others agree among themselves right now, with these people, at these
   distances, through this occlusion;
 - whether it is an OUTLIER: its fitness is below ``suspect_below`` AND its
-  residual is more than ``suspect_ratio`` times the level. A sensor is
+  residual is more than ``suspect_ratio`` times the level (or its own
+  baseline, whichever is larger: the worst window of the pairs it was
+  calibrated on here, if it was). A sensor is
   suspect only when it disagrees with the others while they agree among
   themselves: a crowd far from every sensor, where everybody's joints are
   noisier, raises every residual together and blames nobody. Without a
@@ -137,8 +139,16 @@ class Verdict:
 
 
 def judge(trusted: PairWindow, ok: list[str], reference: str | None, suspect_below: float,
-          suspect_ratio: float) -> Verdict:
-    """Residual, level, fitness and outliers of the trusted sensors ``ok``."""
+          suspect_ratio: float, baselines: dict[str, float | None] | None = None) -> Verdict:
+    """Residual, level, fitness and outliers of the trusted sensors ``ok``.
+
+    baselines: the worst a sensor's residual was over any ``window_s`` of the
+    pairs it was calibrated on here (m): a sensor calibrated from noisy real
+    skeletons whose tracking wanders to 20 cm now and then is not suspect for
+    doing it again; it is a second yardstick beside the level (the larger
+    counts).
+    """
+    baselines = baselines or {}
     v = Verdict()
     okset = set(ok)
     totals = trusted.totals()
@@ -153,7 +163,13 @@ def judge(trusted: PairWindow, ok: list[str], reference: str | None, suspect_bel
         v.residual[s], v.level[s] = r, lvl
         v.partners[s] = sorted({p for k in mine for p in k if p != s})
         low = fitness_from_median(r) < suspect_below
-        if low and (s != reference if not np.isfinite(lvl) else r > suspect_ratio * lvl):
+        base = baselines.get(s)
+        base = base if base is not None and np.isfinite(base) else NAN
+        if np.isfinite(lvl) or np.isfinite(base):
+            far = r > suspect_ratio * np.nanmax([lvl, base])
+        else:
+            far = s != reference
+        if low and far:
             v.outliers.append(s)
     bad = set(v.outliers)
     for s in v.residual:

@@ -227,13 +227,18 @@ def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max
             f"({o.poses} distinct poses), lag {lag_s:+.3f} s, median joint distance "
             f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm), fitness "
             f"{result.fitness:.3f}")
-    o.reason = gates.too_poor(result.fitness, result.median_m)
+    o.reason = gates.too_poor(result.fitness, result.median_m, o.lag_confidence)
     if o.reason is not None:
         rig.warnings.append(f"{text}: {o.reason}; not used (were they watching different "
                             "people at the same time?)")
         return None
     o.used = True
     say(text)
+    if gates.is_poor(result.fitness):
+        rig.warnings.append(f"{b.sensor} -> {a.sensor}: a poor fit (median joint distance "
+                            f"{result.median_m * 100:.1f} cm), used because the lag search "
+                            f"found its timing clear (confidence {o.lag_confidence:.2f}); a "
+                            "longer take with more movement would calibrate better")
     return Edge(a.sensor, b.sensor, result, used)
 
 

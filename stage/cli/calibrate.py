@@ -64,6 +64,11 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     p.add_argument("--min-fitness", type=float, default=Gates.min_fitness, metavar="F",
                    help="ignore an overlap whose fit is below F (default 0.5: a median joint "
                         "distance of 8.9 cm; they were watching different people)")
+    p.add_argument("--poor-fitness", type=float, default=Gates.poor_fitness, metavar="F",
+                   help="... but use a poorer fit, down to F (default 0.1: 26.6 cm), when the "
+                        "lag search found its timing clear (confidence >= --min-lag-confidence)")
+    p.add_argument("--min-lag-confidence", type=float, default=Gates.min_lag_confidence,
+                   metavar="C", help=f"default {Gates.min_lag_confidence:g}")
     p.add_argument("--min-pairs", type=int, default=Gates.min_pairs, metavar="N",
                    help=f"an overlap needs N paired frames (default {Gates.min_pairs})")
     p.add_argument("--min-poses", type=int, default=Gates.min_poses, metavar="N",
@@ -120,7 +125,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.method == "rigid":
         options.update(robust=args.robust, seed=args.seed)
     # a CalibrationError (the data give no transform) leaves as a run-time failure, exit 1
-    gates = Gates(args.min_pairs, args.min_poses, args.min_fitness)
+    if not 0 <= args.poor_fitness <= args.min_fitness:
+        raise ConfigError("--poor-fitness must be from 0 to --min-fitness")
+    gates = Gates(args.min_pairs, args.min_poses, args.min_fitness, args.poor_fitness,
+                  args.min_lag_confidence)
     result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
                                args.max_lag, refine=not args.no_refine, options=options,
                                progress=lambda text: log.info("%s", text), gates=gates)
