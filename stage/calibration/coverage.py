@@ -103,7 +103,7 @@ class Gates:
     min_poses: int = 5            # distinct poses (POSE_STEP_M apart)
     min_fitness: float = 0.5      # good: a median joint distance of 8.9 cm or less
     poor_fitness: float = 0.1     # poor but usable: 26.6 cm or less, with clear timing
-    min_lag_confidence: float = 0.2
+    min_lag_confidence: float = 0.15
 
     def too_little(self, pairs: int, poses: int) -> str | None:
         """Why these pairs are not enough, or None."""

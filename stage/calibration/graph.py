@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import apply, invert, matrix, nearest_rotation
-from .fitness import GAUSS_RMS_PER_MEDIAN
+from .fitness import GAUSS_RMS_PER_MEDIAN, weighted_median
 from .methods import CalibrationResult
 from .pairs import PairSet
 
@@ -112,14 +112,30 @@ class SensorGraph:
                 weight += float(w.sum())
         return total / weight if weight else float("nan")
 
+    def robust_disagreement(self, transforms: dict[str, np.ndarray]) -> float:
+        """Mean over the overlaps of each one's median joint distance (m): every overlap
+        counts once, and wild pairs not at all (what refinement must not make worse)."""
+        meds = []
+        for e in self.edges:
+            if e.a in transforms and e.b in transforms:
+                pa, pb, w = _points(e)
+                d = np.linalg.norm(apply(transforms[e.a], pa) - apply(transforms[e.b], pb), axis=1)
+                meds.append(weighted_median(d, w))
+        return float(np.mean(meds)) if meds else float("nan")
+
     def refine(self, transforms: dict[str, np.ndarray], reference: str, iterations: int = 30,
-               tol: float = 1e-10) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+               tol: float = 1e-10, per_edge: bool = True, robust: bool = True,
+               ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         """Jointly refine every non-reference transform over all overlapping pairs.
 
         Minimises sum over edges (a, b) and their joint pairs of
         w |T_a p_a - T_b p_b|^2 over all rigid T (the reference fixed) by
         Gauss-Newton on small rotations and translations of every sensor at
         once; it converges in a few iterations from the composed chains.
+        ``per_edge``: every overlap weighs the same in total, however many
+        pairs it has (see below); ``robust``: the weights are re-computed each
+        iteration with Cauchy weights (c = twice the median distance, at least
+        2 cm), so pairs of an overlap that contradicts the others count little.
         Affine inputs (the regression's) are first projected on rotations.
         Returns the refined transforms and {before, after (m^2), iterations}.
         """
@@ -127,11 +143,24 @@ class SensorGraph:
         movable = [s for s in t if s != reference]
         index = {s: 6 * k for k, s in enumerate(movable)}
         edges = [(e, *_points(e)) for e in self.edges if e.a in t and e.b in t]
+        if per_edge and edges:
+            # each overlap is ONE measurement of a relative pose: its pairs share its
+            # systematic error (the two views see different sides of the body), which no
+            # number of pairs averages out, so every overlap gets the same total weight
+            mean = float(np.mean([w.sum() for *_rest, w in edges]))
+            edges = [(e, pa, pb, w * (mean / w.sum())) for e, pa, pb, w in edges]
+        base = [w for *_rest, w in edges]
         before = self.objective(transforms)
         done = 0
         for done in range(1, iterations + 1):
             h = np.zeros((6 * len(movable),) * 2)
             g = np.zeros(6 * len(movable))
+            if robust:  # Cauchy re-weighting, as the rigid fit does: wild pairs count little
+                dist = [np.linalg.norm(apply(t[e.a], pa) - apply(t[e.b], pb), axis=1)
+                        for e, pa, pb, _ in edges]
+                c = max(2.0 * float(np.median(np.concatenate(dist))), 0.02) if dist else 1.0
+                edges = [(e, pa, pb, w0 / (1.0 + (d / c) ** 2))
+                         for (e, pa, pb, _), w0, d in zip(edges, base, dist)]
             for e, pa, pb, w in edges:
                 va, vb = pa @ t[e.a][:3, :3].T, pb @ t[e.b][:3, :3].T
                 r = (va + t[e.a][:3, 3]) - (vb + t[e.b][:3, 3])

@@ -78,6 +78,7 @@ class Overlap:
     fitness: float | None = None
     used: bool = False
     reason: str | None = None       # why not used
+    matrix: np.ndarray | None = None  # the pairwise fit, b's space -> a's
 
     def as_json(self) -> dict[str, Any]:
         def r(v, n=5):
@@ -86,7 +87,8 @@ class Overlap:
                 "spread_m": r(self.spread_m, 3), "lag_s": r(self.lag_s, 4),
                 "lag_confidence": r(self.lag_confidence, 3), "median_m": r(self.median_m),
                 "rms_m": r(self.rms_m), "fitness": r(self.fitness, 4), "used": self.used,
-                "reason": self.reason}
+                "reason": self.reason, "matrix": None if self.matrix is None else
+                [[round(float(v), 6) for v in row] for row in self.matrix]}
 
 
 @dataclass
@@ -158,11 +160,20 @@ def calibrate_streams(streams: dict[str, Stream], reference: str | None = None,
     paths = graph.best_paths(reference)
     if refine and method != "regression" and len(transforms) > 2:
         refined, info = graph.refine(transforms, reference)
+        # kept only when it brings the overlaps closer together on the robust scale: where
+        # the overlaps contradict each other (real takes whose views disagree), spreading the
+        # contradiction moves every sensor away from what its own overlaps say
+        info["robust_before"] = graph.robust_disagreement(transforms)
+        info["robust_after"] = graph.robust_disagreement(refined)
+        info["kept"] = bool(info["robust_after"] <= info["robust_before"])
         rig.refinement = info
-        transforms = refined
+        if info["kept"]:
+            transforms = refined
         say(f"joint refinement over {len(graph.edges)} overlaps: rms disagreement of every "
             f"joint pair of every overlap {np.sqrt(info['before']) * 1000:.1f} -> "
-            f"{np.sqrt(info['after']) * 1000:.1f} mm ({info['iterations']} iterations)")
+            f"{np.sqrt(info['after']) * 1000:.1f} mm, mean median per overlap "
+            f"{info['robust_before'] * 1000:.1f} -> {info['robust_after'] * 1000:.1f} mm "
+            f"({info['iterations']} iterations): {'kept' if info['kept'] else 'not kept'}")
     for s in ids:
         if s in copies:
             rig.sensors[s] = SensorCalibration(s, None, error=f"bit-identical to {copies[s]}: "
@@ -172,22 +183,29 @@ def calibrate_streams(streams: dict[str, Stream], reference: str | None = None,
                                                median_m=0.0)
         elif s not in transforms:
             why = _why_unconnected(s, rig, set(transforms))
-            rig.sensors[s] = SensorCalibration(
-                s, None, error=f"no usable overlap links it to the reference {reference}: {why}")
-            warnings.append(f"{s} is not calibrated: {why}")
+            if why is None:  # it truly never overlapped a placed sensor
+                rig.sensors[s] = SensorCalibration(
+                    s, None, error=f"no chain of overlaps to the reference {reference}: it never "
+                                   "saw one person at the same time as a connected sensor")
+                warnings.append(f"{s} is not connected to the reference {reference} through any "
+                                "overlap; walk where it and a calibrated sensor both see you")
+            else:
+                rig.sensors[s] = SensorCalibration(
+                    s, None, error=f"no usable overlap links it to the reference {reference}: "
+                                   f"{why}")
+                warnings.append(f"{s} is not calibrated: {why}")
         else:
             rig.sensors[s] = _summary(s, transforms, composed[s], paths[s], graph, method)
     return rig
 
 
-def _why_unconnected(s: str, rig: RigCalibration, placed: set[str]) -> str:
-    """The real causes: each of ``s``'s overlaps with a placed sensor, and why it was not used."""
+def _why_unconnected(s: str, rig: RigCalibration, placed: set[str]) -> str | None:
+    """The real causes: each of ``s``'s overlaps with a placed sensor that paired frames,
+    and why it was not used; None when it never paired a frame with one (no overlap)."""
     reasons = [f"with {o.b if o.a == s else o.a}: {o.reason}" for o in rig.overlaps
-               if s in (o.a, o.b) and not o.used and (o.b if o.a == s else o.a) in placed]
-    if not reasons:
-        return ("it never saw one person at the same time as a calibrated sensor; walk where "
-                "it and a calibrated sensor both see you")
-    return "; ".join(reasons)
+               if s in (o.a, o.b) and not o.used and o.paired
+               and (o.b if o.a == s else o.a) in placed]
+    return "; ".join(reasons) if reasons else None
 
 
 def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max_lag_s: float,
@@ -223,6 +241,7 @@ def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max
         rig.warnings.append(f"{b.sensor} -> {a.sensor}: {exc}")
         return None
     o.median_m, o.rms_m, o.fitness = result.median_m, result.rms_m, result.fitness
+    o.matrix = result.matrix
     text = (f"{b.sensor} -> {a.sensor}: {method}, {len(used)} of {len(ps)} paired frames "
             f"({o.poses} distinct poses), lag {lag_s:+.3f} s, median joint distance "
             f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm), fitness "

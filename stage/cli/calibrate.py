@@ -196,8 +196,9 @@ ABOUT = {
              "along path",
     "method": "what produced the matrix; ', refined' when the joint refinement over every "
               "overlap changed it (by 'refined': rot_deg, trans_mm)",
-    "refinement": "rms disagreement (m) over every joint pair of every used overlap, all "
-                  "sensors together, before and after the joint refinement",
+    "refinement": "disagreement over every used overlap, all sensors together, before and "
+                  "after the joint refinement: rms (m) over every joint pair, and the mean "
+                  "over overlaps of each one's median (m); kept only when the latter drops",
     "overlaps": "every pair of sensors: paired frames, distinct poses, lag and its confidence, "
                 "the pairwise fit, and why it was not used",
 }
@@ -209,6 +210,9 @@ def _as_json(result: RigCalibration, method: str, drops: dict[str, int]) -> dict
             "refinement": None if result.refinement is None else
             {"before_rms_m": round(float(np.sqrt(result.refinement["before"])), 5),
              "after_rms_m": round(float(np.sqrt(result.refinement["after"])), 5),
+             "before_median_m": round(float(result.refinement["robust_before"]), 5),
+             "after_median_m": round(float(result.refinement["robust_after"]), 5),
+             "kept": result.refinement["kept"],
              "iterations": result.refinement["iterations"]},
             "overlaps": [o.as_json() for o in result.overlaps],
             "warnings": result.warnings, "drops": drops, "about": ABOUT}

@@ -183,7 +183,11 @@ def _model(where: Where, section: Any, base: KinectModel, what: str) -> KinectMo
     values: dict[str, Any] = {}
     for key in section:
         default = getattr(base, key)
-        if isinstance(default, bool):
+        if isinstance(default, tuple):
+            values[key] = tuple(_numbers(where, section, key, section[key], (2,), minimum=0.0))
+            if values[key][0] > values[key][1]:
+                raise where.at_key(section, key, f"'{key}' must be [low, high] with low <= high")
+        elif isinstance(default, bool):
             if not isinstance(section[key], bool):
                 raise where.at_key(section, key, f"'{key}' must be true or false")
             values[key] = section[key]
