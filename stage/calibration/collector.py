@@ -78,7 +78,7 @@ class Collector:
             return min(p[0].t[-1], p[1].t[-1]) - max(p[0].t[0], p[1].t[0])
         a, b = max(pairs, key=lambda p: (common(p), p[1].sensor == self._reference))
         tracking = self._states[sid].state == "ok"
-        if min(a.t[-1] - a.t[0], b.t[-1] - b.t[0]) < (2 * s.lag_min_s if tracking else s.lag_min_s):
+        if min(a.t[-1] - a.t[0], b.t[-1] - b.t[0]) < (4 * s.lag_min_s if tracking else s.lag_min_s):
             return None  # too little to say yet: try again at the next poll
         ok = np.isfinite(b.stage).all(axis=(1, 2))
         ref = Stream(b.sensor, b.t[ok], np.zeros(int(ok.sum()), int), b.stage[ok], b.conf[ok])
@@ -98,9 +98,9 @@ class Collector:
         st.lag_confidence = search.confidence
         if abs(search.lag_s) < 1.0 / 30:
             st.lag_settled = True  # this search agrees with the lag in use
-        # a calibrated sensor's lag moves only by whole frames (a tracked lag is a correction,
-        # and sub-frame noise in it would shake every judgement); a new sensor's by half
-        if abs(search.lag_s) < (1.0 if st.state == "ok" else 0.5) / 30:
+        # a calibrated sensor's lag moves only by two frames or more (a tracked lag is a
+        # correction, and noise in it would shake every judgement); a new sensor's by half
+        if abs(search.lag_s) < (2.0 if st.state == "ok" else 0.5) / 30:
             return
         # hysteresis: short or periodic takes have near-equal minima; move only to a lag that
         # fits clearly better than the one in use, on the same frames -- unless this search
@@ -308,6 +308,7 @@ class Collector:
                 st.requested, st.fitness, st.since = False, result.fitness, now
                 st.residual = result.median_m
                 st.baseline = _worst_window(pairs, result.matrix, s.window_s)
+                st.healthy = None  # a new transform: how close it agrees is learnt anew
                 st.below_since = st.above_since = None
                 verb = "re-calibrated" if was == "suspect" else "calibrated"
                 st.reason = (f"{verb} by {result.method}: median joint distance "

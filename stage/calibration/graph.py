@@ -142,7 +142,8 @@ class SensorGraph:
         t = {s: matrix(nearest_rotation(m[:3, :3]), m[:3, 3]) for s, m in transforms.items()}
         movable = [s for s in t if s != reference]
         index = {s: 6 * k for k, s in enumerate(movable)}
-        edges = [(e, *_points(e)) for e in self.edges if e.a in t and e.b in t]
+        edges = [(e, *_points(e, robust_weights=not robust)) for e in self.edges
+                 if e.a in t and e.b in t]
         if per_edge and edges:
             # each overlap is ONE measurement of a relative pose: its pairs share its
             # systematic error (the two views see different sides of the body), which no
@@ -150,17 +151,25 @@ class SensorGraph:
             mean = float(np.mean([w.sum() for *_rest, w in edges]))
             edges = [(e, pa, pb, w * (mean / w.sum())) for e, pa, pb, w in edges]
         base = [w for *_rest, w in edges]
+        # Cauchy scale per overlap: the one its own robust fit ended with, so on a tree (where
+        # the composed chains are each overlap's own optimum) refinement changes nothing
+        scales = []
+        for e, pa, pb, _ in edges:
+            c = e.result.details.get("cauchy_c_m") if e.result.details else None
+            if c is None:
+                d = np.linalg.norm(apply(t[e.a], pa) - apply(t[e.b], pb), axis=1)
+                c = max(2.0 * float(np.median(d)), 0.02) if len(d) else 1.0
+            scales.append(float(c))
         before = self.objective(transforms)
         done = 0
         for done in range(1, iterations + 1):
             h = np.zeros((6 * len(movable),) * 2)
             g = np.zeros(6 * len(movable))
             if robust:  # Cauchy re-weighting, as the rigid fit does: wild pairs count little
-                dist = [np.linalg.norm(apply(t[e.a], pa) - apply(t[e.b], pb), axis=1)
-                        for e, pa, pb, _ in edges]
-                c = max(2.0 * float(np.median(np.concatenate(dist))), 0.02) if dist else 1.0
-                edges = [(e, pa, pb, w0 / (1.0 + (d / c) ** 2))
-                         for (e, pa, pb, _), w0, d in zip(edges, base, dist)]
+                edges = [(e, pa, pb, w0 / (1.0 + (np.linalg.norm(apply(t[e.a], pa)
+                                                                 - apply(t[e.b], pb), axis=1)
+                                                  / c) ** 2))
+                         for (e, pa, pb, _), w0, c in zip(edges, base, scales)]
             for e, pa, pb, w in edges:
                 va, vb = pa @ t[e.a][:3, :3].T, pb @ t[e.b][:3, :3].T
                 r = (va + t[e.a][:3, 3]) - (vb + t[e.b][:3, 3])
@@ -185,9 +194,10 @@ class SensorGraph:
         return t, {"before": before, "after": self.objective(t), "iterations": done}
 
 
-def _points(e: Edge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """An edge's joint pairs, flat: p_a (M, 3), p_b (M, 3), weights (M,) (robust ones if any)."""
-    w = e.result.weight if e.result.weight is not None else e.pairs.weight
+def _points(e: Edge, robust_weights: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An edge's joint pairs, flat: p_a (M, 3), p_b (M, 3), weights (M,) (the method's
+    robust ones if any, unless ``robust_weights`` is False: the pairs' confidences)."""
+    w = e.result.weight if robust_weights and e.result.weight is not None else e.pairs.weight
     keep = w.reshape(-1) > 0
     return e.pairs.ref.reshape(-1, 3)[keep], e.pairs.other.reshape(-1, 3)[keep], w.reshape(-1)[keep]
 

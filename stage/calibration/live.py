@@ -52,7 +52,7 @@ class LiveSettings:
     heal_poses: int = 20
     poses_stall_s: float = 3.0    # ... or sooner still when no new pose came for this long
     window_s: float = 0.5
-    suspect_below: float = 0.5    # fitness 0.5 = joints 8.9 cm apart (median; 10 cm rms-like)
+    suspect_below: float = 0.35   # fitness 0.35 = core joints 12.6 cm apart (median)
     suspect_ratio: float = 2.0    # ... and twice as far as the others agree among themselves
     hold_s: float = 0.3
     restore_above: float = 0.7    # hysteresis: 0.7 = 5.8 cm (median)
@@ -214,9 +214,14 @@ def consensus(partners: list[View], at: np.ndarray) -> Consensus:
 
 
 def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
-    """(..., 25, 3) -> (..., 3) mean of the tracked torso joints (None if none, for one frame)."""
+    """(..., 25, 3) -> (..., 3) mean of the torso joints (None if none, for one frame).
+
+    Tracked joints (confidence 1) only, when a frame has any: an inferred torso joint can
+    be guessed 10-30 cm off, which moved the centre more than the jump gate's agreement.
+    """
     c = conf[..., _TORSO]
-    w = (c > 0).astype(float)
+    tracked = c >= 1.0
+    w = np.where(tracked.any(axis=-1, keepdims=True), tracked, c > 0).astype(float)
     n = w.sum(axis=-1)
     if joints.ndim == 2:  # the engine-thread path: as few numpy calls as possible
         return None if n == 0 else (w @ joints[_TORSO]) / n

@@ -57,6 +57,7 @@ class SensorState:
     window: PairWindow | None = None    # a suspect's distances with its last good transform
     residual: float | None = None       # m, the robust residual behind ``fitness``
     baseline: float | None = None       # m, its residual when it was calibrated here
+    healthy: float | None = None        # m, its residual while it last agreed (running mean)
     lag_s: float = 0.0                  # its clock minus stage time, as the lag search found
     lag_confidence: float | None = None
     lag_searched: float = -INF          # engine time of the last lag search

@@ -7,7 +7,9 @@ nobody else to compare, than the sensor did when it was calibrated here).
 Such a sensor is suspect after ``hold_s`` and left out of fusion; never more
 than half of the calibrated sensors at once: when more look wrong together
 the last good calibrations stay in use and a ``held`` event says so. A
-suspect whose last good transform fits again for ``restore_s`` is restored.
+suspect whose last good transform fits again for ``restore_s`` (fitness above
+``restore_above``, or within ``restore_ratio`` of how close the others agree
+or of how close it agreed itself while healthy) is restored.
 """
 
 from __future__ import annotations
@@ -61,6 +63,8 @@ class Monitor:
                         candidates.append(st)
                 else:
                     st.below_since = None
+                    r = verdict.residual[sid]
+                    st.healthy = r if st.healthy is None else 0.9 * st.healthy + 0.1 * r
                     if st.reason.startswith("keeping the last good"):
                         st.reason = "calibrated; agrees with the others again"
                 self._note(st)
@@ -73,8 +77,12 @@ class Monitor:
                 if not np.isfinite(r):
                     continue
                 st.residual, st.fitness = r, float(fitness_from_median(r))
-                if st.fitness >= s.restore_above or (np.isfinite(lvl)
-                                                     and r <= s.restore_ratio * lvl):
+                # back as close as the others agree, or as it agreed itself before (two
+                # sensors facing each other see opposite sides of a body: their healthy
+                # residual can sit above restore_above for good)
+                if (st.fitness >= s.restore_above
+                        or np.isfinite(lvl) and r <= s.restore_ratio * lvl
+                        or st.healthy is not None and r <= s.restore_ratio * st.healthy):
                     st.above_since = now if st.above_since is None else st.above_since
                     if now - st.above_since >= s.restore_s:
                         self._restore(st, now, lvl)

@@ -2,8 +2,8 @@
 
 Per person (as the engine associated the views), every trusted view is
 resampled on a common 30 Hz grid of new instants, and every PAIR of sensors
-that see that person is compared joint by joint (both joints seen; weight:
-the product of the confidences). The distances, not a mean square, are
+that see that person is compared joint by joint on the body's core (``CORE``;
+both joints seen; weight: the product of the confidences). The distances, not a mean square, are
 kept: the monitor judges them by their weighted median (see ``fitness``), and
 pairs rather than "one sensor against the average of the others" keep one
 moved sensor from dragging everybody's score down with it (the average it is
@@ -21,12 +21,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..joints import N_JOINTS
+from ..joints import JOINT_INDEX, N_JOINTS
 from .live import View, torso_centre
 from .pairs import resample
 
 #: (sensor a, sensor b) -> (distances (n,) m, weights (n,)); a < b for trusted pairs
 Distances = dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
+
+#: the joints the monitor judges by: the body's rigid core (spine, neck, head, shoulders,
+#: hips). A moved sensor moves them all; a view that turns side-on or has a person turn
+#: away swaps and guesses LIMBS (real Kinects do, and so does the simulator's model), which
+#: made healthy sensors look wrong for a second at a time when every joint was judged
+CORE = np.zeros(N_JOINTS, dtype=bool)
+CORE[[JOINT_INDEX[n] for n in ("SpineBase", "SpineMid", "Neck", "Head", "SpineShoulder",
+                               "ShoulderLeft", "ShoulderRight", "HipLeft", "HipRight")]] = True
 
 
 def grid(t0: float, t1: float, fps: float = 30.0) -> np.ndarray:
@@ -66,7 +74,7 @@ class Sampled:
         out: Distances = {}
         for i in range(len(self.sensors)):
             for k in range(i + 1, len(self.sensors)):
-                w = self.conf[i] * self.conf[k]
+                w = self.conf[i] * self.conf[k] * CORE
                 keep = w > 0
                 if not keep.any():
                     continue
@@ -139,7 +147,7 @@ def distances(views: dict[str, list[View]], states: dict, at: np.ndarray, match_
             if best is None or best_d > match_m:
                 continue
             for k, partner in enumerate(best.sensors):
-                w = mine.conf[0] * best.conf[k]
+                w = mine.conf[0] * best.conf[k] * CORE
                 keep = w > 0
                 if keep.any():
                     d = np.linalg.norm(mine.joints[0][keep] - best.joints[k][keep], axis=-1)
