@@ -2,6 +2,7 @@
 
     python bench/bench_calibration_real.py bench/data/nucla            # every complete triple
     python bench/bench_calibration_real.py bench/data/nucla --quick    # 20 triples
+    python bench/bench_calibration_real.py bench/data/nucla --every 3  # a third, spread
     python bench/bench_calibration_real.py bench/data/nucla --json
 
 Every complete triple (views v01-v03 of one sample) of the DEVELOPMENT subjects
@@ -293,6 +294,8 @@ def main() -> int:
                              "evaluation, not for development or tuning")
     parser.add_argument("--quick", action="store_true", help="20 triples, fewer hypotheses")
     parser.add_argument("--limit", type=int, help="at most this many triples")
+    parser.add_argument("--every", type=int, default=1, metavar="K",
+                        help="every K-th triple (spread over subjects and actions)")
     parser.add_argument("--hypotheses", type=int, default=300,
                         help="random triples per lag in the optimum's search (default 300)")
     parser.add_argument("--ga", action="store_true", help="also ga3d against the closed form")
@@ -324,6 +327,8 @@ def main() -> int:
     if args.quick:
         found = found[:: max(1, len(found) // 20)][:20]
         args.hypotheses = min(args.hypotheses, 150)
+    if args.every > 1:
+        found = found[:: args.every]
     if args.limit:
         found = found[: args.limit]
     if not found:

@@ -134,16 +134,23 @@ class SensorGraph:
         once; it converges in a few iterations from the composed chains.
         ``per_edge``: every overlap weighs the same in total, however many
         pairs it has (see below); ``robust``: the weights are re-computed each
-        iteration with Cauchy weights (c = twice the median distance, at least
-        2 cm), so pairs of an overlap that contradicts the others count little.
+        iteration with Cauchy weights (c: the overlap's own fit's scale), so
+        pairs of an overlap that contradicts the others count little -- except
+        for overlaps whose fit ended with concentration steps, whose own final
+        weights are kept (so on a tree, nothing moves).
         Affine inputs (the regression's) are first projected on rotations.
         Returns the refined transforms and {before, after (m^2), iterations}.
         """
         t = {s: matrix(nearest_rotation(m[:3, :3]), m[:3, 3]) for s, m in transforms.items()}
         movable = [s for s in t if s != reference]
         index = {s: 6 * k for k, s in enumerate(movable)}
-        edges = [(e, *_points(e, robust_weights=not robust)) for e in self.edges
-                 if e.a in t and e.b in t]
+        # an overlap whose fit ended with concentration steps is the least-squares fit of
+        # its own final weights (the better half of its pairs): those are kept as they are;
+        # the others' are re-weighted (Cauchy) from the pairs' confidences
+        placed = [e for e in self.edges if e.a in t and e.b in t]
+        fixed = [bool(e.result.details and e.result.details.get("concentration_steps"))
+                 for e in placed]
+        edges = [(e, *_points(e, robust_weights=not robust or f)) for e, f in zip(placed, fixed)]
         if per_edge and edges:
             # each overlap is ONE measurement of a relative pose: its pairs share its
             # systematic error (the two views see different sides of the body), which no
@@ -166,10 +173,9 @@ class SensorGraph:
             h = np.zeros((6 * len(movable),) * 2)
             g = np.zeros(6 * len(movable))
             if robust:  # Cauchy re-weighting, as the rigid fit does: wild pairs count little
-                edges = [(e, pa, pb, w0 / (1.0 + (np.linalg.norm(apply(t[e.a], pa)
-                                                                 - apply(t[e.b], pb), axis=1)
-                                                  / c) ** 2))
-                         for (e, pa, pb, _), w0, c in zip(edges, base, scales)]
+                edges = [(e, pa, pb, w0 if f else w0 / (1.0 + (np.linalg.norm(
+                             apply(t[e.a], pa) - apply(t[e.b], pb), axis=1) / c) ** 2))
+                         for (e, pa, pb, _), w0, c, f in zip(edges, base, scales, fixed)]
             for e, pa, pb, w in edges:
                 va, vb = pa @ t[e.a][:3, :3].T, pb @ t[e.b][:3, :3].T
                 r = (va + t[e.a][:3, 3]) - (vb + t[e.b][:3, 3])

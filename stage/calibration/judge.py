@@ -24,7 +24,7 @@ keeps the last ``window_s`` of them and decides, per sensor:
 Suspects are compared (with their last good transform) against the trusted
 sensors of the person they see; they fit again when their residual is back
 above ``restore_above`` in fitness terms or within ``restore_ratio`` of the
-level.
+level (or of their own residual while healthy: ``monitor``).
 """
 
 from __future__ import annotations

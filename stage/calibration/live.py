@@ -34,7 +34,8 @@ class LiveSettings:
     agreed with a moment ago); never more than half of the calibrated sensors
     at once. A suspect sensor is left out of fusion, and comes back either
     with its old transform (fitness back above ``restore_above``, or within
-    ``restore_ratio`` of the others, for ``restore_s``: it was a glitch) or
+    ``restore_ratio`` of how close the others agree or of how close it agreed
+    itself while healthy, for ``restore_s``: it was a glitch) or
     with a new one. Pairs for a calibration are enough at ``pairs``
     (``heal_pairs``) or sooner at ``poses`` (``heal_poses``) distinct poses;
     a fit is accepted when it passes the gates (``min_pairs``, ``min_poses``,
@@ -56,7 +57,8 @@ class LiveSettings:
     suspect_ratio: float = 2.0    # ... and twice as far as the others agree among themselves
     hold_s: float = 0.3
     restore_above: float = 0.7    # hysteresis: 0.7 = 5.8 cm (median)
-    restore_ratio: float = 1.25   # ... or as close as the others agree (x 1.25)
+    restore_ratio: float = 1.25   # ... or as close as the others agree, or as it agreed
+                                  # itself while healthy (x 1.25)
     restore_s: float = 1.0
     accept_above: float = 0.7
     accept_ratio: float = 1.5
