@@ -159,7 +159,7 @@ def ga_versus_closed_form(rows: list[dict], folder_paths: dict, seeds: int, limi
     from stage.calibration.methods import calibrate
     from stage.calibration.pairs import pair_streams
     from stage.calibration.streams import load_recording
-    ratios, rot_gap = [], []
+    ratios, rot_gap, old = [], [], []
     done = 0
     tmp = tempfile.mkdtemp(prefix="stage-real-ga-")
     for row in rows:
@@ -180,6 +180,9 @@ def ga_versus_closed_form(rows: list[dict], folder_paths: dict, seeds: int, limi
             for seed in range(seeds):
                 ga = calibrate(ps, "ga3d", seed=seed)
                 ratios.append(mom.mse_of(ga.matrix) / best)
+                # the same run with the earlier absolute translation genes (before/after)
+                old.append(mom.mse_of(calibrate(ps, "ga3d", seed=seed, centred=False).matrix)
+                           / best)
                 from stage.geometry import rotation_angle_deg
                 rot_gap.append(rotation_angle_deg(ga.matrix, closed.matrix))
             done += 1
@@ -191,7 +194,11 @@ def ga_versus_closed_form(rows: list[dict], folder_paths: dict, seeds: int, limi
             "mse_ratio_max": float(r.max()), "within_0.5%": float((r <= 1.005).mean()),
             "within_2%": float((r <= 1.02).mean()),
             "rotation_gap_deg_p50": float(np.median(rot_gap)),
-            "rotation_gap_deg_max": float(np.max(rot_gap))}
+            "rotation_gap_deg_max": float(np.max(rot_gap)),
+            "absolute_genes_mse_ratio_p50": float(np.median(old)),
+            "absolute_genes_mse_ratio_p90": float(np.percentile(old, 90)),
+            "absolute_genes_mse_ratio_max": float(np.max(old)),
+            "absolute_genes_within_2%": float((np.array(old) <= 1.02).mean())}
 
 
 def impostors(found: list[tuple[str, list[str]]], count: int, seed: int = 0) -> dict:
@@ -394,6 +401,11 @@ def main() -> int:
               f"max {g['mse_ratio_max']:.3f}; within 0.5 %: {100 * g['within_0.5%']:.0f} % of "
               f"runs, within 2 %: {100 * g['within_2%']:.0f} %; rotation gap p50 "
               f"{g['rotation_gap_deg_p50']:.2f} deg, max {g['rotation_gap_deg_max']:.1f} deg")
+        print(f"    the same runs with the earlier absolute translation genes "
+              f"(GAConfig(centred=False)): p50 {g['absolute_genes_mse_ratio_p50']:.4f}, p90 "
+              f"{g['absolute_genes_mse_ratio_p90']:.3f}, max "
+              f"{g['absolute_genes_mse_ratio_max']:.2f}; within 2 %: "
+              f"{100 * g['absolute_genes_within_2%']:.0f} %")
     failures = [r for r in rows if "error" not in r and not r["success"]]
     for r in failures[:10]:
         print(f"    not calibrated: {r['sample']} {r['frames']}: {r['errors']}")

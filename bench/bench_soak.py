@@ -84,6 +84,8 @@ def live(scenario: str, duration: float, seed: int) -> dict:
     wall = time.perf_counter() - started
     server.send_signal(signal.SIGINT)
     _, log = server.communicate(timeout=30)
+    with open(os.path.join(tmp, "serve.log"), "w", encoding="utf-8") as f:
+        f.write(log)  # kept for a look when the run fails
     per_second: dict[int, set] = collections.defaultdict(set)
     t0 = None
     with open(fused, encoding="utf-8") as f:
@@ -104,6 +106,7 @@ def live(scenario: str, duration: float, seed: int) -> dict:
                    [line for line in log.splitlines() if "suspect" in line or "stage" in
                     line and "dark" in line][:12])
     out["note"] = "seconds counted from the first fused frame"
+    out["files"] = tmp
     return out
 
 
@@ -164,6 +167,8 @@ def main() -> None:
               f"{r['events']}; {r['wall_s']} s wall  {verdict}")
         for e in r["first_events"]:
             print("    ", e)
+        if "files" in r:
+            print(f"     server log and fused frames: {r['files']}")
 
 
 if __name__ == "__main__":
