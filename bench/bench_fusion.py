@@ -1,19 +1,23 @@
 """Fusion quality through the whole engine, in-process with an injected clock.
 
-Prints, for sensors that are not synchronised with each other (each has its own
-frame phase) and see a performer moving at constant speed (round a 1.2 m circle
-inside their ring, so they can see it: the simulator's Kinect model has a field
-of view and a range):
-  - lag of the fused, smoothed output behind the truth along the path, in frames
-    (target < 1);
-  - mean joint error of the fused output vs each single sensor (after calibration);
-  - the same without smoothing and without the per-view time compensation,
-    to show what each stage contributes;
-  - engine CPU time per input frame (process() only, no sockets).
-Each fused output is compared with the truth at the capture time of the frame
-that triggered it.
+Three simulated Kinects that are not synchronised with each other (each has its
+own frame phase, +-3 ms jitter) see a performer moving at constant speed round
+a 1.2 m circle inside their 2.5 m ring; 20 % of each view's joints are hidden
+at random. The sensor model is named in full below (``BENCH_KINECT``), so the
+figures do not move when the simulator's defaults do. Every sensor frame is
+one datagram into the engine, and the engine sends the person after each
+frame: every fused output is compared with the truth at the capture time of
+the frame it folded in.
 
-Run: python bench/bench_fusion.py [--seconds 20] [--json]
+Prints, per speed, with and without 2 % of the joints of every view replaced
+by outliers 10-30 cm off in a random direction:
+  - lag of the fused output behind the truth along the path, in frames (target <= 1);
+  - mean joint error of the fused output, and of the best single sensor (its own
+    frames through its calibration) measured in the same run: the reference;
+  - the same with smoothing off (each joint its latest accepted measurement);
+  - engine CPU per input frame (process() only, no sockets).
+
+Run: python bench/bench_fusion.py [--seconds 20] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -31,10 +35,20 @@ from stage.sensors.protocol import Inbound
 from stage.sensors.protocol import JointCoordinates
 from stage.settings import FusionSettings
 from stage.rig import Rig, set_calibration
-from stage.sensors.sim import VirtualKinect, ring_poses, standing_pose
+from stage.sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
 
 FPS = 30.0
 CIRCLE_M = 1.2   # radius of the performer's path, inside the 2.5 m ring of sensors
+#: the sensor model, in full (the simulator's Kinect v2 numbers as of issue 10)
+BENCH_KINECT = KinectModel(fov_h=70.0, fov_v=60.0, near=0.5, far=4.5, noise_m=0.006,
+                           noise_per_m=0.004, noise_correlation=0.6, feet_noise=2.0,
+                           hands_noise=1.5, inferred_noise=2.0, fit_bias_m=0.01,
+                           occlusion_bias_m=0.04, glitch_p=0.0,
+                           # issue 11's heavy tails (the realistic default since) stay off, so
+                           # the figures compare with issue 10's
+                           surface_bias_m=0.0, swap_per_s=0.0, inferred_off_m=(0.0, 0.0))
+OUTLIER_P = 0.02                 # share of joints per view replaced by an outlier...
+OUTLIER_M = (0.10, 0.30)         # ...this far off, in a random direction
 
 
 def make_rig(poses, smoothing: bool) -> Rig:
@@ -47,15 +61,13 @@ def make_rig(poses, smoothing: bool) -> Rig:
     return rig
 
 
-def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, compensate: bool,
+def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, outliers: bool,
         occlude_p: float, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     poses = ring_poses(n_sensors)
-    kinects = [VirtualKinect(p, rng=rng) for p in poses]
+    kinects = [VirtualKinect(p, BENCH_KINECT, rng=rng) for p in poses]
     clock = ManualClock(0.0)
     engine = Engine(make_rig(poses, smoothing), clock)
-    if not compensate:
-        engine._fuse = _without_compensation(engine)  # type: ignore[method-assign]
     phases = rng.uniform(0, 1 / FPS, size=n_sensors)
     events = sorted((k / FPS + phases[s] + rng.uniform(-0.003, 0.003), s)
                     for k in range(int(seconds * FPS)) for s in range(n_sensors))
@@ -74,77 +86,75 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, compensat
             continue
         joints, conf = seen
         conf = np.where(rng.random(25) < occlude_p, 0.0, conf)
+        if outliers:
+            hit = (rng.random(25) < OUTLIER_P) & (conf > 0)
+            d = rng.normal(size=(25, 3))
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            joints = joints + hit[:, None] * d * rng.uniform(*OUTLIER_M, size=(25, 1))
         msg = JointCoordinates(f"s{s}", 0, joints, conf)
         emitted = len(frames)
         c0 = time.perf_counter()
         engine.process([Inbound(msg, clock.now(), ("127.0.0.1", 1), None)])
         cost.append(time.perf_counter() - c0)
-        if t >= 2.0:
-            stage = joints @ poses[s].to_stage[:3, :3].T + poses[s].to_stage[:3, 3]
-            ok = conf > 0
-            single[s].append(float(np.linalg.norm(stage[ok] - truth[ok], axis=1).mean()))
-        # judge each fused output against the truth at its own time: a frame that
-        # arrives sooner than min_interval_s after the last fusion joins the next one
-        if t < 2.0 or len(frames) == emitted:
+        if t < 2.0:
             continue
+        stage = joints @ poses[s].to_stage[:3, :3].T + poses[s].to_stage[:3, 3]
+        ok = conf > 0
+        single[s].append(float(np.linalg.norm(stage[ok] - truth[ok], axis=1).mean()))
+        if len(frames) == emitted:
+            continue   # nothing fused from this frame (never happens once the person is found)
         body = frames[-1].bodies[1]
-        seen = body.conf > 0
+        sent = body.conf > 0
         err = body.joints - truth
         along.append(float(err[0] @ tangent))  # SpineBase, along the path
-        errors.append(float(np.linalg.norm(err[seen], axis=1).mean()))
+        errors.append(float(np.linalg.norm(err[sent], axis=1).mean()))
     per_frame = speed / FPS
     cost_us = np.array(cost) * 1e6
     return {
         "lag_frames": -float(np.mean(along)) / per_frame if per_frame else 0.0,
         "fused_error_mm": 1e3 * float(np.mean(errors)),
         "best_single_error_mm": 1e3 * min(float(np.mean(v)) for v in single.values()),
+        "outputs_per_input": len(errors) / max(sum(len(v) for v in single.values()), 1),
         "cost_us_p50": float(np.percentile(cost_us, 50)),
         "cost_us_p99": float(np.percentile(cost_us, 99)),
     }
 
 
-def _without_compensation(engine: Engine):
-    """_fuse with the per-view time compensation switched off.
-
-    The engine shifts each older view forward by the filter's velocity; zeroing
-    that velocity just before fusing disables only this step (the filter
-    re-sets it after its own update).
-    """
-    original = engine._fuse
-
-    def fuse(person, t):
-        person.velocity = np.zeros_like(person.velocity)
-        original(person, t)
-    return fuse
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--quick", action="store_true", help="6 s per row")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    if args.quick:
+        args.seconds = 6.0
     rows = []
-    for speed in (0.5, 1.0, 2.0):
-        for label, smoothing, compensate in (("kalman + compensation", True, True),
-                                             ("kalman, no compensation", True, False),
-                                             ("average only", False, True)):
-            r = run(args.seconds, speed, 3, smoothing, compensate, 0.2, seed=4)
-            rows.append({"speed_m_s": speed, "pipeline": label, **r})
+    for outliers in (False, True):
+        for speed in (0.5, 1.0, 2.0):
+            for label, smoothing in (("shipped", True), ("smoothing off", False)):
+                r = run(args.seconds, speed, 3, smoothing, outliers, 0.2, seed=4)
+                rows.append({"outliers": outliers, "speed_m_s": speed, "pipeline": label, **r})
     if args.json:
         json.dump(rows, sys.stdout, indent=2)
         print()
         return 0
-    print("3 unsynchronised simulated Kinects at 30 Hz, +-3 ms jitter, 20% joints occluded per "
-          f"view, a performer round a {CIRCLE_M:g} m circle, {args.seconds:g} s, first 2 s dropped")
-    print(f"{'speed':>6} {'pipeline':<25} {'lag fr':>7} {'fused mm':>9} {'best 1 mm':>10} "
-          f"{'cost p50 us':>12} {'p99 us':>8}")
+    print("3 unsynchronised simulated Kinects at 30 Hz (bench_fusion.BENCH_KINECT), +-3 ms jitter, "
+          f"20% joints occluded per view, a performer round a {CIRCLE_M:g} m circle, "
+          f"{args.seconds:g} s, first 2 s dropped")
+    print(f"{'outliers':>9} {'speed':>6} {'pipeline':<15} {'lag fr':>7} {'fused mm':>9} "
+          f"{'best 1 mm':>10} {'cost p50 us':>12} {'p99 us':>8}")
     for r in rows:
-        print(f"{r['speed_m_s']:>6.1f} {r['pipeline']:<25} {r['lag_frames']:>7.2f} "
-              f"{r['fused_error_mm']:>9.1f} {r['best_single_error_mm']:>10.1f} "
+        print(f"{'2 %' if r['outliers'] else 'none':>9} {r['speed_m_s']:>6.1f} {r['pipeline']:<15} "
+              f"{r['lag_frames']:>7.2f} {r['fused_error_mm']:>9.1f} {r['best_single_error_mm']:>10.1f} "
               f"{r['cost_us_p50']:>12.0f} {r['cost_us_p99']:>8.0f}")
-    worst = max(abs(r["lag_frames"]) for r in rows if r["pipeline"] == "kalman + compensation")
-    print(f"lag target < 1 frame (kalman + compensation): worst {worst:.2f} -> "
-          f"{'PASS' if worst < 1 else 'FAIL'}")
+    shipped = [r for r in rows if r["pipeline"] == "shipped"]
+    worst_lag = max(abs(r["lag_frames"]) for r in shipped)
+    worse = [r for r in shipped if r["fused_error_mm"] >= r["best_single_error_mm"]]
+    print(f"lag target <= 1 frame (shipped): worst {worst_lag:.2f} -> "
+          f"{'PASS' if worst_lag <= 1 else 'FAIL'}")
+    print(f"fused error below the best single sensor in every row (shipped): "
+          f"{'PASS' if not worse else 'FAIL'}; worst {max(r['fused_error_mm'] for r in shipped):.1f} mm "
+          f"(issue 10: 9.7-10.2 mm before, without outliers)")
     return 0
 
 

@@ -25,6 +25,7 @@ class Note:
     note: int         # 0-127
     velocity: int     # 1-127
     duration: float   # seconds, > 0
+    play: int = 0     # the PhrasePlayed it belongs to (its ``id``); 0: none
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,6 +83,75 @@ class TriggerFired:
     person: int | None = None
     joint: str | None = None
     value: float | None = None
+    #: > 0: fired on a crossing predicted this many seconds ahead, not yet measured
+    anticipated: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class TriggerContradicted:
+    """A trigger fired on a predicted crossing that the measurements did not make in time
+    (docs/anticipation.md); ``fired``: when it fired; ``cut``: its notes were cut short."""
+
+    t: float
+    section: str
+    trigger: str
+    person: int | None
+    joint: str | None
+    fired: float
+    cut: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class PhrasePlayed:
+    """A phrase (or a note action) was scheduled on an output (for logs and scores).
+
+    ``t``: when it starts (on the grid when quantised; later when it waited for
+    another phrase); ``decided``: when its trigger fired; ``end``: ``t`` plus its
+    musical length. Its notes carry ``play == id``.
+    """
+
+    t: float
+    output: str
+    phrase: str
+    id: int
+    section: str
+    trigger: str
+    end: float
+    notes: int
+    decided: float
+    policy: str = "queue"
+
+
+@dataclass(frozen=True, slots=True)
+class PhraseSkipped:
+    """A firing asked for a phrase that was not played (its output's policy said no)."""
+
+    t: float
+    output: str
+    phrase: str
+    section: str
+    trigger: str
+    why: str
+
+
+@dataclass(frozen=True, slots=True)
+class NoteCut:
+    """A note did not sound as scheduled: ``sounded`` 0 means it was cancelled before
+    its onset; otherwise it was cut short after ``sounded`` of its ``duration`` seconds.
+
+    ``t``: when it was cut; ``onset``: the note's own time; ``why``: "silence",
+    "replace", "stop", or "struck again" (the same key started by another phrase).
+    """
+
+    t: float
+    output: str
+    channel: int
+    note: int
+    onset: float
+    duration: float
+    sounded: float
+    play: int = 0
+    why: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,7 +174,8 @@ class ZoneState:
 
 
 Event = Union[Note, ControlChange, ProgramChange, AllNotesOff, OscOut, SectionChange,
-              TriggerFired, MappingValue, ZoneState]
+              TriggerFired, TriggerContradicted, MappingValue, ZoneState, PhrasePlayed,
+              PhraseSkipped, NoteCut]
 
 
 def to_json(event: Event) -> dict[str, Any]:
@@ -122,12 +193,14 @@ class OutputDecl:
 
     kind "midi": ``target`` is a MIDI port name, or None for the command line's
     choice (--midi PORT / --midi-file OUT.mid / a new virtual port). kind "osc":
-    ``target`` is "host:port", or None for the command line's --osc.
+    ``target`` is "host:port", or None for the command line's --osc; its target
+    gets only the piece's messages unless ``skeletons`` asks for the bodies too.
     """
 
     name: str
     kind: str                 # "midi" or "osc"
     target: str | None = None
+    skeletons: bool = False   # osc: the target also gets the Server-to-View API (bodies)
 
 
 class EventSink(Protocol):

@@ -8,7 +8,7 @@ module, never the engine.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +39,12 @@ class Body:
     hands: tuple[HandState, HandState]
     position: np.ndarray    # (3,) torso centre
     sensors: tuple[str, ...]
+    #: capture time (engine clock) the joints refer to, plus ``horizon``: a forecast body
+    #: (``FusedFrame.forecasts``) is the filter's prediction ``horizon`` s past its capture
+    t: float = float("nan")
+    horizon: float = 0.0
+    #: (25,) position s.d. per joint, m, of a forecast (None: a measured body)
+    sd: np.ndarray | None = None
 
 
 @dataclass(slots=True)
@@ -48,6 +54,9 @@ class FusedFrame:
     updated: tuple[int, ...]
     new: tuple[int, ...]
     lost: tuple[int, ...]
+    #: horizon (s) -> every body of ``bodies`` predicted that far past its capture time,
+    #: for the horizons pieces and views asked the engine for (docs/anticipation.md)
+    forecasts: dict[float, dict[int, Body]] = field(default_factory=dict)
 
 
 def fused_json(frame) -> dict:

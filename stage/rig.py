@@ -1,6 +1,6 @@
 """The rig file: the installer's description of sensors, calibration and ports.
 
-A rig never mentions music. Example (every key optional)::
+A rig never mentions music. Every key, each optional (defaults shown)::
 
     server: {host: 0.0.0.0, port: 7770}
     reference: kinect-a            # its space is stage space unless stage_frame is set
@@ -12,10 +12,51 @@ A rig never mentions music. Example (every key optional)::
         calibration: {matrix: [[...4x4...]], method: rigid, fitness: 0.97, rms_m: 0.021,
                       date: 2026-11-21T10:00:00}
     allow_unknown_sensors: true    # false: only the sensors listed here are accepted
+    allow:                         # who may send and where output may go (docs/security.md)
+      sensors: [loopback, local]   # addresses or networks sensor datagrams are read from
+      views: [loopback, local]     # where /registerView may point and stats replies may go
     views: ["127.0.0.1:9001"]
     clients: {timeout_s: 1.0, max_messages_per_s: 3000}
-    fusion: {associate_m: 0.5, min_interval_s: 0.025, ...}   # see FusionSettings
-    smoothing: {enabled: true, process_noise: 4.0, measurement_noise: 1e-4}
+    limits: {max_clients: 64, max_views: 32, view_ttl_s: 60}   # see LimitSettings
+    alerts: {after_s: 60, command: "notify-installer", osc: "10.0.0.9:9999"}
+    fusion:                        # settings.FusionSettings
+      associate_m: 0.5             # an unbound view joins a person whose torso is this close
+      release_m: 0.8               # a bound view leaves its person beyond this...
+      release_frames: 3            # ...for this many frames in a row
+      merge_m: 0.3                 # two persons this close...
+      merge_s: 0.5                 # ...this long, never seen together by one sensor, are one
+      stale_s: 0.15                # a joint no view has reported for this long is not sent
+      lost_grace_s: 0.5            # a person with no views is kept this long
+      group_s: 0.005               # frames captured this close together are one instant
+      view_bias_m: 0.02            # a view's systematic error, when views of an instant compare
+      replay_s: 0.15               # history kept to fold in frames that come late
+      hand_vote: confidence        # or plain
+      hand_memory_s: 0.03          # a hand report's weight falls by e in this time
+      hand_hold_s: 0.1             # a hand's new state is sent once it has held this long
+      rejoin_s: 3.0                # a person lost this recently...
+      rejoin_m: 0.75               # ...back this close to where they were lost...
+      rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
+    smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
+      enabled: true                # false: each joint is its latest accepted measurement
+      quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2
+      fast_noise: 2000.0           # ...and of the fast one
+      quiet_to_fast_per_s: 1.5     # how often the motion switches model
+      fast_to_quiet_per_s: 3.2
+      measurement_noise: 1e-4      # variance of a confidence-1 joint up to 1 m away, m^2
+      noise_per_m: 0.004           # added to its s.d. per metre beyond
+      initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
+      gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
+      reject_sigma: 10.0           # beyond this it is not used
+    forecast:                      # settings.ForecastSettings (docs/anticipation.md)
+      views_s: 0.0                 # the views above get each body predicted this far ahead
+      max_s: 0.2                   # the longest forecast a view or piece may ask for
+      torso_speed_m_s: 4.0         # a predicted joint moves at most this fast...
+      limb_speed_m_s: 8.0          # ...elbows, knees
+      extremity_speed_m_s: 12.0    # ...wrists, hands, ankles, feet
+      bone_tolerance: 0.1          # predicted bones keep their length within 10 %
+
+Retired keys (``settings.RETIRED_KEYS``: ``fusion: min_interval_s``, ``fusion: outlier_m``,
+``smoothing: process_noise``) are refused with a line naming what replaced them.
 """
 
 from __future__ import annotations
@@ -30,8 +71,10 @@ import yaml
 
 from .errors import ConfigError
 from .geometry import invert
-from .network import parse_hostport
-from .settings import ClientSettings, FusionSettings, KalmanSettings
+from .network import Networks, parse_hostport
+from .settings import (RETIRED_KEYS, AlertSettings, ClientSettings, ForecastSettings,
+                       FusionSettings, KalmanSettings,
+                       LimitSettings)
 from .yamlio import MarkedDict, Where, load_marked, write_atomic
 
 DEFAULT_PORT = 7770
@@ -53,6 +96,8 @@ class SensorConfig:
     id: str
     type: str = "kinect2"
     calibration: Calibration | None = None
+    #: where this sensor may send from (an address or network); None: any allowed address
+    address: Networks | None = None
 
 
 @dataclass
@@ -63,11 +108,18 @@ class Rig:
     stage_frame: np.ndarray = field(default_factory=lambda: np.eye(4))
     sensors: dict[str, SensorConfig] = field(default_factory=dict)
     allow_unknown_sensors: bool = True
+    #: addresses sensor datagrams are accepted from (docs/security.md)
+    allow_sensors: Networks = field(default_factory=Networks)
+    #: addresses views may be registered at and stats replies sent to
+    allow_views: Networks = field(default_factory=Networks)
     views: list[tuple[str, int]] = field(default_factory=list)
     clients: ClientSettings = field(default_factory=ClientSettings)
+    limits: LimitSettings = field(default_factory=LimitSettings)
+    alerts: AlertSettings = field(default_factory=AlertSettings)
     fusion: FusionSettings = field(default_factory=FusionSettings)
     smoothing: KalmanSettings = field(default_factory=KalmanSettings)
     smoothing_enabled: bool = True
+    forecast: ForecastSettings = field(default_factory=ForecastSettings)
     path: str | None = None
 
     def transform_for(self, sensor: str) -> np.ndarray | None:
@@ -91,6 +143,8 @@ class Rig:
         sensors: dict[str, Any] = {}
         for sid, cfg in self.sensors.items():
             entry: dict[str, Any] = {"type": cfg.type}
+            if cfg.address is not None:
+                entry["address"] = list(cfg.address.entries)
             if cfg.calibration is not None:
                 c = cfg.calibration
                 entry["calibration"] = {
@@ -104,10 +158,15 @@ class Rig:
             out["stage_frame"] = [[float(v) for v in row] for row in self.stage_frame]
         out["sensors"] = sensors
         out["allow_unknown_sensors"] = self.allow_unknown_sensors
+        out["allow"] = {"sensors": list(self.allow_sensors.entries),
+                        "views": list(self.allow_views.entries)}
         out["views"] = [f"{h}:{p}" for h, p in self.views]
         out["clients"] = dataclasses.asdict(self.clients)
+        out["limits"] = dataclasses.asdict(self.limits)
+        out["alerts"] = dataclasses.asdict(self.alerts)
         out["fusion"] = dataclasses.asdict(self.fusion)
         out["smoothing"] = {"enabled": self.smoothing_enabled, **dataclasses.asdict(self.smoothing)}
+        out["forecast"] = dataclasses.asdict(self.forecast)
         return out
 
 
@@ -123,7 +182,8 @@ def load_rig(path: str) -> Rig:
     where = Where(path)
     data = where.mapping(load_marked(path), "the rig")
     where.check_keys(data, ("server", "reference", "stage_frame", "sensors",
-                            "allow_unknown_sensors", "views", "clients", "fusion", "smoothing"),
+                            "allow_unknown_sensors", "allow", "views", "clients", "limits",
+                            "alerts", "fusion", "smoothing", "forecast"),
                      "the rig")
     rig = Rig(path=path)
     server = where.mapping(data.get("server"), "'server'")
@@ -140,8 +200,10 @@ def load_rig(path: str) -> Rig:
     sensors = where.mapping(data.get("sensors"), "'sensors'")
     for sid, entry in sensors.items():
         entry = where.mapping(entry, f"sensor '{sid}'", sensors.value_marks.get(sid))
-        where.check_keys(entry, ("type", "calibration"), f"sensor '{sid}'")
+        where.check_keys(entry, ("type", "calibration", "address"), f"sensor '{sid}'")
         config = SensorConfig(str(sid), str(entry.get("type", "kinect2")))
+        if entry.get("address") is not None:
+            config.address = _networks(where, entry, "address")
         if entry.get("calibration") is not None:
             cal = where.mapping(entry["calibration"], f"calibration of '{sid}'")
             where.check_keys(cal, ("matrix", "method", "fitness", "rms_m", "date"),
@@ -161,6 +223,12 @@ def load_rig(path: str) -> Rig:
     if not isinstance(allow, bool):
         raise where.at_key(data, "allow_unknown_sensors", "'allow_unknown_sensors' must be true or false")
     rig.allow_unknown_sensors = allow
+    allow_lists = where.mapping(data.get("allow"), "'allow'")
+    where.check_keys(allow_lists, ("sensors", "views"), "'allow'")
+    if "sensors" in allow_lists:
+        rig.allow_sensors = _networks(where, allow_lists, "sensors")
+    if "views" in allow_lists:
+        rig.allow_views = _networks(where, allow_lists, "views")
     views = data.get("views") or []
     if not isinstance(views, list):
         raise where.at_key(data, "views", "'views' must be a list of HOST:PORT")
@@ -170,7 +238,16 @@ def load_rig(path: str) -> Rig:
         except ValueError as exc:
             raise where.error(str(exc), getattr(views, "marks", [None] * len(views))[k]) from None
     rig.clients = _settings(where, data, "clients", ClientSettings)
+    rig.limits = _settings(where, data, "limits", LimitSettings)
+    rig.alerts = _settings(where, data, "alerts", AlertSettings)
+    if rig.alerts.osc:
+        try:
+            parse_hostport(rig.alerts.osc)
+        except ValueError as exc:
+            raise where.error(f"alerts: osc: {exc}", getattr(data.get("alerts"), "mark", None)
+                              ) from None
     rig.fusion = _settings(where, data, "fusion", FusionSettings)
+    rig.forecast = _settings(where, data, "forecast", ForecastSettings)
     smoothing = where.mapping(data.get("smoothing"), "'smoothing'")
     enabled = smoothing.get("enabled", True)
     if not isinstance(enabled, bool):
@@ -182,6 +259,18 @@ def load_rig(path: str) -> Rig:
     rest.value_marks = getattr(smoothing, "value_marks", {})
     rig.smoothing = _settings(where, {"smoothing": rest}, "smoothing", KalmanSettings)
     return rig
+
+
+def _networks(where: Where, mapping: dict, key: str) -> Networks:
+    """An allow-list: one entry or a list of addresses, networks, 'loopback', 'local', 'any'."""
+    value = mapping[key]
+    entries = value if isinstance(value, list) else [value]
+    if not entries:
+        return Networks(())
+    try:
+        return Networks(str(e) for e in entries)
+    except ValueError as exc:
+        raise where.at_key(mapping, key, f"'{key}': {exc}") from None
 
 
 def _optional_number(where: Where, mapping: dict, key: str) -> float | None:
@@ -203,11 +292,14 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"min_interval_s"}
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     section = where.mapping(data.get(key), f"'{key}'")
+    for (owner, old), instead in RETIRED_KEYS.items():
+        if owner == key and old in section:
+            raise where.at_key(section, old, f"'{key}: {old}' is no longer used: {instead}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
     where.check_keys(section, fields, f"'{key}'")
     values: dict[str, Any] = {}

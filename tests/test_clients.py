@@ -235,3 +235,69 @@ def test_a_client_without_its_extra_says_how_to_install_it(monkeypatch, client, 
     hint = f"pip install 'stage-kuatro[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
     with pytest.raises(StageError, match=re.escape(hint)):
         run(("127.0.0.1", 9), "test")
+
+
+# ---------------------------------------------------------------- --check
+
+class _Spec:
+    origin = "/somewhere/module.py"
+
+
+def test_kinect2_check_reports_what_is_missing_and_one_skeleton_when_all_is_there():
+    from stage.sensors.clients import kinect2
+    text, ok = kinect2.check(platform="linux", env={}, exists=lambda p: False,
+                             find_spec=lambda name: None)
+    assert not ok
+    assert "[missing] Windows (64-bit): this is linux" in text
+    assert "[missing] Kinect for Windows SDK 2.0: install KinectSDK-v2.0_1409-Setup.exe" in text
+    assert "[missing] Python module pykinect2: missing: pip install 'stage-kuatro[kinect2]'" \
+        in text
+    truth = body(5).joints
+    seen = kinect2_body(5, truth, np.full(25, 2), 2, 3)
+    text, ok = kinect2.check(platform="win32", env={"SystemRoot": r"C:\Windows"},
+                             exists=lambda p: p == r"C:\Windows\System32\Kinect20.dll",
+                             find_spec=lambda name: _Spec(),
+                             first_body=lambda wait: (seen, 0.4))
+    assert ok, text
+    assert "[ok] Kinect for Windows SDK 2.0: C:\\Windows\\System32\\Kinect20.dll" in text
+    assert "[ok] a tracked body: after 0.4 s" in text
+    head = truth[J["Head"]]
+    assert f"  Head           {head[0]:+.3f} {head[1]:+.3f} {head[2]:+.3f}  conf 1.0" in text
+    assert len([line for line in text.splitlines() if "conf" in line]) == 25
+    text, ok = kinect2.check(platform="win32", env={"KINECTSDK20_DIR": r"C:\sdk"},
+                             find_spec=lambda name: _Spec(),
+                             first_body=lambda wait: (None, wait))
+    assert not ok and "[missing] a tracked body: none in 5.0 s" in text
+
+
+def test_azure_check_looks_for_both_sdks_and_the_binding():
+    from stage.sensors.clients import azure
+    text, ok = azure.check(platform="linux", find_spec=lambda name: None,
+                           find_library=lambda name: None, exists=lambda p: False)
+    assert not ok
+    assert "[missing] Azure Kinect Sensor SDK (or Orbbec's K4A wrapper): not found (k4a)" in text
+    assert "[missing] Azure Kinect Body Tracking SDK: not found (k4abt)" in text
+    assert "pip install 'stage-kuatro[azure]'" in text
+    mm = np.zeros((32, 3))
+    mm[AZURE_INDEX] = body(1).joints * [-1000, -1000, 1000]
+    seen = azure_body(1, mm, np.full(32, 2))
+    text, ok = azure.check(platform="win32", find_spec=lambda name: _Spec(),
+                           find_library=lambda name: None,
+                           exists=lambda p: p.endswith(("k4a.dll", "k4abt.dll")),
+                           first_body=lambda wait: (seen, 1.2))
+    assert ok, text
+    assert "Azure Kinect SDK v1.4.1" in text and "[ok] a tracked body: after 1.2 s" in text
+
+    def broken(wait):
+        raise RuntimeError("K4A_RESULT_FAILED: no device")
+    text, ok = azure.check(platform="linux", find_spec=lambda name: _Spec(),
+                           find_library=lambda name: f"lib{name}.so", first_body=broken)
+    assert not ok and "[missing] device: cannot open it: K4A_RESULT_FAILED: no device" in text
+
+
+def test_client_check_on_the_command_line(capsys):
+    from stage.cli.main import main
+    assert main(["client", "kinect2", "--check"]) == (0 if sys.platform == "win32" else 1)
+    assert "stage client kinect2 --check" in capsys.readouterr().out
+    assert main(["client", "sim", "--check"]) == 2
+    assert "has no check" in capsys.readouterr().err

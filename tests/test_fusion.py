@@ -1,79 +1,128 @@
-"""Pure fusion maths: weighted averaging, outlier rejection, the hand vote."""
+"""Pure fusion maths: which views of an instant agree, the hand vote, geometry helpers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from stage.engine.fusion import apply_transform, fuse_joints, torso_centre, vote_hand
+from stage.engine.fusion import apply_transform, consistent_views, torso_centre
+from stage.engine.hands import HandVoter
 from stage.joints import HandState
 
 O, C, L = HandState.OPEN, HandState.CLOSED, HandState.LASSO
+U, NT = HandState.UNKNOWN, HandState.NOT_TRACKED
+R = 1e-4          # 1 cm per axis
+BIAS = 0.02 ** 2
+CHI2 = 9.0
+NO_PRIOR = (np.full((25, 3), np.nan), np.full(25, np.nan))
 
 
-def test_average_is_weighted_by_confidence_and_skips_untracked():
-    pos = np.array([[[0.0, 0, 0]], [[1.0, 0, 0]], [[9.0, 9, 9]]])
-    conf = np.array([[1.0], [0.5], [0.0]])
-    fused, weight, used = fuse_joints(pos, conf, outlier_m=10.0)
-    np.testing.assert_allclose(fused[0], [1 / 3, 0, 0])
-    assert weight[0] == pytest.approx(1.5)
-    assert used[:, 0].tolist() == [True, True, False]
-
-
-def test_a_joint_nobody_tracks_has_zero_weight():
-    fused, weight, used = fuse_joints(np.ones((2, 3, 3)), np.zeros((2, 3)))
-    assert (weight == 0).all() and not used.any() and (fused == 0).all()
-
-
-def test_outlier_beyond_median_spread_is_rejected_with_three_views():
+def test_an_outlier_among_three_or_more_views_is_left_out():
     rng = np.random.default_rng(3)
     truth = rng.uniform(-1, 1, size=(25, 3))
     pos = truth[None] + rng.normal(0, 0.01, size=(4, 25, 3))
     pos[2, 5] += [0.0, 0.0, 0.4]     # one sensor's elbow is 40 cm off
-    conf = np.ones((4, 25))
-    fused, weight, used = fuse_joints(pos, conf, outlier_m=0.10)
+    used = consistent_views(pos, np.full((4, 25), R), *NO_PRIOR, BIAS, CHI2)
     assert not used[2, 5]
     assert used.sum() == 4 * 25 - 1
-    assert np.linalg.norm(fused[5] - truth[5]) < 0.03
-    # without rejection the same joint would be dragged ~10 cm away
-    naive = pos[:, 5].mean(axis=0)
-    assert np.linalg.norm(naive - truth[5]) > 0.08
+    # whichever view comes first
+    used = consistent_views(pos[[2, 0, 1, 3]], np.full((4, 25), R), *NO_PRIOR, BIAS, CHI2)
+    assert not used[0, 5] and used.sum() == 4 * 25 - 1
 
 
-def test_two_disagreeing_views_keep_the_more_confident_one():
+def test_two_disagreeing_views_are_settled_by_the_prior_then_by_certainty():
     pos = np.array([[[0.0, 1.0, 2.0]], [[0.0, 1.0, 2.5]]])
-    fused, _, used = fuse_joints(pos, np.array([[1.0], [0.5]]))
-    assert used[:, 0].tolist() == [True, False]
-    np.testing.assert_allclose(fused[0], [0, 1, 2])
-    # equal confidence: nobody to blame, both kept
-    fused, _, used = fuse_joints(pos, np.array([[1.0], [1.0]]))
-    assert used.all()
-    np.testing.assert_allclose(fused[0], [0, 1, 2.25])
+    r = np.array([[R], [2 * R]])                      # the second one inferred (conf 0.5)
+    near_second = (np.array([[0.0, 1.0, 2.48]]), np.array([4e-4]))
+    used = consistent_views(pos, r, *near_second, BIAS, CHI2)
+    assert used[:, 0].tolist() == [False, True]       # the filter's prediction breaks the tie
+    wide = (np.array([[0.0, 1.0, 2.25]]), np.array([1.0]))
+    used = consistent_views(pos, r, *wide, BIAS, CHI2)
+    assert used[:, 0].tolist() == [True, False]       # no help from the prior: more certain wins
+    # two views agreeing outvote the prior
+    three = np.array([[[0.0, 1.0, 2.0]], [[0.0, 1.0, 2.01]], [[0.0, 1.0, 2.5]]])
+    used = consistent_views(three, np.full((3, 1), R), *near_second, BIAS, CHI2)
+    assert used[:, 0].tolist() == [True, True, False]
 
 
-def test_close_views_are_all_kept():
+def test_views_that_agree_are_all_used_and_unseen_joints_never():
     rng = np.random.default_rng(0)
-    pos = rng.normal(0, 0.02, size=(5, 25, 3))
-    _, _, used = fuse_joints(pos, np.ones((5, 25)))
-    assert used.all()
+    pos = rng.normal(0, 0.01, size=(5, 25, 3))
+    r = np.full((5, 25), R)
+    r[1, 3] = np.nan                                  # sensor 1 does not see joint 3
+    used = consistent_views(pos, r, *NO_PRIOR, BIAS, CHI2)
+    assert used.sum() == 5 * 25 - 1 and not used[1, 3]
+    one = consistent_views(pos[:1], r[:1], *NO_PRIOR, BIAS, CHI2)
+    assert one.all()
+    # a joint only one view sees is used whatever the prior says: the gate judges it
+    r2 = np.full((2, 25), np.nan)
+    r2[0, 0] = R
+    far = (np.zeros((25, 3)) + 5.0, np.full(25, 1e-4))
+    used = consistent_views(pos[:2], r2, *far, BIAS, CHI2)
+    assert used[0, 0] and used.sum() == 1
+
+
+def vote_once(states, weights=None):
+    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+    for k, state in enumerate(states):
+        voter.add((f"s{k}", 0), 0, state, 1.0 if weights is None else weights[k], 0.0)
+    return voter.vote(0, 0.0)
 
 
 @pytest.mark.parametrize("states, expected", [
     ([O, O, C], O),
-    ([O, C], C),                               # tie goes to the higher code
+    ([O, C], C),                               # a tie between known states: the higher code
     ([O, C, L, O, C], C),                      # 2-2-1 tie between open and closed -> closed
-    ([HandState.UNKNOWN, HandState.NOT_TRACKED, O], O),   # those two do not vote
-    ([HandState.NOT_TRACKED, HandState.UNKNOWN], HandState.NOT_TRACKED),
-    ([HandState.UNKNOWN], HandState.UNKNOWN),
-    ([], HandState.UNKNOWN),
+    ([U, NT, O], O),                           # unknown and notTracked never outvote a state
+    ([U, U, U, O], O),
+    ([NT, U], NT),
+    ([U], U),
+    ([], U),
 ])
-def test_majority_vote(states, expected):
-    assert vote_hand(states) == expected
+def test_one_instant_is_a_majority_vote(states, expected):
+    assert vote_once(states) == expected
 
 
 def test_confidence_weighted_vote_can_overrule_the_count():
-    assert vote_hand([O, O, C], weights=[0.3, 0.3, 1.0]) == C
-    assert vote_hand([O, O, C], weights=[1.0, 1.0, 1.0]) == O
+    assert vote_once([O, O, C], weights=[0.3, 0.3, 1.0]) == C
+    assert vote_once([O, O, C], weights=[1.0, 1.0, 1.0]) == O
+    assert vote_once([C, O], weights=[0.6, 0.61]) == O   # not a tie: no higher-code rule
+
+
+def test_a_misread_frame_does_not_flicker_and_a_real_change_is_reported_after_the_hold():
+    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+    reported = []
+    t = 0.0
+    # three sensors 11 ms apart; sensor 2 misreads "closed" for two frames at 0.3 s
+    for k in range(60):
+        t = k / 90
+        sensor = k % 3
+        truth = O if t < 0.5 else C
+        state = C if sensor == 2 and 0.3 <= t < 0.37 else truth
+        voter.add((f"s{sensor}", 0), 0, state, 1.0, t)
+        voter.update(t)
+        reported.append((t, voter.reported[0]))
+    states = [s for _, s in reported]
+    changes = [(t, s) for (t, s), (_, before) in zip(reported[1:], reported) if s != before]
+    assert states[0] == O
+    assert len(changes) == 1 and changes[0][1] == C         # the misread never went out
+    assert 0.5 + 0.1 <= changes[0][0] <= 0.5 + 0.15           # the change: held 100 ms
+
+
+def test_a_hand_that_nobody_sees_goes_unknown_after_the_hold_and_comes_back_at_once():
+    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+    voter.add(("s0", 0), 0, O, 1.0, 0.0)
+    assert voter.update(0.0) == [0, 1] and voter.reported == [O, U]
+    voter.add(("s0", 0), 0, NT, 1.0, 0.05)       # an old "open" still counts: no change
+    assert voter.update(0.05) == []
+    for t in (0.25, 0.3, 0.36):                     # "open" forgotten (older than 0.2 s)
+        voter.add(("s0", 0), 0, NT, 1.0, t)
+        changed = voter.update(t)
+    assert changed == [0] and voter.reported[0] == NT
+    voter.add(("s0", 0), 0, L, 1.0, 0.4)
+    assert voter.update(0.4) == [0] and voter.reported[0] == L   # the first known state: at once
+    voter.forget(("s0", 0))
+    assert voter.vote(0, 0.4) == U
 
 
 def test_torso_centre_falls_back_to_any_tracked_joint():

@@ -139,19 +139,37 @@ def test_targets_routing_and_future_events(peers):
     host._on_frame(make_frame(10.0, make_body(1), new=(1,)))
     host.pump()
     got = {p: [m.address for m in wait_count(p, n)] for p, n in
-           ((piece_target, 6), (cli_target, 6), (registered, 1))}
-    assert got[piece_target] == ["/newUser", "/jointCoordinates", "/handState", "/handState",
-                                 "/scene/colour", "/stage/section"]
-    assert got[cli_target] == ["/newUser", "/jointCoordinates", "/handState", "/handState",
-                               "/fx/reverb", "/stage/section"]
+           ((piece_target, 2), (cli_target, 2), (registered, 1))}
+    # issue 12: a piece's OSC outputs used to get the whole skeleton stream too; now only
+    # the piece's messages, unless the piece asks (skeletons: true, the next test)
+    assert got[piece_target] == ["/scene/colour", "/stage/section"]
+    assert got[cli_target] == ["/fx/reverb", "/stage/section"]
     assert got[registered] == ["/stage/section"]     # bodies come from the engine itself
-    assert piece_target.received[4].params == (pytest.approx(0.2), pytest.approx(0.4), "red")
+    assert piece_target.received[0].params == (pytest.approx(0.2), pytest.approx(0.4), "red")
     assert host.next_deadline() == 10.5
     clock.set(10.5)
     host.pump()
-    assert wait_count(piece_target, 7)[6].address == "/scene/flash"
+    assert wait_count(piece_target, 3)[2].address == "/scene/flash"
     host.stop()
     assert len(cli_target.drain()) == 0 and len(registered.drain()) == 0
+
+
+def test_the_skeleton_stream_goes_where_the_piece_asks_or_to_a_plain_view(peers):
+    asked, plain, carrier = peers(), peers(), peers()
+    clock = ManualClock(10.0)
+    outputs = [OutputDecl("space", "osc", f"{LOCALHOST}:{asked.port}", skeletons=True),
+               OutputDecl("lights", "osc", f"{LOCALHOST}:{carrier.port}")]
+    host = ViewHost.for_play(outputs, osc=[(LOCALHOST, plain.port)], clock=clock,
+                             plugins=False, threaded=False).start()
+    host.emit([OscOut(10.0, "lights", "/lights/on", (1,))])
+    host._on_frame(make_frame(10.0, make_body(1), new=(1,)))
+    host.pump()
+    body = ["/newUser", "/jointCoordinates", "/handState", "/handState"]
+    assert [m.address for m in wait_count(asked, 4)] == body
+    assert [m.address for m in wait_count(plain, 4)] == body   # no piece output rides on it
+    assert [m.address for m in wait_count(carrier, 1)] == ["/lights/on"]
+    host.stop()
+    assert not asked.drain() and not plain.drain() and not carrier.drain()
 
 
 def test_bundles_carry_the_engine_time_as_wall_time(peers):
@@ -252,7 +270,9 @@ def test_oscdump_receives_the_server_to_view_api_and_piece_events_in_bundles():
                 probe.send_message((LOCALHOST, port), "/probe", 1)
                 time.sleep(0.05)
         with Server(Rig(), LOCALHOST, 0) as server:
-            host = ViewHost.for_play([OutputDecl("visuals", "osc", f"{LOCALHOST}:{port}")],
+            # skeletons: the piece asks for the Server-to-View API on this output (issue 12)
+            host = ViewHost.for_play([OutputDecl("visuals", "osc", f"{LOCALHOST}:{port}",
+                                                 skeletons=True)],
                                      osc_bundles=True, plugins=False, clock=server.clock)
             host.attach(server.engine).start()
             try:

@@ -201,6 +201,32 @@ def test_distance_and_speed_mappings():
     assert speeds[-1] == pytest.approx(2.0)
 
 
+def test_angle_mapping_follows_the_elbow_and_holds_while_a_joint_is_unseen():
+    from stage.sensors.sim.kinematics import ArmPose, BodyState, proportions, skeleton
+    runtime, sink, stage = make(one_section(mappings="""
+      - {name: bend, joint: ElbowRight, measure: angle, in_range: [0, 180], out_range: [0, 180],
+         osc: /elbow}
+      - {name: arm, joint: ShoulderRight, measure: angle, in_range: [0, 180], cc: {control: 7}}"""))
+
+    def arm(elbow_deg, elevation_deg):
+        state = BodyState(arms=(ArmPose(), ArmPose(math.radians(elevation_deg), 0.0,
+                                                   math.radians(elbow_deg))))
+        return skeleton(state, proportions(1.75))
+    for k, bend in enumerate((0, 30, 60, 90, 120)):   # the forearm bends, the arm rises
+        stage.frame(k * 0.1, {1: arm(bend, 3 * bend / 2)})
+    elbow = [o.args[0] for o in sink.of(OscOut) if o.address == "/elbow"]
+    assert elbow == pytest.approx([180, 150, 120, 90, 60], abs=1e-6)   # the angle at the elbow
+    cc = [c.value for c in sink.of(ControlChange) if c.control == 7]
+    assert cc == [round(127 * a / 180) for a in (0, 45, 90, 135, 180)]
+    unseen = np.ones(25)
+    unseen[JOINT_INDEX["WristRight"]] = 0.0                             # the wrist is lost
+    stage.frame(0.5, {1: (arm(10, 0), ((2, 2)), unseen)})
+    assert [o.args[0] for o in sink.of(OscOut) if o.address == "/elbow"] == elbow   # held
+    with pytest.raises(Exception, match="must be where two segments meet"):
+        make(one_section(mappings="""
+      - {joint: HandLeft, measure: angle, in_range: [0, 180], cc: 1}"""))
+
+
 def test_mappings_of_a_section_stop_when_it_ends():
     runtime, sink, stage = make("""
 sections:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from stage.events import SectionChange, TriggerFired
+from stage.events import ControlChange, Note, NoteCut, OscOut, SectionChange, TriggerFired
 from stage.joints import JOINT_INDEX, HandState
 from stage.piece import PieceRuntime, RecordingSink, loads_piece
 from stage.testing.script import ScriptedStage, standing, with_joint
@@ -277,6 +277,45 @@ def test_step_fires_when_a_foot_is_put_down_after_a_swing():
     assert all(0.4 <= e.t % 1.0 <= 0.45 for e in events)   # when the foot stops
 
 
+def test_step_gait_fires_once_per_walking_step_with_its_length_width_and_time():
+    # a walk with a set gait (the simulator's planted-feet walker): 8 placements of 0.65 m,
+    # 0.15 m apart sideways, at 100 steps a minute, left foot first
+    from stage.sensors.sim.gait import GaitClip
+    walk = GaitClip(8, step_length=0.65, step_width=0.15, cadence=100.0)
+    runtime, sink, stage = make("""
+      - {name: stride, step: gait, cooldown: 0,
+         do: [{osc: {address: /step, args: [$joint, $value, $step_width, $step_time, $speed]}}]}
+      - {name: left only, joint: FootLeft, step: gait, cooldown: 0, do: [play: a]}
+      - {name: swing, step: true, cooldown: 0, do: [play: b]}
+""")
+    stage.run(0.0, walk.duration, lambda t: {1: walk.joints(t)})
+    steps = [o.args for o in sink.events if type(o).__name__ == "OscOut" and o.address == "/step"]
+    # placements 2-8 each end a step (the first has none before it); the last placement, the
+    # closing foot never passes, so it is never a foot event: 6 steps
+    assert len(steps) == 6
+    # left foot first: the right passes the standing left (its placement, no step before it),
+    # then the left passes the right, which ended the first step: right, left, right, ...
+    assert [a[0] for a in steps] == ["FootRight", "FootLeft"] * 3
+    for k, (joint, length, width, step_time, speed) in enumerate(steps):
+        assert length == pytest.approx(0.65, abs=0.005)
+        # the first step's walking direction still sees the start of the walk
+        assert width == pytest.approx(0.15, abs=0.01 if k == 0 else 0.002)
+        assert step_time == pytest.approx(0.6, abs=0.05 if k == 0 else 1 / FPS)
+        assert speed == pytest.approx(length / step_time)
+    assert len(fired(sink, "left only")) == 3
+    # the same walk with step: true (a foot swings and is put down): every landing, both feet
+    assert len(fired(sink, "swing")) >= 8
+
+
+def test_step_gait_is_checked_when_the_piece_loads():
+    from stage.errors import ConfigError
+    with pytest.raises(ConfigError, match="'step' in trigger 1 of section 'one' must be true or "
+                                          "gait, got 'walk'"):
+        make("      - {step: walk, do: [play: a]}")
+    with pytest.raises(ConfigError, match="'speed' is the swing speed"):
+        make("      - {step: gait, speed: 1.0, do: [play: a]}")
+
+
 def test_appears_and_disappears():
     runtime, sink, stage = make("""
       - {name: hello, appears: true, do: [{osc: {address: /hello, args: [$person]}}]}
@@ -398,13 +437,15 @@ def test_next_cycles_and_shuffle_plays_each_before_repeating():
     assert all(x != y for x, y in zip(s, s[1:]))
 
 
+# 'now': move on at once (issue 12: a plain 'goto' now waits for the sounding phrase;
+# these transitions test the movement, so they say 'now')
 SECTIONS = """
 sections:
   - name: one
     phrases: [a]
     on_enter: [{program: 42}]
     triggers:
-      - {name: to two, enters: centre, do: [play: a, goto: next]}
+      - {name: to two, enters: centre, do: [play: a, goto: {to: next, now: true}]}
   - name: two
     phrases: [b]
     triggers:
@@ -444,16 +485,71 @@ def test_operator_safety_forces_sections():
     assert sink.of(SectionChange)[-1].cause == "operator"
 
 
-def test_goto_end_ends_the_piece():
+def test_goto_end_lets_the_last_phrase_finish_ring_and_fade_then_ends():
+    """Issue 12: 'goto: end' used to end everything at once (the last phrase cut, exit
+    messages never sent); now the last phrase finishes, its last note is held (CC 64)
+    and faded (CC 11), the room rings, and the piece's own triggers act until the end."""
     runtime, sink, stage = make("""
       - {name: finish, enters: centre, do: [play: a, goto: end]}
       - {name: more, joint: HandLeft, rises_above: 1.5, cooldown: 0, do: [play: b]}
+""", extra="""ending: {fade: 2, ring: 0.5}
+triggers:
+  - {name: gone, disappears: true, do: [osc: /gone]}
+mappings:
+  - {name: swell, joint: HandRight, in_range: [0, 2], cc: 11}
+  - {name: where, joint: body, measure: x, in_range: [-3, 3], osc: /x}
 """)
     stage.run(0.0, 1.0, lambda t: {1: standing(-2, 0)})
     stage.run(1.0, 2.0, lambda t: {1: standing(0, 0)})
-    assert runtime.ended and [e.trigger for e in fired(sink)] == ["finish"]
-    stage.run(2.0, 4.0, lambda t: {1: standing(0, 0, left_arm=math.pi * (t > 3))})
-    runtime.tick(5.0)
-    assert [e.trigger for e in fired(sink)] == ["finish"]          # nothing acts any more
-    assert not runtime.goto("next", 6.0)
-    assert len([e for e in sink.events if type(e).__name__ == "Note"]) == 1   # its phrase rings
+    (finish,) = fired(sink)
+    assert finish.trigger == "finish" and runtime.ending and not runtime.ended
+    (note,) = sink.of(Note)
+    assert runtime.ends_at == pytest.approx(note.t + 1.0 + 2.0 + 0.5)   # phrase, fade, ring
+    ccs = [(c.t - note.t, c.control, c.value) for c in sink.of(ControlChange)
+           if c.t > note.t]                          # the ending's (...and is restored to it)
+    assert ccs[0] == (pytest.approx(0.02), 64, 127)                 # held from its onset
+    fade = [(t, v) for t, c, v in ccs if c == 11]
+    assert fade[0][0] > 1.0 and fade[-2] == (pytest.approx(3.0), 0)  # after it, down to 0
+    assert all(a[1] >= b[1] for a, b in zip(fade, fade[1:-1]))
+    swell = [c.value for c in sink.of(ControlChange) if c.control == 11 and c.t <= finish.t][-1]
+    assert fade[0][1] < swell                       # it falls from the mapping's last value...
+    assert (pytest.approx(3.0), 64, 0) in ccs and fade[-1] == (pytest.approx(3.5), swell)
+    swells = len([c for c in sink.of(ControlChange) if c.control == 11])
+    xs = len([o for o in sink.of(OscOut) if o.address == "/x"])
+    stage.run(2.0, 3.5, lambda t: {1: standing(0.5 * t - 1.0, 0, left_arm=math.pi * (t > 2.5),
+                                               right_arm=t)})
+    assert [e.trigger for e in fired(sink)] == ["finish"]          # the section has finished
+    assert len([c for c in sink.of(ControlChange) if c.control == 11]) == swells  # the fade's
+    assert len([o for o in sink.of(OscOut) if o.address == "/x"]) > xs             # she moves
+    assert not runtime.goto("next", 3.5)
+    stage.run(3.5, 4.0, lambda t: {})                             # she leaves: the exit sounds
+    assert [e.trigger for e in fired(sink)] == ["finish", "gone"]
+    assert not runtime.ended
+    runtime.tick(note.t + 3.5)
+    assert runtime.ended
+    stage.run(4.6, 5.0, lambda t: {1: standing(0, 0)})
+    assert [e.trigger for e in fired(sink)] == ["finish", "gone"]  # nothing acts any more
+    assert len(sink.of(Note)) == 1 and not sink.of(NoteCut)        # it rang out whole
+
+
+def test_goto_waits_for_the_sounding_phrase_unless_now():
+    runtime, sink, stage = make("", sections="""
+sections:
+  - name: one
+    triggers:
+      - {name: go, enters: centre, do: [play: a, goto: next]}
+  - name: two
+    triggers:
+      - {name: hurry, joint: HandLeft, rises_above: 1.5,
+         do: [play: b, goto: {to: three, now: true}]}
+  - name: three
+""")
+    stage.run(0.0, 1.0, lambda t: {1: standing(-2, 0)})
+    stage.run(1.0, 3.0, lambda t: {1: standing(0, 0)})
+    (go,) = fired(sink)
+    change = sink.of(SectionChange)[1]
+    assert change.section == "two" and change.cause == "go"
+    assert go.t + 1.0 <= change.t < go.t + 1.0 + 0.034            # when 'a' (1 beat) has ended
+    stage.run(3.0, 4.0, lambda t: {1: standing(0, 0, left_arm=math.pi * (t > 3.2))})
+    hurry = fired(sink)[-1]
+    assert hurry.trigger == "hurry" and sink.of(SectionChange)[-1].t == hurry.t  # at once

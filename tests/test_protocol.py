@@ -61,6 +61,11 @@ def test_every_client_message_decodes_as_the_paper_defines_it():
     assert msg.state == HandState.CLOSED and msg.hand == 0
     msg, _ = only_message(build("/registerView", "127.0.0.1", 9001))
     assert msg == RegisterView("127.0.0.1", 9001)
+    # stage addition: a trailing rate in Hz asks for a fixed output rate
+    msg, _ = only_message(build("/registerView", "127.0.0.1", 9001, 60.0))
+    assert msg == RegisterView("127.0.0.1", 9001, True, 60.0)
+    msg, _ = only_message(build("/registerView", "127.0.0.1", 9001, 25))
+    assert msg.rate_hz == 25.0
     msg, _ = only_message(build("/stage/stats"))
     assert msg == StatsQuery(None)
 
@@ -100,6 +105,9 @@ def test_integer_client_ids_are_accepted_as_text():
     (build("/handState", "k", 0, "left", 9), "bad_hand_state"),
     (build("/registerView", "127.0.0.1", 70000), "out_of_range"),
     (build("/registerView", 5, 9000), "bad_types"),
+    (build("/registerView", "127.0.0.1", 9000, 0.0), "out_of_range"),
+    (build("/registerView", "127.0.0.1", 9000, "fast"), "bad_types"),
+    (build("/registerView", "127.0.0.1", 9000, 60.0, 1), "bad_arity"),
     (build("/kinect/skeleton", "k", 0), "unknown_address"),
 ])
 def test_bad_messages_are_dropped_with_their_reason(data, reason):
@@ -171,8 +179,10 @@ def test_one_bad_message_in_a_bundle_does_not_lose_the_good_ones():
     assert d.drops == [("k", "bad_user_id")]
 
 
-def test_fast_encoders_are_read_back_by_python_osc():
-    rng = np.random.default_rng(1)
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_fast_encoders_are_read_back_by_python_osc(seed):
+    # several seeds: several joint sets, each with its own cached layout
+    rng = np.random.default_rng(seed)
     joints = rng.uniform(-3, 3, size=(25, 3))
     conf = rng.choice([0.0, 0.5, 1.0], size=25)
     msg = OscMessage(encode_view_joints(12, joints, conf))

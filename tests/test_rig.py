@@ -24,8 +24,8 @@ sensors:
       rms_m: 0.02
 views: ["127.0.0.1:9001", "9002"]
 clients: {timeout_s: 2.0}
-fusion: {outlier_m: 0.2, hand_vote: confidence}
-smoothing: {enabled: false, process_noise: 9.0}
+fusion: {view_bias_m: 0.2, hand_vote: plain, hand_hold_s: 0.2}
+smoothing: {enabled: false, fast_noise: 900.0, noise_per_m: 0}
 """
 
 
@@ -39,9 +39,10 @@ def test_a_full_rig_loads(tmp_path):
     rig = load_rig(write(tmp_path, GOOD))
     assert (rig.host, rig.port, rig.reference) == ("127.0.0.1", 7771, "a")
     assert rig.views == [("127.0.0.1", 9001), ("127.0.0.1", 9002)]
-    assert rig.clients.timeout_s == 2.0 and rig.fusion.outlier_m == 0.2
-    assert rig.fusion.hand_vote == "confidence"
-    assert not rig.smoothing_enabled and rig.smoothing.process_noise == 9.0
+    assert rig.clients.timeout_s == 2.0 and rig.fusion.view_bias_m == 0.2
+    assert rig.fusion.hand_vote == "plain" and rig.fusion.hand_hold_s == 0.2
+    assert not rig.smoothing_enabled and rig.smoothing.fast_noise == 900.0
+    assert rig.smoothing.noise_per_m == 0.0
     np.testing.assert_allclose(rig.transform_for("a"), np.eye(4))
     assert rig.transform_for("b")[0, 3] == 2.0
     assert rig.transform_for("nobody") is None
@@ -88,9 +89,18 @@ def test_save_failure_leaves_the_old_file(tmp_path, monkeypatch):
      "rig.yaml:3:18: calibration of 'a' needs a 'matrix' (4x4)"),
     ("reference: z\nsensors: {a: {}}\n", "rig.yaml:1:12: reference 'z' is not one of the sensors: a"),
     ("views: [localhost]\n", "rig.yaml:1:9: 'localhost' is not HOST:PORT with a port from 1 to 65535"),
-    ("fusion: {outlier_m: -1}\n", "rig.yaml:1:21: 'outlier_m' must be greater than 0.0, got -1"),
+    ("fusion: {view_bias_m: -1}\n", "rig.yaml:1:23: 'view_bias_m' must be greater than 0.0, got -1"),
+    # issue 10: the keys of the old fusion go, with a line that names what replaced them
+    ("fusion: {min_interval_s: 0.025}\n", "rig.yaml:1:26: 'fusion: min_interval_s' is no longer "
+     "used: every sensor frame is now fused at once; there is no interval to set (see fusion: "
+     "group_s, replay_s and smoothing: in CHANGELOG.md)"),
+    ("fusion: {outlier_m: 0.1}\n", "rig.yaml:1:21: 'fusion: outlier_m' is no longer used: outliers "
+     "are now gated by the filter: smoothing: gate_sigma and reject_sigma, and fusion: "
+     "view_bias_m for views of one instant"),
+    ("smoothing: {process_noise: 4}\n", "rig.yaml:1:28: 'smoothing: process_noise' is no longer "
+     "used: the filter now has two motion models: smoothing: quiet_noise and fast_noise"),
     ("fusion: {hand_vote: loud}\n", "rig.yaml:1:9: 'hand_vote' must be 'plain' or 'confidence', got 'loud'"),
-    ("smoothing: {process_noise: fast}\n", "rig.yaml:1:28: 'process_noise' must be a number, got 'fast'"),
+    ("smoothing: {quiet_noise: fast}\n", "rig.yaml:1:26: 'quiet_noise' must be a number, got 'fast'"),
     ("server: [1, 2]\n", "rig.yaml:1:9: 'server' must be a mapping (key: value lines)"),
     ("server:\n  port: 1\n  port: 2\n", "rig.yaml:3:3: duplicate key 'port'"),
     ("server: {port: 1\n", "rig.yaml:2:1: YAML syntax: …"),  # wording differs between libyaml and PyYAML

@@ -344,12 +344,13 @@ def test_silent_client_loses_its_users_and_is_picked_up_again(make_server, peers
     assert client["active"] is False and client["users"] == []
     assert stats["persons"] == {}
 
-    # back again: picked up as a new person, no restart
+    # back again: picked up with no restart. The same body where it was lost, within
+    # fusion.rejoin_s, gets its old id back (issue 10: it used to get a new id)
     mark = len(view.received)
     for _ in range(3):
         sensor.frame(2, truth)
     again = view.wait_for(lambda m: m.address == "/newUser", start=mark, what="a new /newUser")
-    assert again.typetags == "ifff" and again.params[0] != pid
+    assert again.typetags == "ifff" and again.params[0] == pid
     msg = view.wait_for(lambda m: m.address == "/jointCoordinates"
                         and m.params[0] == again.params[0], start=mark)
     got = np.array([g[0] for g in joint_groups(msg).values()])

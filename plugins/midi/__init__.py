@@ -6,6 +6,9 @@ virtual port named after the output; ``--midi-file OUT.mid`` records every
 output (and replaces the virtual ports). The channel is the event's: one
 channel per output in the piece. When no MIDI system is available (no ALSA
 sequencer, no JACK server) one warning says so and the notes go to a file.
+Without a synthesizer: ``--audio OUT.wav`` renders every output through
+FluidSynth into a WAV file, ``--synth`` plays them live through FluidSynth on
+JACK (both replace the virtual ports; see ``synth.py``).
 
 Timing: every note's note-off is scheduled when the note arrives, at
 ``t + duration`` on the engine clock; the view's thread sleeps until the
@@ -22,15 +25,19 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from stage.errors import ConfigError, StageError
-from stage.events import AllNotesOff, ControlChange, Event, Note, OutputDecl, ProgramChange
+from stage.events import (AllNotesOff, ControlChange, Event, Note, NoteCut, OutputDecl,
+                          ProgramChange)
 from stage.views import View, ViewContext
 
 from .ports import PortSink, choose_api
 from .schedule import MidiScheduler, Out
 from .smf import SmfWriter
+from .synth import LiveSynth, WavRenderer
 
-_MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff)
+_MIDI_EVENTS = (Note, ControlChange, ProgramChange, AllNotesOff, NoteCut)
 CLOCK, START, STOP = b"\xf8", b"\xfa", b"\xfc"
+#: how often the ports are checked (a JACK server killed, a synth quit) and reopened
+CHECK_EVERY_S = 2.0
 
 
 class MidiView(View):
@@ -43,9 +50,11 @@ class MidiView(View):
     def __init__(self, outputs: Sequence[OutputDecl] = (), port: str | None = None,
                  file: str | os.PathLike | None = None, clock_bpm: float | None = None,
                  client: str = "stage", flush_every_s: float = 1.0,
-                 fallback_dir: str | os.PathLike = ".") -> None:
+                 fallback_dir: str | os.PathLike = ".", audio: str | os.PathLike | None = None,
+                 synth: bool = False, soundfont: str | os.PathLike | None = None) -> None:
         """outputs: the piece's MIDI outputs; port: ``--midi``; file: ``--midi-file``;
-        clock_bpm: send MIDI clock (24 per beat, start/stop) to the ports at this tempo."""
+        clock_bpm: send MIDI clock (24 per beat, start/stop) to the ports at this tempo;
+        audio: ``--audio OUT.wav``; synth: ``--synth``; soundfont: ``--soundfont``."""
         self.outputs = [o for o in outputs if o.kind == "midi"] or [OutputDecl("midi", "midi")]
         self.port, self.client = port, client
         self.file = Path(file) if file is not None else None
@@ -54,6 +63,14 @@ class MidiView(View):
         if clock_bpm is not None and not 20 <= clock_bpm <= 400:
             raise ConfigError(f"MIDI clock tempo {clock_bpm} bpm is outside 20-400")
         self.clock_bpm = clock_bpm
+        self.audio_path = Path(audio) if audio is not None else None
+        self.soundfont = soundfont
+        self.audio: WavRenderer | None = None
+        self.synth: LiveSynth | None = None
+        if self.audio_path is not None:      # a missing library or soundfont: said now
+            self.audio = WavRenderer(self.audio_path, soundfont)
+        if synth:
+            self.synth = LiveSynth(soundfont)
         self.flush_every_s = flush_every_s
         self.fallback_dir = Path(fallback_dir)
         self.scheduler = MidiScheduler()
@@ -63,7 +80,7 @@ class MidiView(View):
         self._closed: list[PortSink] = []
         self.smf: SmfWriter | None = None
         self._ctx: ViewContext | None = None
-        self._next_flush = self._next_clock = float("inf")
+        self._next_flush = self._next_clock = self._next_check = float("inf")
         self._clock_k = 0
         self._clock_t0 = 0.0
         self._warned_outputs: set[str] = set()
@@ -76,8 +93,9 @@ class MidiView(View):
         now = ctx.now()
         wanted: dict[str, str] = {}      # output -> port name
         named: set[str] = set()          # names the user gave: an existing port may be meant
+        synthesized = self.file is not None or self.audio_path is not None or self.synth
         for o in self.outputs:
-            name = o.target or self.port or (None if self.file else o.name)
+            name = o.target or self.port or (None if synthesized else o.name)
             if name:
                 wanted[o.name] = name
             if o.target or self.port:
@@ -107,6 +125,8 @@ class MidiView(View):
         if self.file is not None:
             self.smf = SmfWriter(self.file, now, name=self.outputs[0].name)
             self._next_flush = now + self.flush_every_s
+        if self.audio is not None:
+            self.audio.begin(now)
         for o in self.outputs:
             sinks: list[Any] = []
             port = self.ports.get(wanted.get(o.name, ""))
@@ -114,13 +134,19 @@ class MidiView(View):
                 sinks.append(port)
             if self.smf is not None:
                 sinks.append(self.smf)
+            if self.synth is not None:
+                sinks.append(self.synth)
+            if self.audio is not None:
+                sinks.append(self.audio)
             self.routes[o.name] = sinks
+        if self.ports:
+            self._next_check = now + CHECK_EVERY_S
         if self.clock_bpm and self.ports:
             self._clock_t0 = now
             self._next_clock = now
             for port in self.ports.values():
                 port.send(START)
-        parts = [f"'{o.name}' -> " + (", ".join(s.where if isinstance(s, PortSink)
+        parts = [f"'{o.name}' -> " + (", ".join(s.where if isinstance(s, (PortSink, LiveSynth))
                                                  else f"file {s.path}" for s in self.routes[o.name])
                                       or "nowhere")
                  for o in self.outputs]
@@ -137,11 +163,20 @@ class MidiView(View):
                     port.send(STOP)
         finally:
             for port in self.ports.values():
+                state = port.state() if hasattr(port, "state") else {}
+                if state.get("down_s"):
+                    self._log().warning("MIDI port '%s' was disconnected for %.0f s in all "
+                                        "(%d message(s) not sent, %d reconnection(s))", port.name,
+                                        state["down_s"], state["dropped"], state["reconnects"])
                 port.close()
             self._closed = list(self.ports.values())
             self.ports.clear()
             if self.smf is not None:
                 self.smf.close()
+            if self.synth is not None:
+                self.synth.close()
+            if self.audio is not None:
+                self.audio.close()
 
     # ------------------------------------------------------------ events and time
     def on_events(self, events: Sequence[Event]) -> None:
@@ -161,6 +196,9 @@ class MidiView(View):
                 self._log().warning("MIDI event dropped (counted): %s", self.scheduler.last_bad)
 
     def tick(self, now: float) -> float | None:
+        if now >= self._next_check:
+            self._next_check = now + CHECK_EVERY_S
+            self._check_ports()
         self._send(self.scheduler.due(now))
         if now >= self._next_clock:
             period = 60.0 / (self.clock_bpm or 120.0) / 24.0
@@ -172,14 +210,24 @@ class MidiView(View):
         if self.smf is not None and now >= self._next_flush:
             self.smf.flush()
             self._next_flush = now + self.flush_every_s
-        times = [t for t in (self.scheduler.next_time(), self._next_clock, self._next_flush)
+        times = [t for t in (self.scheduler.next_time(), self._next_clock, self._next_flush,
+                             self._next_check)
                  if t is not None and t != float("inf")]
         return min(times) if times else None
+
+    def _check_ports(self) -> None:
+        """A port whose server or synth went away is reopened when it is back (health)."""
+        for port in self.ports.values():
+            check = getattr(port, "check", None)
+            change = check() if check is not None else None
+            if change:
+                lost = not getattr(port, "connected", True)
+                (self._log().warning if lost else self._log().info)("%s", change)
 
     def _send(self, outs: list[Out]) -> None:
         for out in outs:
             for sink in self.routes.get(out.output, ()):
-                if isinstance(sink, PortSink):
+                if isinstance(sink, (PortSink, LiveSynth)):
                     sink.send(out.data)
                 else:
                     sink.write(out.t, out.data)
@@ -194,8 +242,12 @@ class MidiView(View):
         ports = list(self.ports.values()) + self._closed
         out["sent"] = sum(p.sent for p in ports)
         out["send_errors"] = sum(p.errors for p in ports)
+        out["ports"] = {p.name: p.state() for p in self.ports.values() if hasattr(p, "state")}
         if self.smf is not None:
             out["file"] = str(self.smf.path)
             out["file_events"] = self.smf.events
+        if self.audio is not None:
+            out["audio"] = str(self.audio.path)
+            out["audio_seconds"] = round(self.audio.seconds, 3)
         out["summary"] = self.summary
         return out

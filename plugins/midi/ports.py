@@ -23,13 +23,18 @@ case-insensitive, then a client name or ALSA-style prefix: "fluidsynth" finds
 from __future__ import annotations
 
 import glob
+import logging
 import os
+import socket
 import sys
+import time
 from typing import Sequence
 
 import rtmidi
 
 from stage.errors import TransportError
+
+log = logging.getLogger("stage.views.midi")
 
 _API_NAMES = {
     "jack": rtmidi.API_UNIX_JACK, "unix_jack": rtmidi.API_UNIX_JACK,
@@ -49,6 +54,30 @@ def jack_server_running(server: str | None = None) -> bool:
     if runtime:
         patterns.append(os.path.join(runtime, "pipewire-0"))  # pipewire-jack
     return any(glob.glob(p) for p in patterns)
+
+
+def jack_server_alive(server: str | None = None) -> bool:
+    """``jack_server_running``, but a socket left behind by a killed jackd2 does not count.
+
+    A killed server leaves its socket in /dev/shm; connecting to it tells (refused).
+    Used to notice a synth's JACK server going away mid-show and coming back.
+    """
+    name = server or os.environ.get("JACK_DEFAULT_SERVER") or "default"
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    sockets = glob.glob(f"/dev/shm/jack_{name}_{uid}_*")
+    if not sockets:
+        return jack_server_running(server)
+    for path in sockets:
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        probe.settimeout(0.5)
+        try:
+            probe.connect(path)
+            return True
+        except OSError:
+            continue
+        finally:
+            probe.close()
+    return False
 
 
 def choose_api() -> tuple[int | None, str]:
@@ -97,35 +126,122 @@ def match_port(wanted: str, available: Sequence[str]) -> int | None:
 
 
 class PortSink:
-    """One open MIDI output (an existing destination or a new virtual port)."""
+    """One open MIDI output (an existing destination or a new virtual port).
+
+    ``check()`` (the MIDI view calls it every couple of seconds) notices the port's
+    server or destination going away (a JACK server killed, a synth quit) and opens
+    the port again when it is back; meanwhile sends are counted as ``dropped``.
+    """
+
+    # class defaults, so a subclass that opens nothing (a test's fake) still has a state
+    api_id: int | None = None
+    connected = True
+    reason = ""
+    dropped = reconnects = 0
+    down_since: float | None = None
+    down_s = 0.0
+    destination: str | None = None
 
     def __init__(self, name: str, api: int, client: str = "stage", existing: bool = True) -> None:
         """existing: look ``name`` up among the destinations first (False: always a new port)."""
-        self.name = name
-        try:
-            self._out = rtmidi.MidiOut(rtapi=api, name=client)
-        except Exception as exc:  # rtmidi raises its own SystemError/RuntimeError kinds
-            raise TransportError(f"cannot open the MIDI system: {exc}") from None
-        self.api = rtmidi.get_api_display_name(self._out.get_current_api())
-        try:
-            index = match_port(name, self._out.get_ports()) if existing else None
-            if index is None:
-                self._out.open_virtual_port(name)
-                self.where = f"new virtual port '{client}:{name}' ({self.api})"
-            else:
-                destination = self._out.get_ports()[index]
-                self._out.open_port(index, name)
-                self.where = f"port '{destination}' ({self.api})"
-        except TransportError:
-            self._out.delete()
-            raise
-        except Exception as exc:
-            self._out.delete()
-            raise TransportError(f"cannot open MIDI port '{name}': {exc}") from None
+        self.name, self.api_id, self.client, self.existing = name, api, client, existing
         self.sent = 0
         self.errors = 0
+        self.dropped = 0                # messages not sent while disconnected
+        self.reconnects = 0
+        self.connected = False
+        self.reason = ""
+        self.down_since: float | None = None
+        self.down_s = 0.0               # total seconds disconnected (for the summary)
+        self.destination: str | None = None
+        self._out = None
+        self._abandoned: list = []
+        self._open()
+
+    def _open(self) -> None:
+        try:
+            out = rtmidi.MidiOut(rtapi=self.api_id, name=self.client)
+        except Exception as exc:  # rtmidi raises its own SystemError/RuntimeError kinds
+            raise TransportError(f"cannot open the MIDI system: {exc}") from None
+        self.api = rtmidi.get_api_display_name(out.get_current_api())
+        try:
+            index = match_port(self.name, out.get_ports()) if self.existing else None
+            if index is None:
+                out.open_virtual_port(self.name)
+                self.destination = None
+                self.where = f"new virtual port '{self.client}:{self.name}' ({self.api})"
+            else:
+                self.destination = out.get_ports()[index]
+                out.open_port(index, self.name)
+                self.where = f"port '{self.destination}' ({self.api})"
+        except TransportError:
+            out.delete()
+            raise
+        except Exception as exc:
+            out.delete()
+            raise TransportError(f"cannot open MIDI port '{self.name}': {exc}") from None
+        self._out = out
+        self.connected, self.reason = True, ""
+
+    def check(self) -> str | None:
+        """Notice a lost server or destination, or reconnect; returns what changed, or None."""
+        if self.connected:
+            why = self._lost()
+            if why is None:
+                return None
+            self._drop(why)
+            return f"MIDI port '{self.name}' lost: {why}; reconnecting when it is back"
+        if self.api_id == rtmidi.API_UNIX_JACK and not jack_server_alive():
+            return None
+        try:
+            self._open()
+        except TransportError as exc:
+            self.reason = f"reconnecting: {exc}"
+            return None
+        if self.down_since is not None:
+            self.down_s += time.monotonic() - self.down_since
+            self.down_since = None
+        self.reconnects += 1
+        return f"MIDI port '{self.name}' is back: {self.where}"
+
+    def _lost(self) -> str | None:
+        if self.api_id == rtmidi.API_UNIX_JACK and not jack_server_alive():
+            return "the JACK server is gone"
+        if self.destination is not None:
+            try:
+                ports = self._out.get_ports() if self._out is not None else []
+            except Exception:
+                ports = []
+            if self.destination not in ports:
+                return f"destination '{self.destination}' is gone"
+        return None
+
+    def _drop(self, why: str) -> None:
+        self.connected, self.reason = False, why
+        self.down_since = time.monotonic()
+        out, self._out = self._out, None
+        if out is None:
+            return
+        if self.api_id == rtmidi.API_UNIX_JACK:
+            # closing a JACK client whose server died can block in libjack: keep it unclosed
+            self._abandoned.append(out)
+            return
+        try:
+            out.close_port()
+        finally:
+            out.delete()
+
+    def state(self) -> dict:
+        """For health: connected, reconnecting, errors, the reason."""
+        down = self.down_s + (time.monotonic() - self.down_since if self.down_since else 0.0)
+        return {"connected": self.connected, "reconnecting": not self.connected,
+                "errors": self.errors, "dropped": self.dropped, "reconnects": self.reconnects,
+                "down_s": round(down, 1), "reason": self.reason}
 
     def send(self, data: bytes) -> None:
+        if not self.connected or self._out is None:
+            self.dropped += 1
+            return
         try:
             self._out.send_message(data)
             self.sent += 1
@@ -133,7 +249,10 @@ class PortSink:
             self.errors += 1
 
     def close(self) -> None:
+        if self._out is None:
+            return
         try:
             self._out.close_port()
         finally:
             self._out.delete()
+            self._out = None

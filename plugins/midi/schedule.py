@@ -13,7 +13,11 @@ Rules:
 - ``AllNotesOff`` silences every matching sounding note at its time, cancels
   the matching notes that were scheduled before it and have not started, and
   adds a controller 123 (all notes off) per channel used, for synths that
-  hold notes we did not start.
+  hold notes we did not start;
+- a ``NoteCut`` whose ``why`` is ``contradicted`` (a trigger fired on a predicted
+  crossing the measurements did not make, docs/anticipation.md) ends that note
+  at its time, or cancels it if it has not begun; other NoteCuts are the
+  piece's account of what the rules above already do, and change nothing.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from stage.events import AllNotesOff, ControlChange, Event, Note, ProgramChange
+from stage.events import AllNotesOff, ControlChange, Event, Note, NoteCut, ProgramChange
 
 NOTE_ON, NOTE_OFF, CONTROL, PROGRAM = 0x90, 0x80, 0xB0, 0xC0
 ALL_NOTES_OFF_CC = 123
@@ -46,6 +50,8 @@ class _Note:
     velocity: int
     seq: int
     state: str = "pending"   # pending, sounding, done, cancelled
+    onset: float = 0.0       # its Note's time
+    play: int = 0            # its Note's phrase id
 
 
 @dataclass(order=True, slots=True)
@@ -85,7 +91,8 @@ class MidiScheduler:
         seq = self._seq
         name = output if output is not None else getattr(event, "output", None)
         if isinstance(event, Note):
-            note = _Note(seq, name, event.channel, event.note, event.velocity, seq)
+            note = _Note(seq, name, event.channel, event.note, event.velocity, seq,
+                         onset=event.t, play=event.play)
             self._pending[note.id] = note
             heapq.heappush(self._heap, _Entry(event.t, 1, seq, "on", note))
             heapq.heappush(self._heap, _Entry(event.t + event.duration, 0, seq, "off", note))
@@ -95,6 +102,12 @@ class MidiScheduler:
         elif isinstance(event, ProgramChange):
             heapq.heappush(self._heap, _Entry(event.t, 1, seq, "data", (
                 name, bytes((PROGRAM | event.channel, event.program)))))
+        elif isinstance(event, NoteCut):
+            if event.why != "contradicted":
+                self._seq -= 1
+                return True      # the account of a cut this schedule makes by itself
+            heapq.heappush(self._heap, _Entry(event.t, 0, seq, "cut", (
+                name, event.channel, event.note, event.onset, event.play)))
         elif isinstance(event, AllNotesOff):
             heapq.heappush(self._heap, _Entry(event.t, 0, seq, "alloff", (output or event.output,
                                                                           event.channel)))
@@ -117,6 +130,8 @@ class MidiScheduler:
                 self._note_on(entry.t, entry.payload, out)  # type: ignore[arg-type]
             elif entry.kind == "off":
                 self._note_off(entry.t, entry.payload, out)  # type: ignore[arg-type]
+            elif entry.kind == "cut":
+                self._cut(entry.t, entry.payload, out)  # type: ignore[arg-type]
             elif entry.kind == "data":
                 output, data = entry.payload  # type: ignore[misc]
                 self.stats["controls" if data[0] & 0xF0 == CONTROL else "programs"] += 1
@@ -165,6 +180,20 @@ class MidiScheduler:
         if self._sounding.get(key) is note:
             del self._sounding[key]
         out.append(Out(t, note.output, bytes((NOTE_OFF | note.channel, note.key, 0))))
+
+    def _cut(self, t: float, which: tuple, out: list[Out]) -> None:
+        """End (or cancel) the one note a NoteCut names: output, channel, key, onset, play."""
+        output, channel, key, onset, play = which
+        for nid, note in list(self._pending.items()):
+            if (note.output, note.channel, note.key, note.play) == (output, channel, key, play) \
+                    and abs(note.onset - onset) < 1e-9:
+                note.state = "cancelled"
+                del self._pending[nid]
+                self.stats["cancelled"] += 1
+                return
+        note = self._sounding.get((output, channel, key))
+        if note is not None and note.play == play and abs(note.onset - onset) < 1e-9:
+            self._note_off(t, note, out)
 
     def _silence(self, t: float, output: str | None, channel: int | None,
                  seq: int) -> list[Out]:

@@ -204,10 +204,34 @@
     }
     const lat = e.latency_ms || {};
     if (lat.n) rows.push(["latency p99", lat.p99.toFixed(2) + " ms"]);
+    const fc = e.forecast || {};
+    for (const [h, sd] of Object.entries(fc.sd_mm || {})) {
+      rows.push(["forecast " + (1000 * Number(h)).toFixed(0) + " ms", "s.d. " + sd + " mm"]);
+    }
+    if (fc.speed_capped || fc.bones_fixed) {
+      rows.push(["forecast bounded", (fc.speed_capped || 0) + " speed, " + (fc.bones_fixed || 0) + " bones"]);
+    }
     document.querySelector("#drops tbody").replaceChildren(...rows.map(([k, v]) =>
       el("tr", {}, [el("td", {}, [k]), el("td", {}, [v])])));
     text("drops-total", (e.drops_total || 0) + (s.view_drops || 0));
+    renderHealth(s.health);
     for (const x of s.sensors) if (x.position) grow(x.position, 0.5);
+  }
+
+  function renderHealth(h) {
+    const box = document.getElementById("health");
+    if (!h) return;
+    const en = h.engine || {};
+    const figures = [["frame p99", fmt(en.frame_ms_p99, 2) + " ms"], ["memory", fmt(en.rss_mb, 0) + " MB"],
+      ["cpu", fmt(en.cpu_percent, 0) + " %"], ["kernel drops", en.kernel_drops ?? "–"]];
+    const synths = Object.entries(h.synths || {}).map(([name, p]) =>
+      el("li", { class: p.connected ? "ok" : "bad" }, [name + ": " + (p.connected ? "connected" : (p.reason || "reconnecting"))]));
+    box.className = h.ok ? "ok" : "bad";
+    box.replaceChildren(
+      el("p", { class: "verdict" }, [h.ok ? "all well" : h.problems.length + " problem(s)"]),
+      el("ul", { class: "problems" }, h.problems.map((p) => el("li", {}, [p]))),
+      el("ul", { class: "synths" }, synths),
+      el("table", {}, [el("tbody", {}, figures.map(([k, v]) => el("tr", {}, [el("td", {}, [k]), el("td", {}, [v])])))]));
   }
 
   function renderZones() {

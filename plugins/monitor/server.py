@@ -28,6 +28,12 @@ _FILES = {"/": ("index.html", "text/html; charset=utf-8"),
           "/monitor.css": ("monitor.css", "text/css; charset=utf-8")}
 HEARTBEAT_S = 10.0
 LOCAL_NAMES = {"127.0.0.1", "localhost", "::1", "[::1]"}
+#: connections served at once (one thread each); beyond, new ones are closed at once
+MAX_CONNECTIONS = 64
+#: live pages (event streams) at once; beyond, 503
+MAX_STREAMS = 16
+#: a connection silent this long (no request, or not reading its stream) is closed
+IDLE_TIMEOUT_S = 15.0
 
 
 class Broadcaster:
@@ -80,6 +86,7 @@ class Broadcaster:
 class _Handler(BaseHTTPRequestHandler):
     server: "MonitorServer"
     protocol_version = "HTTP/1.1"
+    timeout = IDLE_TIMEOUT_S  # socket timeout: idle connections do not keep a thread for ever
 
     def log_message(self, fmt: str, *args: Any) -> None:  # requests are not worth a log line
         log.debug("http %s: " + fmt, self.address_string(), *args)
@@ -117,6 +124,16 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _events(self) -> None:
         b = self.server.broadcaster
+        if not self.server.streams.acquire(blocking=False):
+            self.send_error(HTTPStatus.SERVICE_UNAVAILABLE,
+                            f"{MAX_STREAMS} monitor pages are open already")
+            return
+        try:
+            self._stream(b)
+        finally:
+            self.server.streams.release()
+
+    def _stream(self, b: "Broadcaster") -> None:
         self.send_response(HTTPStatus.OK)
         self.send_header("Content-Type", "text/event-stream")
         self.send_header("Cache-Control", "no-store")
@@ -157,8 +174,30 @@ class MonitorServer(ThreadingHTTPServer):
         self.broadcaster = broadcaster
         self.loopback = host in LOCAL_NAMES or host.startswith("127.")
         self.stopping = False
+        self.connections = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self.streams = threading.BoundedSemaphore(MAX_STREAMS)
+        self.refused = 0
         self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.2},
                                         name="stage-monitor-http", daemon=True)
+
+    def process_request(self, request, client_address) -> None:  # noqa: ANN001 (socketserver's)
+        """One thread per connection, at most MAX_CONNECTIONS: a thousand idle sockets must
+        not become a thousand threads."""
+        if not self.connections.acquire(blocking=False):
+            self.refused += 1
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except Exception:
+            self.connections.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:  # noqa: ANN001
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.connections.release()
 
     @property
     def url(self) -> str:

@@ -26,8 +26,8 @@ from stage.events import (AllNotesOff, ControlChange, Event, MappingValue, Note,
 from stage.joints import JOINTS
 from stage.views import Status
 
-#: Default height of a cylinder zone when the piece gives none (m).
-CYLINDER_HEIGHT_M = 2.5
+#: Default height of a cylinder zone when the piece gives none (m): the piece language's
+CYLINDER_HEIGHT_M = 3.0
 
 
 def frame_json(frame: FusedFrame, fps: float) -> dict[str, Any]:
@@ -64,10 +64,29 @@ def status_json(status: Status) -> dict[str, Any]:
                    "persons": len(engine.get("persons", {})),
                    "drops_total": engine.get("drops_total", 0), "drops": reasons,
                    "latency_ms": engine.get("latency_ms", {}),
-                   "counts": engine.get("counts", {})},
+                   "counts": engine.get("counts", {}),
+                   # bodies predicted ahead (docs/anticipation.md): horizons and their s.d.
+                   "forecast": {k: engine.get("forecast", {}).get(k) for k in
+                                ("horizons_s", "views_s", "sd_mm", "speed_capped",
+                                 "bones_fixed")}},
         "views": views,
         "view_drops": sum(v["frames_dropped"] + v["events_dropped"] for v in views.values()),
+        "health": health_json(status.health),
     }
+
+
+def health_json(health: dict[str, Any]) -> dict[str, Any] | None:
+    """The show's health for the page: ok, the problems, the engine's figures."""
+    if not health:
+        return None
+    engine = health.get("engine", {})
+    return {"ok": bool(health.get("ok")), "problems": list(health.get("problems", []))[:20],
+            "time": health.get("time"),
+            "engine": {k: engine.get(k) for k in ("frame_ms_p99", "rss_mb", "cpu_percent",
+                                                  "kernel_drops", "uptime_s")},
+            "synths": {name: {"connected": p.get("connected"), "reason": p.get("reason")}
+                       for name, p in health.get("synths", {}).items()},
+            "calibrator": health.get("calibrator", {})}
 
 
 def _vec(value: Any, n: int | tuple[int, ...]) -> list[float] | None:

@@ -3,11 +3,14 @@
 Targets, and what each gets:
 
 - the piece's OSC outputs with an address (``kind: osc, target: host:port``)
-  and the command line's ``--osc HOST:PORT``: the Server-to-View API (the
-  paper's ``/newUser /lostUser /jointCoordinates /handState``), the piece
-  events (``/stage/section``, ``/stage/trigger``, ``/stage/mapping``,
-  ``/stage/zone``), and the piece's own ``OscOut`` messages for that output
-  (the command line's targets take the outputs declared without an address);
+  and the command line's ``--osc HOST:PORT``: the piece events
+  (``/stage/section``, ``/stage/trigger``, ``/stage/mapping``, ``/stage/zone``)
+  and the piece's own ``OscOut`` messages for that output (the command line's
+  targets take the outputs declared without an address). The skeleton stream
+  (the Server-to-View API: the paper's ``/newUser /lostUser /jointCoordinates
+  /handState``) goes only where the piece asks for it (``skeletons: true`` on an
+  output), or to a command-line target that carries no piece output at all (a
+  plain view, as in ``stage monitor --osc``);
 - the views the engine already streams bodies to (rig ``views:``, ``--view``,
   ``/registerView``): the piece events only, so a Kuatro view that registers
   also hears the piece.
@@ -40,7 +43,7 @@ from .encode import FrameEncoder, bundles, event_json_message, osc_out_message, 
 class Target:
     host: str
     port: int
-    bodies: bool = True                       # the Server-to-View API
+    bodies: bool = True                       # the Server-to-View API (the skeleton stream)
     outputs: set[str] = field(default_factory=set)  # OscOut of these outputs
     sources: set[str] = field(default_factory=set)  # where it came from, for logs
 
@@ -71,10 +74,13 @@ class OscView(View):
         for o in osc_outputs:
             if o.target:
                 self._target(_address(o.target, f"output '{o.name}'"), f"piece output '{o.name}'",
-                             {o.name})
+                             {o.name}, o.skeletons)
+        # a command-line target carries the outputs without an address: it gets the skeletons
+        # if one of them asks, or if it carries none (then it is a plain view)
+        cli_bodies = any(o.skeletons for o in osc_outputs if not o.target) or not unaddressed
         for t in targets:
             address = _address(t, "--osc") if isinstance(t, str) else (str(t[0]), int(t[1]))
-            self._target(address, "command line", unaddressed | {"*"})
+            self._target(address, "command line", unaddressed | {"*"}, cli_bodies)
         self.unrouted = sorted(n for n in unaddressed if not targets)
         self._frames = FrameEncoder()
         self._timed: list[tuple[float, int, bytes, tuple]] = []   # (t, seq, message, routing)
@@ -86,8 +92,12 @@ class OscView(View):
         self.counts = {"datagrams": 0, "messages": 0, "send_errors": 0, "dropped": 0}
         self.summary = ""
 
-    def _target(self, address: tuple[str, int], source: str, outputs: set[str]) -> None:
-        target = self.targets.setdefault(address, Target(*address))
+    def _target(self, address: tuple[str, int], source: str, outputs: set[str],
+                bodies: bool) -> None:
+        if address not in self.targets:
+            self.targets[address] = Target(*address, bodies=bodies)
+        target = self.targets[address]
+        target.bodies = target.bodies or bodies
         target.outputs |= outputs
         target.sources.add(source)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 from ..clock import ManualClock
 from ..engine import Engine
@@ -28,7 +28,7 @@ FeedItem = Any
 
 def feed(engine: Engine, clock: ManualClock, items: Iterable[FeedItem], *,
          end: float | None = None, until: float | None = None, tick_s: float = TICK_S,
-         recorder=None) -> int:
+         recorder=None, stop: Callable[[], bool] | None = None) -> int:
     """Feed datagrams, in arrival order, into ``engine`` on ``clock``; returns how many.
 
     Arrival times are used as they are when the clock has not passed the
@@ -39,6 +39,8 @@ def feed(engine: Engine, clock: ManualClock, items: Iterable[FeedItem], *,
     up to this clock time after the last datagram. With a ``recorder``
     (``RecordingWriter``) every datagram is recorded on the way at its
     (shifted) times, so replaying the recording reproduces this run exactly.
+    ``stop``: checked as the clock moves; once it says True nothing more is fed
+    (a piece that has ended ends its offline show).
     """
     next_tick = clock.now() + tick_s
     shift: float | None = None
@@ -56,6 +58,8 @@ def feed(engine: Engine, clock: ManualClock, items: Iterable[FeedItem], *,
             clock.set(max(clock.now(), next_tick))
             engine.tick(clock.now())
             next_tick += tick_s
+            if stop is not None and stop():
+                return n
         clock.set(max(clock.now(), arrival))
         if recorder is not None:
             recorder.write(arrival, source, data, item[3] + shift if len(item) > 3 else None)
@@ -65,6 +69,8 @@ def feed(engine: Engine, clock: ManualClock, items: Iterable[FeedItem], *,
         ends = end + (shift or 0.0)
         until = ends if until is None else max(until, ends)
     while until is not None and next_tick <= until:
+        if stop is not None and stop():
+            return n
         clock.set(max(clock.now(), next_tick))
         engine.tick(clock.now())
         next_tick += tick_s

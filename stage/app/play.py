@@ -78,10 +78,16 @@ class Player:
         assert runtime is not None
         c = runtime.counts
         seen = list(dict.fromkeys(runtime.visited))
-        narrator.say(f"stage play: stopped after {result.seconds:.1f} s; sections reached: "
-                     f"{len(seen)}/{len(self.piece.sections)} ({', '.join(seen)}); "
-                     f"{c['fired']} triggers fired, {c['notes']} notes" +
-                     (f", {c['errors']} runtime errors (see log)" if c["errors"] else ""))
+        cuts = [f"{c[k]} {word}" for k, word in (("cancelled", "cancelled before they sounded"),
+                                                  ("shortened", "cut short")) if c[k]]
+        narrator.say(f"stage play: stopped after {result.seconds:.1f} s"
+                     + (" (the piece has ended)" if runtime.ended else "")
+                     + f"; sections reached: {len(seen)}/{len(self.piece.sections)} "
+                     f"({', '.join(seen)}); {c['fired']} triggers fired, {c['notes']} notes "
+                     f"sounded" + (f" ({', '.join(cuts)})" if cuts else "")
+                     + (f", {c['skipped']} phrase{'s' if c['skipped'] != 1 else ''} not "
+                        "played" if c["skipped"] else "")
+                     + (f", {c['errors']} runtime errors (see log)" if c["errors"] else ""))
         for line in result.views:
             narrator.say(f"  view {line}")
 

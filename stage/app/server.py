@@ -29,7 +29,9 @@ class Server:
         self.sock = open_udp(host or self.rig.host, self.rig.port if port is None else port)
         self.engine = Engine(self.rig, self.clock, UdpTransport(self.sock))
         self.receiver = Receiver(self.sock, self.engine.submit, self.engine.drops, self.clock,
-                                 self.rig.clients.max_messages_per_s)
+                                 self.rig.clients.max_messages_per_s, self.rig.allow_sensors,
+                                 self.rig.clients.max_messages_per_s_per_host,
+                                 self.rig.limits.max_sources)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 

@@ -19,21 +19,20 @@ options give the same fused output bit for bit whichever command runs them.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
-import math
 import os
-import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Callable, TextIO
+from dataclasses import dataclass, field, replace
+from typing import Callable, TextIO
 
 from ..calibration import LiveCalibrator, LiveSettings, attach_live
 from ..clock import Clock, ManualClock, MonotonicClock
 from ..engine import Engine
-from ..errors import ConfigError, StageError
+from ..errors import ConfigError
 from ..frames import fused_json
 from ..piece.loader import load_piece
 from ..piece.model import Piece
@@ -43,6 +42,9 @@ from ..rig import Rig, load_rig
 from ..sensors.source import Source, load_source
 from ..views import ViewHost
 from . import offline as offline_mod
+from .options import ShowOptions
+from .report import Performance, ScoreSink
+from .health import HealthMonitor
 from .server import Server
 from .status_line import StatusLine
 
@@ -56,47 +58,6 @@ RING_OUT_S = 5.0
 KEEP_EVENTS = 10000
 #: --sim given without a scenario: the piece's rehearsal scenario, else the simulator's default
 PIECE_SCENARIO = ""
-
-
-@dataclass
-class ShowOptions:
-    """Everything a command can ask of a show; the defaults are every command's defaults."""
-
-    # where bodies come from (at most one of sim, replay, source)
-    sim: str | None = None          # None: no simulator; "" the piece's rehearsal or default
-    replay: str | None = None       # a recording
-    loop: bool = False              # replay: start again at the end
-    source: str | None = None       # another installed source by name (stage.sources.v1)
-    source_options: dict[str, Any] = field(default_factory=dict)
-    offline: bool = False           # run the engine here on a manual clock (sim or replay)
-    speed: float = 1.0              # live sim/replay: x real time (math.inf: as fast as possible)
-    host: str | None = None         # listen here (default: the rig's; 127.0.0.1 with a source)
-    port: int | None = None         # UDP port (default: the rig's; any free one with a source)
-    listen: bool = False            # with a source, still listen where real sensors would send
-    # the rig and the engine
-    rig: str | None = None          # rig file (saved calibrations go here)
-    rig_data: Rig | None = None     # a rig object instead of reading ``rig``
-    create_rig: bool = False        # a missing ``rig`` file is started empty (calibrate --live)
-    self_healing: bool = True       # calibrate uncalibrated sensors, re-calibrate bumped ones
-    calibration: LiveSettings | None = None
-    # the piece
-    piece: str | None = None
-    seed: int | None = None
-    events: str | None = None       # every event as a JSON line
-    # what comes out
-    views: list[tuple[str, int]] = field(default_factory=list)   # Server-to-View OSC targets
-    midi: str | None = None
-    midi_file: str | None = None
-    osc: list[tuple[str, int]] = field(default_factory=list)     # the OSC view's targets
-    monitor: bool | int = False     # the live web monitor (True: port 7780; an int: that port)
-    monitor_bind: str = "127.0.0.1"
-    relay: list[tuple[str, int]] = field(default_factory=list)
-    plugins: bool = True            # also run the installed views that start by themselves
-    fused: str | None = None        # every fused frame as a JSON line (exact floats)
-    status_line: bool = False       # one status line a second on the console
-    # how it ends
-    duration: float | None = None
-    end_with_source: bool = True    # a source that ends by itself ends the show
 
 
 @dataclass
@@ -169,7 +130,10 @@ class Show:
             if opts.midi is not None:
                 raise ConfigError("--offline runs ahead of time: MIDI goes to a file "
                                   "(--midi-file), not to a port")
-            if self.piece is not None and opts.midi_file is None and any(
+            if opts.synth:
+                raise ConfigError("--offline runs ahead of time: --synth plays in real time; "
+                                  "render with --audio OUT.wav instead")
+            if self.piece is not None and opts.midi_file is None and opts.audio is None and any(
                     o.kind == "midi" for o in self.piece.outputs.values()):
                 # ahead of time the MIDI can only be a file: name it after the piece, here
                 opts.midi_file = os.path.splitext(os.path.basename(opts.piece))[0] + "-offline.mid"
@@ -183,6 +147,13 @@ class Show:
             if view not in self.rig.views:
                 self.rig.views.append(view)
         self.recorded = RecordingSink(None if opts.offline else KEEP_EVENTS) if self.piece else None
+        self.score: ScoreSink | None = None
+        if opts.score:
+            if self.piece is None:
+                raise ConfigError("--score draws a piece's performance: give a piece")
+            from .score import check_score_path
+            check_score_path(opts.score)
+            self.score = ScoreSink()
         self.events_file: EventsFile | None = None
         self.fused_file: TextIO | None = None
         self.engine: Engine | None = None
@@ -192,6 +163,7 @@ class Show:
         self.runtime: PieceRuntime | None = None
         self.narrator: Narrator | None = None
         self.status: StatusLine | None = None
+        self.health: HealthMonitor | None = None
         self.clock: Clock | None = None
         self._closers: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
@@ -247,10 +219,9 @@ class Show:
         o = self.opts
         settings = o.calibration or LiveSettings()
         if not o.self_healing:
-            settings = LiveSettings(**{**settings.__dict__, "heal": False,
-                                       "auto_calibrate": False})
+            settings = replace(settings, heal=False, auto_calibrate=False)
         if o.offline:  # deterministic: on the engine thread, nothing written to the rig file
-            settings = LiveSettings(**{**settings.__dict__, "save": False})
+            settings = replace(settings, save=False)
         self.calibrator = attach_live(engine, None if o.offline else o.rig, settings,
                                       threaded=threaded)
         if self.fused_file is not None:
@@ -261,8 +232,10 @@ class Show:
             self.host.attach(engine)
         if self.piece is not None:
             self.narrator = Narrator(self.out, origin=self._started_at, direct=not threaded)
-            sink = FanoutSink(self.host, self.events_file, self.recorded)
+            sink = FanoutSink(self.host, self.events_file, self.recorded, self.score)
             self.runtime = PieceRuntime(self.piece, sink, seed=self.seed, narrator=self.narrator)
+            for horizon in sorted(self.piece.horizons()):   # forecast_s, anticipate
+                engine.people.want_forecast(horizon)
             engine.listeners.append(self.runtime)
         if o.status_line:
             self.status = StatusLine(engine, out=self.out)
@@ -274,7 +247,8 @@ class Show:
         host = ViewHost.for_play(outputs, midi_port=o.midi, midi_file=o.midi_file,
                                  osc=list(o.osc), monitor=o.monitor, clock=self.clock,
                                  plugins=o.plugins, relay=list(o.relay),
-                                 monitor_host=o.monitor_bind, threaded=threaded)
+                                 monitor_host=o.monitor_bind, threaded=threaded,
+                                 audio=o.audio, synth=o.synth, soundfont=o.soundfont)
         if not host.slots:
             return None
         if self.piece is not None:
@@ -312,7 +286,9 @@ class Show:
         runtime, host = self.runtime, self.host
 
         def hook(t: float) -> None:
-            if runtime is not None and t >= next_tick[0]:
+            # the piece sees time pass every PIECE_TICK_S, and the moment its ending is over
+            if runtime is not None and (t >= next_tick[0] or (
+                    runtime.ending and not runtime.ended and t >= runtime.ends_at)):
                 next_tick[0] = t + PIECE_TICK_S
                 runtime.tick(t)
             if host is not None:
@@ -336,6 +312,15 @@ class Show:
         if runtime is not None:
             engine.call_soon(lambda e: runtime.start(e.clock.now()))
         server.start()
+        if o.health:
+            alerts = self.rig.alerts
+            changes = {k: v for k, v in (("after_s", o.alert_after_s),
+                                         ("command", o.alert_command), ("osc", o.alert_osc))
+                       if v is not None}
+            if changes:
+                alerts = dataclasses.replace(alerts, **changes)
+            self.health = HealthMonitor(engine, self.host, self.calibrator, alerts,
+                                        self.status).start()
         if runtime is not None:
             self._threads.append(_every(PIECE_TICK_S, self.stop_event, lambda: _soon(
                 engine, lambda e: runtime.tick(e.clock.now()))))
@@ -359,13 +344,27 @@ class Show:
         assert source is not None
         length = o.duration if o.duration is not None else source.duration
         end = None if length is None else source.start_time + length
-        self._fed = offline_mod.feed(engine, clock, source.items(), end=end)
-        if o.duration is None and self.runtime is not None:
-            # the source ended by itself: let the last phrase end
-            end = min(clock.now() + RING_OUT_S, self.runtime.last_note_end)
-            while clock.now() < end and not self.stop_event.is_set():
+        runtime = self.runtime
+        stop = (lambda: runtime.ended) if runtime is not None else None
+        self._fed = offline_mod.feed(engine, clock, source.items(), end=end, stop=stop)
+        if runtime is not None and not runtime.ended:
+            deadline = None if o.duration is None else self._started_at + o.duration
+            end = self.ring_until(clock.now())
+            if deadline is not None:
+                end = min(end, deadline)
+            while clock.now() < end and not runtime.ended and not self.stop_event.is_set():
                 clock.advance(min(PIECE_TICK_S, end - clock.now()))
         return self.stop_event.is_set()
+
+    def ring_until(self, now: float) -> float:
+        """When the source has ended: until the piece's ending is over, else up to
+        ``RING_OUT_S`` for the last notes to end."""
+        runtime = self.runtime
+        if runtime is None or runtime.ended:
+            return now
+        if runtime.ending:
+            return runtime.ends_at
+        return min(now + RING_OUT_S, runtime.last_note_end)
 
     def _wait_live(self) -> bool:
         o, clock = self.opts, self.clock
@@ -380,16 +379,16 @@ class Show:
                 return False
             source_done = (self.source is not None and self.source.done.is_set()
                            and o.end_with_source)
-            piece_ended = self.runtime is not None and self.runtime.ended
-            if (source_done and deadline is None) or piece_ended:
+            if self.runtime is not None and self.runtime.ended:
+                return False               # the piece is over: its ending has rung out
+            if source_done and deadline is None:
                 if self.runtime is None:
                     return False
                 if ring_until is None:
                     self.narrator.print_pending()  # type: ignore[union-attr]
-                    self.narrator.say("stage play: the " + (  # type: ignore[union-attr]
-                        "piece" if piece_ended else "source") + " has ended; letting the "
-                        "last notes ring")
-                    ring_until = min(now + RING_OUT_S, self.runtime.last_note_end)
+                    self.narrator.say("stage play: the source has ended; letting the "  # type: ignore[union-attr]
+                                      "piece finish")
+                    ring_until = self.ring_until(now)
                 if now >= ring_until:
                     return False
             self.stop_event.wait(0.1)
@@ -405,6 +404,8 @@ class Show:
             self.source.stop()
         for closer in self._closers:
             closer()
+        if self.health is not None:
+            self.health.stop()
         if self.calibrator is not None:
             self.calibrator.stop()
         for thread in self._threads:
@@ -421,6 +422,14 @@ class Show:
         if self.narrator is not None:
             self.narrator.print_pending()
         self._close_files()
+        if self.score is not None and self.score.events:
+            from .score import draw_score
+            try:
+                path = draw_score(Performance.from_events(self.score.events), self.opts.score,
+                                  self.piece.title if self.piece is not None else "")
+                log.info("score: %s", path)
+            except Exception:     # the show is over; a drawing must not turn it into a crash
+                log.exception("could not draw the score %s", self.opts.score)
         stats = self.engine.stats() if self.engine is not None else {}
         return ShowResult(stats, now - self._started_at, interrupted, self.piece, self.runtime,
                           self.recorded, self.host.summary() if self.host is not None else [],
@@ -453,6 +462,8 @@ class Show:
         self.stop_event.set()
         if self.source is not None:
             self.source.stop()
+        if self.health is not None:
+            self.health.stop()
         if self.calibrator is not None:
             self.calibrator.stop()
         if self.server is not None:

@@ -49,6 +49,13 @@ class StatusLine:
         self.lines += 1
 
 
+    def idle(self, now: float) -> None:
+        """Engine thread: a line even when no fused frame comes (an empty stage, silent
+        sensors), so an idle server does not look hung."""
+        if now >= self._next:
+            self(FusedFrame(now, self.engine.bodies(), (), (), ()))
+
+
 def attach(engine: Engine, **kwargs) -> Callable[[FusedFrame], None]:
     status = StatusLine(engine, **kwargs)
     engine.listeners.append(status)

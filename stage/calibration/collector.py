@@ -77,7 +77,10 @@ class Collector:
         def common(p: tuple[View, View]) -> float:
             return min(p[0].t[-1], p[1].t[-1]) - max(p[0].t[0], p[1].t[0])
         a, b = max(pairs, key=lambda p: (common(p), p[1].sensor == self._reference))
-        tracking = self._states[sid].state == "ok"
+        known = self._states.get(sid)  # the engine thread may have forgotten it
+        if known is None:
+            return None
+        tracking = known.state == "ok"
         if min(a.t[-1] - a.t[0], b.t[-1] - b.t[0]) < (4 * s.lag_min_s if tracking else s.lag_min_s):
             return None  # too little to say yet: try again at the next poll
         ok = np.isfinite(b.stage).all(axis=(1, 2))
@@ -156,10 +159,12 @@ class Collector:
         short stretch of a short take finds one of its near-equal minima."""
         s = self.settings
         with self._lock:
+            if sid not in self._states:   # the engine thread may have forgotten it
+                return None
             mine = self._buffered(sid, since, self._states[sid].lag_s, placed=False)
             partners = [(self._buffered(r, -np.inf, self._states[r].lag_s, placed=True), r)
                         for r in sorted(trusted, key=lambda r: r != self._reference)
-                        if r != sid]
+                        if r != sid and r in self._states]
         if mine is None or mine.t[-1] - mine.t[0] < s.lag_min_s:
             return None
         for theirs, _ in partners:
@@ -186,8 +191,8 @@ class Collector:
                 search = self._search_buffers(sid, trusted, since)
             self._yield()
             with self._lock:
-                st = self._states[sid]
-                if st.epoch == epochs.get(sid):
+                st = self._states.get(sid)  # the engine thread may have forgotten it
+                if st is not None and st.epoch == epochs.get(sid):
                     self._update_lag(st, search, now)
 
     # ------------------------------------------------------------ pairs
@@ -220,7 +225,9 @@ class Collector:
         trusted = [sid for sid, (state, *_rest) in states.items() if state == "ok"]
         for sid in states:
             with self._lock:
-                st = self._states[sid]
+                st = self._states.get(sid)  # the engine thread may have forgotten it
+                if st is None:
+                    continue
                 wanted = self._wants_pairs(st)
                 start = max(st.collected_to, st.collect_from)
             if not wanted:
@@ -233,8 +240,8 @@ class Collector:
             new, waiting = new_pairs(sid, views, trusted, start, until, now, s.min_joints)
             self._yield()
             with self._lock:
-                st = self._states[sid]
-                if st.epoch != epochs.get(sid):
+                st = self._states.get(sid)
+                if st is None or st.epoch != epochs.get(sid):
                     continue
                 if waiting is not None:
                     st.reason = waiting

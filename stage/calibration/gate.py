@@ -50,7 +50,8 @@ class JumpGate:
 
     def trust(self, sensor: str, trusted: bool) -> None:
         """Only views of trusted sensors (state ok) are compared against."""
-        self._trusted[self._sensor(sensor)] = trusted
+        k = self._sensor(sensor)  # first: it may grow (replace) the _trusted array
+        self._trusted[k] = trusted
 
     def forget(self, sensor: str, user: int) -> None:
         """Forget what a view agreed with (its user id now belongs to somebody else)."""

@@ -49,6 +49,8 @@ from .worker import EngineWorker
 
 log = logging.getLogger("stage.calibration")
 INF = float("inf")
+#: sensors the calibrator keeps state for; beyond, those the engine forgot are dropped
+MAX_SENSORS = 128
 
 __all__ = ["LiveCalibrator", "LiveEvent", "attach_live"]
 
@@ -85,6 +87,9 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         self._request_all: int | None = None
         self._latest = -INF
         self._next_poll = -INF
+        #: times the calibrator failed and was restarted, and the last failure (health)
+        self.crashes = 0
+        self.last_crash = ""
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "LiveCalibrator":
@@ -139,13 +144,55 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         with self._lock:
             return {sid: self._note_of(st) for sid, st in self._states.items()}
 
+    # ------------------------------------------------------------ failures
+    def _crashed(self, where: str, exc: BaseException) -> None:
+        """A bug must not end self-healing for the rest of the run: log it, start afresh."""
+        self.crashes += 1
+        self.last_crash = f"{where}: {type(exc).__name__}: {str(exc)[:200]}"
+        log.error("the live calibrator failed (%s); restarted with fresh state (failure %d)",
+                  self.last_crash, self.crashes, exc_info=exc)
+        with self._lock:
+            s = self.settings
+            self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
+            self._copies = CopyDetector(s.identical_frames)
+            self._buffers.clear()
+            self._runs.clear()
+            self._tracks_seen.clear()
+            self._states.clear()
+            self._order.clear()
+            self._monitored_to = -INF
+            self._window = PairWindow(s.window_s)
+            self._held_since = None
+            self._jumps.clear()
+
+    def _forget_gone(self) -> None:
+        """Sensors the engine no longer knows are forgotten (caller holds the lock), so
+        ever new sensor ids cannot grow the calibrator's tables."""
+        gone = [sid for sid in self._states if sid not in self.engine.clients]
+        for sid in gone:
+            del self._states[sid]
+        self._order = [sid for sid in self._order if sid in self._states]
+        s = self.settings
+        self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
+        for sid, st in self._states.items():
+            self._gate.trust(sid, st.state == "ok")
+
     # ------------------------------------------------------------ engine thread
     def _observe(self, frame: SensorFrame) -> None:
+        try:
+            self._observe_frame(frame)
+        except Exception as exc:  # never let the engine's callback list disable us
+            self._crashed(f"frame of {frame.sensor[:64]}", exc)
+
+    def _observe_frame(self, frame: SensorFrame) -> None:
         s = self.settings
         self._engine_thread = threading.current_thread()
         with self._lock:
             self._reference = self.engine.reference
+            if frame.sensor not in self._states and len(self._states) >= MAX_SENSORS:
+                self._forget_gone()
             st = self._states.get(frame.sensor) or self._new_state(frame)
+            self._follow_reference(st, frame)
             st.transform = frame.transform
             key = (frame.sensor, frame.user)
             buf = self._buffers.get(key)
@@ -198,6 +245,25 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         self._order.append(sid)
         self._note(st)
         return st
+
+    def _follow_reference(self, st: SensorState, frame: SensorFrame) -> None:
+        """The engine may choose a new reference (the old one went silent before anything
+        was calibrated against it): the new one is fine as it is, the old one needs a
+        calibration like any other sensor."""
+        sid = st.sensor
+        if sid == self._reference and st.state != "ok" and frame.transform is not None:
+            st.state, st.reason, st.pairs, st.epoch = "ok", "reference: its space is stage space", \
+                None, st.epoch + 1
+            st.transform = st.last_good = frame.transform
+            self._gate.trust(sid, True)
+            self._note(st)
+        elif (sid != self._reference and st.state == "ok" and frame.transform is None
+              and st.reason.startswith("reference")):
+            st.state, st.reason, st.epoch = "uncalibrated", "no longer the reference: no " \
+                "calibration yet", st.epoch + 1
+            st.last_good = None
+            self._gate.trust(sid, False)
+            self._note(st)
 
     def _check_jump(self, frame: SensorFrame, st: SensorState) -> None:
         """Quarantine at once a sensor whose views jumped away from sensors they agreed with.

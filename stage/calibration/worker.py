@@ -41,6 +41,9 @@ class EngineWorker:
     def _poll(self) -> None:  # the subclass's periodic work
         raise NotImplementedError
 
+    def _crashed(self, where: str, exc: BaseException) -> None:  # the subclass restarts itself
+        log.error("calibration %s failed", where, exc_info=exc)
+
     def _start_worker(self) -> None:
         if self.threaded:
             self._worker = threading.Thread(target=self._run, name=self.name, daemon=True)
@@ -95,8 +98,8 @@ class EngineWorker:
                 asked = self._flush_asked
             try:
                 self._poll()
-            except Exception:  # the show goes on without self-healing rather than stop
-                log.exception("calibration poll failed")
+            except Exception as exc:  # the show goes on; the worker starts afresh
+                self._crashed("poll", exc)
             self._send()
             with self._poll_done:
                 self._flush_done = asked

@@ -63,12 +63,24 @@ def add_show_options(p: argparse.ArgumentParser, *, status: bool = True) -> None
     if status:
         p.add_argument("--status", action="store_true",
                        help="print a status line every second")
+    p.add_argument("--alert-command", metavar="CMD",
+                   help="run CMD when a sensor, view, synth or the engine has been down or "
+                        "suspect for --alert-after seconds (and when it recovers); the alert is "
+                        "in STAGE_ALERT_* environment variables (default: the rig's alerts)")
+    p.add_argument("--alert-osc", type=hostport, metavar="HOST:PORT",
+                   help="send /stage/alert there when something is down (see docs/osc-api.md)")
+    p.add_argument("--alert-after", type=positive, metavar="S",
+                   help="seconds down or suspect before an alert (default: the rig's, else 60)")
 
 
 def show_options(args: argparse.Namespace, **fields) -> "ShowOptions":
     """ShowOptions from the options ``add_show_options`` added, plus ``fields``."""
     from ..app.show import ShowOptions
+    osc = getattr(args, "alert_osc", None)
     common = dict(views=list(args.view), duration=args.duration,
                   self_healing=not args.no_self_healing, plugins=not args.no_plugins,
-                  fused=args.fused, status_line=getattr(args, "status", False))
+                  fused=args.fused, status_line=getattr(args, "status", False),
+                  alert_command=getattr(args, "alert_command", None),
+                  alert_osc=None if osc is None else f"{osc[0]}:{osc[1]}",
+                  alert_after_s=getattr(args, "alert_after", None))
     return ShowOptions(**{**common, **fields})

@@ -21,8 +21,15 @@ def register(sub) -> dict:
                    help="frame rate of the source (ntu, nucla) or of the output (bvh); default 30")
     p.add_argument("--align", choices=("start", "stretch"), default="start",
                    help="nucla: views start together, or are stretched to the longest")
-    p.add_argument("--height", type=_positive, default=1.75, metavar="M",
-                   help="bvh: the performer's height in metres (default 1.75)")
+    p.add_argument("--height", type=_positive, default=None, metavar="M",
+                   help="bvh: scale the performer to this height in metres (default: keep the "
+                   "file's lengths, in --units)")
+    p.add_argument("--units", choices=("auto", "m", "cm", "mm", "in", "cmu"), default="auto",
+                   help="bvh: the file's length unit (cmu: the CMU database's 1/0.45 inch); "
+                   "default auto: the one in which the performer is 1.2-2.3 m tall")
+    p.add_argument("--joint-map", metavar="FILE", help="bvh: YAML mapping our joint names to the "
+                   "file's (e.g. 'HandLeft: LeftHandMiddle1'), over the built-in maps (CMU, "
+                   "Bandai Namco, Mixamo, LAFAN, detected by the joint names)")
     p.add_argument("--sensor", default="bvh", help="bvh: the sensor id (default 'bvh')")
     return {"import": cmd_import}
 
@@ -39,7 +46,14 @@ def cmd_import(args: argparse.Namespace) -> int:
         if len(args.files) != 1:
             raise ConfigError("bvh: give one file (one performer) per recording")
         from ..sensors.importers.bvh import import_bvh
-        n = import_bvh(args.files[0], args.out, args.height, args.fps, args.sensor)
+        from ..sensors.importers.bvh_maps import load_joint_map
+        joint_map = load_joint_map(args.joint_map) if args.joint_map else None
+        n, take = import_bvh(args.files[0], args.out, args.height, args.fps, args.sensor,
+                             joint_map, None if args.units == "auto" else args.units)
+        print(f"stage import: bvh naming: {take.scheme or 'generic aliases'}"
+              f"{' + ' + args.joint_map if args.joint_map else ''}; lengths: "
+              + (f"scaled to {args.height} m" if take.units is None else
+                 f"{take.units} ({'detected' if args.units == 'auto' else 'given'})"), flush=True)
     info = read_recording(args.out).scan()
     print(f"stage import: {len(args.files)} file(s) -> {args.out}: {n} datagram(s), "
           f"{len(info['sources'])} sensor(s), {info['duration_s']:.2f} s", flush=True)

@@ -13,9 +13,13 @@ from .common import (Exit, add_show_options, hostport as _hostport, port as _por
 
 
 def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Namespace], int]]:
-    check = sub.add_parser("check", help="check piece files and summarise them",
+    check = sub.add_parser("check", help="check piece files (and their rehearsal scenarios) and "
+                                         "summarise them",
                            description="Check piece files: every mistake is reported as "
-                                       "file:line:column with what was expected (exit status 2).")
+                                       "file:line:column with what was expected (exit status 2). "
+                                       "A rehearsal scenario kept beside the pieces (a file with "
+                                       "'performers' and no 'piece') is checked as a scenario, "
+                                       "and its choreography printed with the time of each step.")
     check.add_argument("pieces", nargs="+", metavar="PIECE.yaml")
     check.add_argument("--quiet-summary", action="store_true", dest="brief",
                        help="one line per piece instead of the summary")
@@ -35,6 +39,16 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     midi = play.add_mutually_exclusive_group()
     midi.add_argument("--midi", metavar="PORT", help="MIDI port for the piece's MIDI outputs")
     midi.add_argument("--midi-file", metavar="OUT.mid", help="write the MIDI to a file instead")
+    play.add_argument("--audio", metavar="OUT.wav",
+                      help="hear it: render the MIDI through FluidSynth into a WAV file")
+    play.add_argument("--synth", action="store_true",
+                      help="hear it live: play the MIDI through FluidSynth on JACK")
+    play.add_argument("--soundfont", metavar="FILE.sf2",
+                      help="for --audio/--synth (default: the General MIDI soundfont of "
+                           "fluid-soundfont-gm)")
+    play.add_argument("--score", metavar="OUT.png",
+                      help="see it: draw what was played (a piano roll by section and phrase, "
+                           "with triggers and zones) when the show ends")
     play.add_argument("--osc", action="append", type=_hostport, default=[], metavar="HOST:PORT",
                       help="target of the piece's OSC outputs (repeatable)")
     play.add_argument("--seed", type=int, help="seed of the aleatoric choices (default: the "
@@ -55,15 +69,20 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
 def cmd_check(args: argparse.Namespace) -> int:
     from ..piece.narrator import check_summary
     from ..piece.loader import load_piece
+    from ..sensors.sim.scenario import describe, load_scenario, looks_like_scenario
     status = 0
     for path in args.pieces:
         try:
-            piece = load_piece(path)
+            if looks_like_scenario(path):
+                scenario = load_scenario(path)
+                lines = [f"{path}: ok -- rehearsal scenario '{scenario.name}': "
+                         + describe(scenario)[0]] + describe(scenario)[1:]
+            else:
+                lines = check_summary(load_piece(path), path)
         except ConfigError as exc:
             print(f"stage: {exc}", file=sys.stderr)
             status = 2
             continue
-        lines = check_summary(piece, path)
         try:
             print("\n".join(lines[:1] if args.brief else lines), flush=True)
         except BrokenPipeError:  # `stage check x.yaml | head`: the reader has had enough
@@ -78,7 +97,9 @@ def cmd_play(args: argparse.Namespace) -> int:
     opts = show_options(args, piece=args.piece, sim=args.sim, replay=args.replay, port=args.port,
                         host=args.host, rig=args.rig, midi=args.midi, midi_file=args.midi_file,
                         osc=list(args.osc), seed=args.seed, events=args.events,
-                        monitor=args.monitor, offline=args.offline, speed=args.speed)
+                        monitor=args.monitor, offline=args.offline, speed=args.speed,
+                        audio=args.audio, synth=args.synth, soundfont=args.soundfont,
+                        score=args.score)
     with StopSignals() as signals:
         Player(opts, stop_event=signals.event).run()
     return Exit.INTERRUPTED if signals.received else Exit.OK

@@ -106,11 +106,15 @@ def cmd_replay(args) -> int:
           f"{'max speed' if args.max_speed else f'{speed:g}x'}"
           f"{', looping' if args.loop else ''}; Ctrl-C stops", flush=True)
     with StopSignals() as stop:
+        started = time.perf_counter()
         source.start(target)
         while not stop.event.is_set() and not source.done.is_set():
-            stop.event.wait(0.2)
+            stop.event.wait(0.01 if args.max_speed else 0.2)
         source.stop()
-    print(f"stage replay: sent {source.sent} datagram(s)"
+        elapsed = time.perf_counter() - started
+    pace = "" if args.loop or elapsed <= 0 else (
+        f" in {elapsed:.2f} s ({info['duration_s'] / elapsed:.0f}x real time)")
+    print(f"stage replay: sent {source.sent} datagram(s){pace}"
           + (f", {source.loops} loop(s)" if args.loop else ""), flush=True)
     return Exit.INTERRUPTED if stop.received else Exit.OK
 

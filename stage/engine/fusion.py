@@ -1,108 +1,56 @@
-"""Pure fusion maths: combine several sensors' views of one person.
+"""Pure fusion maths: sensor views into stage space, their noise, which views agree.
 
 Everything here is a function of numpy arrays in stage space; the engine
-decides which views belong together and when.
+decides which views belong together and when (``tracking``), and folds them
+into each person's filter (``fuser``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..joints import TORSO, HandState
+from ..joints import TORSO
 
 
-def fuse_joints(positions: np.ndarray, conf: np.ndarray, outlier_m: float = 0.10,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Confidence-weighted average of S views of one skeleton, with outlier rejection.
+def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
+                     bias_var: float, chi2: float) -> np.ndarray:
+    """Which of G views of one instant to use, joint by joint: the largest set that agrees.
 
-    positions: (S, J, 3) metres, stage space. conf: (S, J) in [0, 1]; 0 means
-    not tracked and never enters the average.
+    z: (G, J, 3) metres, stage space; r: (G, J) per-axis variance, NaN or inf where the
+    view does not see the joint; prior: (J, 3) the filter's prediction for the instant
+    (NaN where it has none); prior_var: (J,) its per-axis variance; bias_var: m^2, each
+    view's systematic error (calibration, the sensor's fit) that does not average out;
+    chi2: the squared Mahalanobis distance two views may be apart and still agree.
 
-    A view of a joint is an outlier when, with three or more views, its
-    distance to the per-axis median is more than ``outlier_m`` beyond the
-    median of those distances (the spread). With exactly two views that
-    disagree by more than ``2 * outlier_m``, the less confident one is
-    dropped (an inferred joint is the usual culprit); if both are equally
-    confident neither can be blamed and both are kept.
-
-    Returns (fused (J, 3), weight (J,), used (S, J) bool). ``weight`` is the
-    sum of the confidences that entered the average: 0 where no view saw
-    the joint, and the measurement "strength" for the Kalman filter.
+    Two views agree on a joint when |z_u - z_v|^2 / (r_u + r_v + 2 bias_var) <= chi2;
+    a view agrees with the prior likewise. For each joint the view with the most
+    agreement wins -- every agreeing view is a vote, the prior half a vote (it breaks a
+    tie between two views, but two views outvote it), remaining ties go to the more
+    certain side -- and the views that agree with it are used. A joint seen by one view
+    only is always used (the filter's gate judges it). Returns used: (G, J) bool.
     """
-    positions = np.asarray(positions, dtype=float)
-    conf = np.asarray(conf, dtype=float)
-    used = conf > 0
-    n = used.sum(axis=0)  # (J,)
-    if positions.shape[0] >= 2:
-        if (n >= 3).any():
-            used &= ~_median_outliers(positions, used, n, outlier_m)
-        two = n == 2
-        if two.any():
-            used &= ~_pair_outliers(positions, conf, used, two, outlier_m)
-    w = np.where(used, conf, 0.0)
-    weight = w.sum(axis=0)
-    safe = np.where(weight > 0, weight, 1.0)
-    fused = np.einsum("sj,sjk->jk", w, positions) / safe[:, None]
-    fused[weight == 0] = 0.0
-    return fused, weight, used
-
-
-def _median_outliers(positions: np.ndarray, used: np.ndarray, n: np.ndarray,
-                     outlier_m: float) -> np.ndarray:
-    masked = np.where(used[..., None], positions, np.nan)
-    median = _nan_median(masked, n)                         # (J, 3)
-    dist = np.sqrt(((positions - median[None]) ** 2).sum(axis=2))  # (S, J)
-    dist_masked = np.where(used, dist, np.nan)
-    spread = _nan_median(dist_masked, n)                    # (J,)
-    return used & (n >= 3)[None] & (dist > spread[None] + outlier_m)
-
-
-def _nan_median(values: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Median over axis 0 ignoring NaN, given the count ``n`` of non-NaN per column.
-
-    np.nanmedian is an order of magnitude slower on these small arrays.
-    """
-    ordered = np.sort(values, axis=0)  # NaN sort last
-    cols = np.arange(values.shape[1])
-    lo = np.maximum((n - 1) // 2, 0)
-    hi = np.maximum(n // 2, 0)
-    return 0.5 * (ordered[lo, cols] + ordered[hi, cols])
-
-
-def _pair_outliers(positions: np.ndarray, conf: np.ndarray, used: np.ndarray, two: np.ndarray,
-                   outlier_m: float) -> np.ndarray:
-    """For joints seen by exactly two views that disagree, drop the less confident view."""
-    cols = np.flatnonzero(two)
-    first = np.argmax(used[:, cols], axis=0)
-    last = used.shape[0] - 1 - np.argmax(used[::-1, cols], axis=0)
-    gap = np.sqrt(((positions[first, cols] - positions[last, cols]) ** 2).sum(axis=1))
-    cf, cl = conf[first, cols], conf[last, cols]
-    disagree = gap > 2 * outlier_m
-    drop = np.zeros_like(used)
-    lose_first = disagree & (cf < cl)
-    lose_last = disagree & (cl < cf)
-    drop[first[lose_first], cols[lose_first]] = True
-    drop[last[lose_last], cols[lose_last]] = True
-    return drop
-
-
-def vote_hand(states: list[HandState], weights: list[float] | None = None) -> HandState:
-    """The hand state seen by most sensors; a tie goes to the higher code.
-
-    Only open, closed and lasso vote. With ``weights`` (e.g. the hand joint's
-    confidence per sensor) the vote is weighted. With no voter the result is
-    NOT_TRACKED if any sensor said so, else UNKNOWN.
-    """
-    tally = [0.0] * 5
-    for k, state in enumerate(states):
-        if state >= HandState.OPEN:
-            tally[state] += 1.0 if weights is None else float(weights[k])
-    best = max(range(2, 5), key=lambda code: (tally[code], code))
-    if tally[best] > 0:
-        return HandState(best)
-    if HandState.NOT_TRACKED in states:
-        return HandState.NOT_TRACKED
-    return HandState.UNKNOWN
+    z = np.asarray(z, dtype=float)
+    r = np.asarray(r, dtype=float)
+    seen = np.isfinite(r) & (r > 0)
+    G = z.shape[0]
+    if G == 1:
+        return seen.copy()
+    rs = np.where(seen, r, np.inf)
+    diff = z[:, None] - z[None]                                   # (G, G, J, 3)
+    d2 = (diff * diff).sum(axis=-1) / (rs[:, None] + rs[None] + 2.0 * bias_var)
+    agree = (d2 <= chi2) & seen[:, None] & seen[None]             # (G, G, J), diagonal = seen
+    dp = z - prior[None]
+    dp2 = (dp * dp).sum(axis=-1) / (rs + np.asarray(prior_var)[None] + bias_var)
+    with_prior = (dp2 <= chi2) & seen                             # NaN prior: never
+    info = np.where(seen, 1.0 / rs, 0.0)
+    votes = agree.sum(axis=1) + 0.5 * with_prior                  # (G, J)
+    # tie-break by the information of the agreeing views, scaled under half a vote
+    support = (agree * info[None]).sum(axis=1)
+    votes = votes + 0.25 * support / np.maximum(support.max(axis=0), 1e-300)[None]
+    votes = np.where(seen, votes, -1.0)
+    best = np.argmax(votes, axis=0)                               # (J,)
+    used = agree[best, :, np.arange(z.shape[1])].T               # (G, J)
+    return used | (seen & (seen.sum(axis=0) == 1)[None])
 
 
 def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:

@@ -1,111 +1,393 @@
-"""Batched constant-velocity Kalman smoothing of 3-D points (a person's 25 joints).
+"""Batched smoothing of 3-D points: a two-mode interacting multiple model (IMM) Kalman filter.
 
-Every point is an independent filter. Per axis the state is [position, velocity]
-with a white-noise-acceleration model::
+Every point (a joint) and every axis of it is an independent filter whose
+state is [position, velocity]. Two constant-velocity motion models run side
+by side -- *quiet* (small white-noise acceleration: standing, swaying) and
+*fast* (large: kicks, hops, arm swings) -- and the filter mixes them by
+how well each has predicted the recent measurements (Blom and Bar-Shalom's
+IMM, as in filterpy's ``IMMEstimator``). Per mode and axis::
 
-    F = [[1, dt], [0, 1]]     Q = q * [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]
-    H = [1, 0]                R = measurement_noise / confidence
+    F = [[1, dt], [0, 1]]     Q = q_mode * [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]
+    H = [1, 0]                R = r (per measurement: confidence and distance)
 
-which is filterpy's ``Q_discrete_white_noise(dim=2, dt=dt, var=q)``. Model and R
-are the same for x, y and z, so the three axes of a point always share one 2x2
-covariance: we store ``x`` as (N, 2, 3) [point, pos/vel, axis] and ``P`` as
-(N, 2, 2), and write the 2x2 algebra in closed form over all points at once
-(no Python loop, no ``np.linalg``), which is what keeps a step in microseconds.
+which is filterpy's ``Q_discrete_white_noise(dim=2, dt=dt, var=q_mode)``. The
+chance of switching mode within ``dt`` is ``1 - exp(-rate * dt)``, so the
+filter behaves the same whatever the rate of measurements (one sensor at
+30 Hz or six interleaved).
 
-Points not yet measured (or forgotten by ``reset``) hold NaN state.
+Arrays, for N points (rows) and M = 2 modes (0 quiet, 1 fast)::
+
+    x   (2, M, N, 3)  x[0] position (m), x[1] velocity (m/s), per mode, point and axis
+    P   (3, M, N, 3)  covariance per mode, point and axis, packed: P[0] var(position),
+                      P[1] cov(position, velocity), P[2] var(velocity)
+    mu  (M, N, 3)     mode probabilities per point and axis
+    t   (N,)          time the row's state refers to, s; NaN = never measured
+
+Component first, so that every operation runs over one contiguous block of
+all modes, points and axes; the 2x2 algebra and the two-mode mixing are
+written in closed form over all rows at once (no Python loop, no
+``np.linalg``, no einsum): a step for six people (150 rows) is a few dozen
+numpy operations. The pure functions (``transition``, ``mix``,
+``predict``, ``update``, ``gate_distance``, ``combine``) are tested against
+filterpy; ``step`` strings them together the way the engine and the
+benchmarks use them, with the outlier gate:
+
+- the innovation of each point against the mixture's prediction is measured
+  as a squared Mahalanobis distance d^2 (chi-square with 3 degrees of
+  freedom for a good measurement);
+- beyond ``gate_sigma`` (d > gate_sigma) the measurement's variance is
+  multiplied by d^2 / gate_sigma^2: a distant measurement pulls the estimate
+  less the further out it is (a soft gate; a hard one would also throw away
+  the first frame of every real kick);
+- beyond ``reject_sigma`` it is not used at all; a point whose measurement is
+  rejected twice in a row with none accepted in between is started afresh
+  from those two measurements (the filter, not the sensor, was wrong).
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..settings import KalmanSettings
 
-__all__ = ["KalmanSettings", "JointKalman", "initial_state", "predict", "update"]
+__all__ = ["KalmanSettings", "FilterState", "JointKalman", "transition", "mix", "predict",
+           "update", "gate_distance", "combine", "step", "initial_mu", "measurement_variance"]
+
+M = 2  # modes: 0 quiet, 1 fast
+_MU_FLOOR = 1e-300
 
 
-def initial_state(z: np.ndarray, r: np.ndarray, velocity_var: float) -> tuple[np.ndarray, np.ndarray]:
-    """State of newly seen points: at ``z`` at rest, with covariance diag(r, velocity_var).
+def initial_mu(s: KalmanSettings) -> np.ndarray:
+    """(M,) mode probabilities of a new point: the chain's stationary distribution."""
+    fast = s.quiet_to_fast_per_s / (s.quiet_to_fast_per_s + s.fast_to_quiet_per_s)
+    return np.array([1.0 - fast, fast])
 
-    z: (N, 3) metres; r: (N,) m^2 measurement variance; returns x (N, 2, 3), P (N, 2, 2).
+
+def measurement_variance(conf: np.ndarray, distance: np.ndarray | float,
+                         s: KalmanSettings) -> np.ndarray:
+    """Per-axis variance (m^2) of joints seen with ``conf`` (>0) at ``distance`` m from the sensor.
+
+    The s.d. of a confidence-1 joint is ``sqrt(measurement_noise)`` up to 1 m
+    and grows by ``noise_per_m`` per metre beyond; a joint of confidence c
+    has c times the inverse variance (an inferred joint, c = 0.5, counts half).
     """
-    n = z.shape[0]
-    x = np.zeros((n, 2, 3))
-    x[:, 0] = z
-    P = np.zeros((n, 2, 2))
-    P[:, 0, 0] = r
-    P[:, 1, 1] = velocity_var
-    return x, P
+    sd = math.sqrt(s.measurement_noise) + s.noise_per_m * np.maximum(
+        np.asarray(distance, dtype=float) - 1.0, 0.0)
+    return sd * sd / np.asarray(conf, dtype=float)
 
 
-def predict(x: np.ndarray, P: np.ndarray, dt: np.ndarray | float, q: float) -> tuple[np.ndarray, np.ndarray]:
-    """Propagate states by ``dt`` seconds: ``x' = F x``, ``P' = F P F^T + Q``.
+def transition(dt: np.ndarray, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(p01, p10), each (N,): the chance of switching quiet -> fast and fast -> quiet
+    within ``dt`` (N,) seconds >= 0; the transition matrix is [[1-p01, p01], [p10, 1-p10]]."""
+    return -np.expm1(-s.quiet_to_fast_per_s * dt), -np.expm1(-s.fast_to_quiet_per_s * dt)
 
-    x: (N, 2, 3); P: (N, 2, 2); dt: (N,) or scalar, seconds >= 0 (0 leaves a point
-    exactly unchanged); q: acceleration variance, (m/s^2)^2. Returns new arrays.
+
+def _outer(d: np.ndarray) -> np.ndarray:
+    """(3, ...) packed outer product of d = (2, ...) [position, velocity] differences."""
+    return np.stack([d[0] * d[0], d[0] * d[1], d[1] * d[1]])
+
+
+def mix(x: np.ndarray, P: np.ndarray, mu: np.ndarray, p01: np.ndarray, p10: np.ndarray,
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IMM mixing: (x0, P0, cbar), the mixed initial condition of each mode and the
+    predicted mode probabilities ``cbar[j] = sum_i T[i, j] mu[i]`` (M, N, 3).
+
+    With two modes the mixture of mode j is ``x_0 + w1j (x_1 - x_0)`` and its
+    covariance ``P_0 + w1j (P_1 - P_0) + w1j (1 - w1j) d d^T`` (d = x_1 - x_0),
+    where ``w1j = T[1, j] mu[1] / cbar[j]``.
     """
-    dt = np.asarray(dt, dtype=float)
-    a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
-    x_new = x.copy()
-    x_new[:, 0] += dt[..., None] * x[:, 1]
-    dt2 = dt * dt
-    qdt2 = q * dt2
-    P_new = np.empty_like(P)
-    P_new[:, 0, 0] = a + dt * (2.0 * b + dt * c) + 0.25 * qdt2 * dt2
-    P_new[:, 0, 1] = P_new[:, 1, 0] = b + dt * c + 0.5 * qdt2 * dt
-    P_new[:, 1, 1] = c + qdt2
-    return x_new, P_new
+    p01 = p01[:, None]
+    p10 = p10[:, None]
+    a1 = p10 * mu[1]                        # T10 mu1
+    b1 = (1.0 - p10) * mu[1]                # T11 mu1
+    cbar = np.stack([(1.0 - p01) * mu[0] + a1, p01 * mu[0] + b1])
+    w1 = np.stack([a1, b1]) / cbar          # (M, N, 3): weight of mode 1 in each mixture
+    d = x[:, 1] - x[:, 0]                   # (2, N, 3)
+    x0 = x[:, 0, None] + w1 * d[:, None]
+    P0 = P[:, 0, None] + w1 * (P[:, 1] - P[:, 0])[:, None] + (w1 * (1.0 - w1)) * _outer(d)[:, None]
+    return x0, P0, cbar
 
 
-def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, r: np.ndarray | float,
-           mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Correct states with position measurements ``z`` of per-axis variance ``r``.
-
-    x: (N, 2, 3); P: (N, 2, 2); z: (N, 3) metres; r: (N,) or scalar, m^2, > 0;
-    mask: (N,) bool, points to correct; the others come back exactly unchanged
-    and their z and r are ignored (may be NaN). Returns new arrays.
-    """
-    a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
-    y = z - x[:, 0]
-    if mask is not None:
-        r = np.where(mask, r, 1.0)
-    s = a + r
-    k0 = a / s
-    k1 = b / s
-    # 1 - k0 computed as r/s: no cancellation when the prior is much wider than r.
-    g = r / s
-    if mask is not None:
-        # Zero gain (and zero innovation, which may be NaN) makes skipped points exact no-ops.
-        k0 = np.where(mask, k0, 0.0)
-        k1 = np.where(mask, k1, 0.0)
-        g = np.where(mask, g, 1.0)
-        y = np.where(mask[:, None], y, 0.0)
+def predict(x: np.ndarray, P: np.ndarray, dt: np.ndarray, q: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Propagate by ``dt`` (N,) seconds with acceleration variance ``q`` per mode, (M,) or
+    (M, N), (m/s^2)^2: ``x' = F x``, ``P' = F P F^T + Q``. dt = 0 is an exact no-op."""
+    q = np.asarray(q, dtype=float)
+    q = q[:, None, None] if q.ndim == 1 else q[:, :, None]
+    dt = np.asarray(dt, dtype=float)[:, None]
+    a, b, c = P
     x_new = np.empty_like(x)
-    x_new[:, 0] = x[:, 0] + k0[:, None] * y
-    x_new[:, 1] = x[:, 1] + k1[:, None] * y
-    # (I - K H) P, equal to filterpy's Joseph form for the optimal gain.
+    np.multiply(x[1], dt, out=x_new[0])
+    x_new[0] += x[0]
+    x_new[1] = x[1]
+    qdt2 = q * (dt * dt)                                     # (M, N, 1)
     P_new = np.empty_like(P)
-    P_new[:, 0, 0] = a * g
-    P_new[:, 0, 1] = P_new[:, 1, 0] = b * g
-    P_new[:, 1, 1] = c - k1 * b
+    # pv' = b + dt c + q dt^3 / 2; pp' = a + 2 dt b + dt^2 c + q dt^4 / 4
+    #     = a + dt (b + pv') - q dt^4 / 4
+    np.add(c, 0.5 * qdt2, out=P_new[1])
+    P_new[1] *= dt
+    P_new[1] += b
+    np.add(b, P_new[1], out=P_new[0])
+    P_new[0] *= dt
+    P_new[0] += a
+    P_new[0] -= (0.25 * qdt2) * (dt * dt)
+    np.add(c, qdt2, out=P_new[2])
     return x_new, P_new
+
+
+def update(x: np.ndarray, P: np.ndarray, cbar: np.ndarray, z: np.ndarray, r: np.ndarray,
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Correct every mode with position measurements ``z`` (N, 3) of variance ``r`` (N,) m^2,
+    and the mode probabilities by each mode's likelihood. Returns (x, P, mu)."""
+    a, b, c = P
+    r3 = np.asarray(r, dtype=float)[:, None]
+    y = z - x[0]                                             # (M, N, 3)
+    s = a + r3
+    inv = 1.0 / s
+    k1 = b * inv
+    g = r3 * inv                                             # 1 - k0 without cancellation
+    x_new = np.stack([x[0] + (a * inv) * y, x[1] + k1 * y])
+    # (I - K H) P, filterpy's Joseph form for the optimal gain
+    P_new = np.stack([a * g, b * g, c - k1 * b])
+    # mode probabilities: cbar times each mode's likelihood, normalised; the largest
+    # log-likelihood is taken out first so that nothing underflows for big innovations
+    log_l = -0.5 * (np.log(s) + y * y * inv)                 # (the 2 pi cancels)
+    w = cbar * np.exp(log_l - log_l.max(axis=0))
+    # never exactly 0 (as filterpy, whose likelihoods have a floor): a mode that can come
+    # back must not be divided by zero when there is no time to switch (dt = 0)
+    np.maximum(w, _MU_FLOOR, out=w)
+    return x_new, P_new, w / (w[0] + w[1])
+
+
+def combine(x: np.ndarray, P: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The IMM estimate: (2, N, 3) mean [position, velocity] and (3, N, 3) packed covariance."""
+    w1 = mu[1]
+    d = x[:, 1] - x[:, 0]
+    xm = x[:, 0] + w1 * d
+    Pm = P[:, 0] + w1 * (P[:, 1] - P[:, 0]) + (w1 * (1.0 - w1)) * _outer(d)
+    return xm, Pm
+
+
+def gate_distance(xp: np.ndarray, Pp: np.ndarray, cbar: np.ndarray, z: np.ndarray,
+                  r: np.ndarray) -> np.ndarray:
+    """(N,) squared Mahalanobis distance of ``z`` from the mixture's predicted position
+    (the modes' predictions weighted by ``cbar``, their spread included), over 3 axes."""
+    w1 = cbar[1]
+    p0 = xp[0, 0]
+    d = xp[0, 1] - p0
+    var = Pp[0, 0] + w1 * (Pp[0, 1] - Pp[0, 0] + (1.0 - w1) * d * d)
+    y = z - p0 - w1 * d
+    return (y * y / (var + np.asarray(r, dtype=float)[:, None])).sum(axis=1)
+
+
+@dataclass
+class FilterState:
+    """The state of N points (see the module docstring for shapes), plus the gate's memory:
+    ``held_z`` (N, 3) / ``held_t`` (N,) the last rejected measurement since the last
+    accepted one (NaN: none)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    mu: np.ndarray
+    t: np.ndarray
+    held_z: np.ndarray
+    held_t: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "FilterState":
+        return cls(np.full((2, M, n, 3), np.nan), np.full((3, M, n, 3), np.nan),
+                   np.full((M, n, 3), np.nan), np.full(n, np.nan), np.full((n, 3), np.nan),
+                   np.full(n, np.nan))
+
+    @property
+    def n(self) -> int:
+        return len(self.t)
+
+    def copy(self) -> "FilterState":
+        return FilterState(self.x.copy(), self.P.copy(), self.mu.copy(), self.t.copy(),
+                           self.held_z.copy(), self.held_t.copy())
+
+    @classmethod
+    def concat(cls, states: list["FilterState"]) -> "FilterState":
+        """One state of all the rows of ``states``, in order (new arrays; with one state, its
+        arrays themselves: ``step`` never writes into a state's arrays)."""
+        if len(states) == 1:
+            s = states[0]
+            return cls(s.x, s.P, s.mu, s.t, s.held_z, s.held_t)
+        return cls(np.concatenate([s.x for s in states], axis=2),
+                   np.concatenate([s.P for s in states], axis=2),
+                   np.concatenate([s.mu for s in states], axis=1),
+                   np.concatenate([s.t for s in states]),
+                   np.concatenate([s.held_z for s in states]),
+                   np.concatenate([s.held_t for s in states]))
+
+    def rows(self, start: int, stop: int) -> "FilterState":
+        """Rows start..stop as a new state (copies)."""
+        return self.view_rows(start, stop).copy()
+
+    def view_rows(self, start: int, stop: int) -> "FilterState":
+        """Rows start..stop as views into this state's arrays (no copy: for a state that
+        will not be changed again)."""
+        return FilterState(self.x[:, :, start:stop], self.P[:, :, start:stop],
+                           self.mu[:, start:stop], self.t[start:stop], self.held_z[start:stop],
+                           self.held_t[start:stop])
+
+    def assign(self, other: "FilterState", mask: np.ndarray | None = None) -> None:
+        """Take ``other``'s rows (all, or where ``mask`` (N,) is true) in place."""
+        if mask is None:
+            mask = slice(None)
+        self.x[:, :, mask], self.P[:, :, mask] = other.x[:, :, mask], other.P[:, :, mask]
+        self.mu[:, mask], self.t[mask] = other.mu[:, mask], other.t[mask]
+        self.held_z[mask], self.held_t[mask] = other.held_z[mask], other.held_t[mask]
+
+    @property
+    def initialised(self) -> np.ndarray:
+        return ~np.isnan(self.t)
+
+    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """((N, 3) position m, (N, 3) velocity m/s) at each row's own time; NaN if unmeasured."""
+        w1 = self.mu[1]
+        x = self.x
+        return x[0, 0] + w1 * (x[0, 1] - x[0, 0]), x[1, 0] + w1 * (x[1, 1] - x[1, 0])
+
+    def predicted(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position and velocity at ``t`` (never extrapolated backwards), NaN if unmeasured."""
+        pos, vel = self.estimate()
+        dt = np.maximum(np.asarray(t, dtype=float) - self.t, 0.0)
+        return pos + dt[:, None] * vel, vel
+
+
+#: what ``step`` did with each row's measurement
+NOT_MEASURED, STARTED, ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED = range(6)
+
+
+def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+         s: KalmanSettings, q_scale: np.ndarray | None = None) -> np.ndarray:
+    """Fold one measurement per row into ``state``; returns what happened (N,) int8.
+
+    The state's arrays are replaced, never written into: a reference to the old
+    arrays (a snapshot for a replay) stays valid without a copy.
+
+    t: (N,) capture time of each row's measurement, s; z: (N, 3) metres; r: (N,) per-axis
+    variance, m^2 -- rows with r <= 0, r = inf, NaN or a non-finite z are not measured and
+    keep their state exactly. A measurement older than its row's state is applied at the
+    row's time (the engine replays out-of-order frames before this happens). ``q_scale``
+    (N,): per-row factor on both modes' process noise (default 1).
+    """
+    n = state.n
+    z = np.asarray(z, dtype=float)
+    r = np.asarray(r, dtype=float)
+    t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
+    with np.errstate(invalid="ignore"):
+        valid = (r > 0) & np.isfinite(r) & np.isfinite(z.sum(axis=1)) & np.isfinite(t)
+    outcome = np.zeros(n, dtype=np.int8)
+    init = ~np.isnan(state.t)
+    upd = valid & init
+    fresh = valid & ~init
+    if upd.any():
+        # every row is computed (rows without a measurement, or without a state, give NaN
+        # or junk) and only the measured ones are kept: one pass of whole-array operations
+        # is cheaper than gathering and scattering the rows
+        dt = np.where(upd, np.maximum(t - state.t, 0.0), 0.0)
+        q = np.array([s.quiet_noise, s.fast_noise])
+        if q_scale is not None:
+            q = q[:, None] * np.asarray(q_scale, dtype=float)[None]
+        gate2 = s.gate_sigma ** 2
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
+            xp, Pp = predict(x0, P0, dt, q)
+            d2 = gate_distance(xp, Pp, cbar, z, r)
+            # beyond the gate the variance grows with the distance: r d^2 / gate^2
+            xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
+            use = upd & (d2 <= s.reject_sigma ** 2)
+            outcome = np.where(upd, np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED),
+                               NOT_MEASURED).astype(np.int8)
+        if use.all():
+            state.x, state.P, state.mu = xu, Pu, muu
+            state.t = np.maximum(t, state.t)
+        else:
+            state.x = np.where(use[:, None], xu, state.x)
+            state.P = np.where(use[:, None], Pu, state.P)
+            state.mu = np.where(use[:, None], muu, state.mu)
+            state.t = np.where(use, np.maximum(t, state.t), state.t)
+        state.held_t = np.where(use, np.nan, state.held_t)
+        bad = np.flatnonzero(upd & ~use)
+        if len(bad):
+            again = bad[~np.isnan(state.held_t[bad])]
+            first = bad[np.isnan(state.held_t[bad])]
+            outcome[bad] = REJECTED
+            state.held_z = state.held_z.copy()
+            state.held_z[first], state.held_t[first] = z[first], t[first]
+            if len(again):
+                _restart(state, again, z[again], t[again], r[again], s)
+                outcome[again] = RESTARTED
+    if fresh.any():
+        _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
+        outcome[fresh] = STARTED
+    return outcome
+
+
+def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,
+           s: KalmanSettings, v: np.ndarray | None = None, dt: np.ndarray | None = None) -> None:
+    """New points: at ``z`` (k, 3), position variance ``r`` (k,), at rest with velocity variance
+    from the settings -- or, with ``v`` (k, 3) and ``dt`` (k,), a two-point start (velocity
+    from two measurements ``dt`` apart, covariance [[r, r/dt], [r/dt, 2r/dt^2]])."""
+    k = len(rows)
+    x = np.zeros((2, M, k, 3))
+    x[0] = z[None]
+    P = np.zeros((3, M, k, 3))
+    P[0] = r[None, :, None]
+    if v is None:
+        P[2] = s.initial_velocity_var
+        mu = np.broadcast_to(initial_mu(s)[:, None, None], (M, k, 3))
+    else:
+        x[1] = v[None]
+        P[1] = (r / dt)[None, :, None]
+        P[2] = (2.0 * r / (dt * dt))[None, :, None]
+        mu = np.broadcast_to(np.array([_MU_FLOOR, 1.0])[:, None, None], (M, k, 3))
+    # copies first: the arrays may be shared with a snapshot (see ``step``)
+    state.x, state.P, state.mu = state.x.copy(), state.P.copy(), state.mu.copy()
+    state.t, state.held_t = state.t.copy(), state.held_t.copy()
+    state.x[:, :, rows], state.P[:, :, rows], state.mu[:, rows] = x, P, mu
+    state.t[rows] = t
+    state.held_t[rows] = np.nan
+
+
+def _restart(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,
+             s: KalmanSettings) -> None:
+    """Points whose filter lost them: start again from the held and the new measurement, in
+    the fast mode, with the velocity from their difference when they are at least 20 ms
+    apart (closer, the difference is mostly noise: at rest with a wide velocity variance)."""
+    held_z, held_t = state.held_z[rows], state.held_t[rows]
+    dt = t - held_t
+    apart = dt >= 0.02
+    if (~apart).any():
+        _start(state, rows[~apart], z[~apart], np.maximum(t, held_t)[~apart], r[~apart], s)
+    if apart.any():
+        d = dt[apart]
+        _start(state, rows[apart], z[apart], t[apart], r[apart], s,
+               (z[apart] - held_z[apart]) / d[:, None], d)
 
 
 class JointKalman:
-    """Constant-velocity filters for ``n`` points, each with its own last-update time.
+    """The filter for ``n`` points fed one measurement set at a time (benchmarks, tools).
 
-    Owned by one thread (the engine's); not thread-safe.
+    The engine drives ``FilterState`` with ``step`` directly, for many people at
+    once; this wrapper is the same maths for one stream. Owned by one thread.
     """
 
-    def __init__(self, n: int, settings: KalmanSettings = KalmanSettings()) -> None:
+    def __init__(self, n: int, settings: KalmanSettings = KalmanSettings(),
+                 q_scale: np.ndarray | None = None) -> None:
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n must be a non-negative int, got {n!r}")
         self._n = int(n)
         self._settings = settings
-        self._x = np.full((self._n, 2, 3), np.nan)
-        self._P = np.full((self._n, 2, 2), np.nan)
-        self._last = np.full(self._n, np.nan)
-        self._init = np.zeros(self._n, dtype=bool)
+        self._q_scale = None if q_scale is None else np.asarray(q_scale, dtype=float)
+        self.state = FilterState.empty(self._n)
+        self.last_outcome = np.zeros(self._n, dtype=np.int8)
 
     @property
     def n(self) -> int:
@@ -117,71 +399,56 @@ class JointKalman:
 
     @property
     def positions(self) -> np.ndarray:
-        """(n, 3) metres, NaN for points never measured."""
-        return self._x[:, 0].copy()
+        """(n, 3) metres at each point's last time, NaN for points never measured."""
+        return self.state.estimate()[0]
 
     @property
     def velocities(self) -> np.ndarray:
         """(n, 3) m/s, NaN for points never measured."""
-        return self._x[:, 1].copy()
+        return self.state.estimate()[1]
 
     @property
     def covariance(self) -> np.ndarray:
-        """(n, 2, 2) covariance of [position, velocity], shared by the three axes."""
-        return self._P.copy()
+        """(n, 3, 3): per point and axis, the IMM estimate's packed covariance [pp, pv, vv]."""
+        return np.moveaxis(combine(self.state.x, self.state.P, self.state.mu)[1], 0, -1)
+
+    @property
+    def mode_probabilities(self) -> np.ndarray:
+        """(n, 3) probability of the fast mode, per axis."""
+        return self.state.mu[1].copy()
 
     @property
     def initialised(self) -> np.ndarray:
-        """(n,) bool, points that have a state."""
-        return self._init.copy()
+        return self.state.initialised
 
     @property
     def last_time(self) -> np.ndarray:
-        """(n,) seconds, time each point's state refers to; NaN if never measured."""
-        return self._last.copy()
+        return self.state.t.copy()
 
-    def step(self, t: float, z: np.ndarray, conf: np.ndarray) -> np.ndarray:
-        """Fold in one measurement set taken at ``t`` and return the filtered positions.
+    def step(self, t: float, z: np.ndarray, conf: np.ndarray,
+             r: np.ndarray | None = None) -> np.ndarray:
+        """Fold in one measurement set taken at ``t``; returns (n, 3) filtered positions.
 
-        z: (n, 3) metres; conf: (n,) confidence, > 0 to use a point (variance
-        ``measurement_noise / conf``). Points with conf <= 0 or a non-finite z or
-        conf keep their state and time. A ``t`` before a point's last time is
-        treated as that time: the filter never extrapolates backwards.
-        Returns (n, 3) metres, a copy.
+        z: (n, 3) metres; conf: (n,), > 0 to use a point; r: (n,) per-axis variance
+        (default ``measurement_variance(conf, 1 m)``). Points with conf <= 0 or a
+        non-finite z keep their state and time.
         """
         z = np.asarray(z, dtype=float)
         conf = np.asarray(conf, dtype=float)
         if z.shape != (self._n, 3) or conf.shape != (self._n,):
             raise ValueError(f"expected z ({self._n}, 3) and conf ({self._n},), "
                              f"got {z.shape} and {conf.shape}")
-        t = float(t)
-        # One bad coordinate makes the whole point unusable: Kinect reports NaN/inf
-        # for lost joints, and a NaN must never get into the state.
-        valid = (conf > 0.0) & (conf < np.inf) & np.isfinite(z).all(axis=1)
-        fresh = valid & ~self._init
-        upd = valid & self._init
-        r = self._settings.measurement_noise / np.where(valid, conf, 1.0)
-        if upd.any():
-            mask = None if upd.all() else upd
-            dt = np.maximum(t - self._last, 0.0)
-            if mask is not None:
-                dt = np.where(mask, dt, 0.0)
-            x, P = predict(self._x, self._P, dt, self._settings.process_noise)
-            self._x, self._P = update(x, P, z, r, mask)
-        if fresh.any():
-            self._x[fresh], self._P[fresh] = initial_state(
-                z[fresh], r[fresh], self._settings.initial_velocity_var)
-            self._init |= fresh
-        self._last = np.where(valid, np.fmax(self._last, t), self._last)
-        return self._x[:, 0].copy()
+        valid = (conf > 0.0) & np.isfinite(conf)
+        if r is None:
+            r = measurement_variance(np.where(valid, conf, 1.0), 1.0, self._settings)
+        r = np.where(valid, r, np.nan)
+        self.last_outcome = step(self.state, np.full(self._n, float(t)), z, r, self._settings,
+                                 self._q_scale)
+        return self.positions
 
     def predict_positions(self, t: float) -> np.ndarray:
-        """(n, 3) metres: where each point would be at ``t`` (never before its last time).
-
-        Leaves the state unchanged; NaN for points never measured.
-        """
-        dt = np.maximum(float(t) - self._last, 0.0)
-        return self._x[:, 0] + dt[:, None] * self._x[:, 1]
+        """(n, 3) metres: each point at ``t`` (never before its last time); no side effect."""
+        return self.state.predicted(t)[0]
 
     def reset(self, mask: np.ndarray | None = None) -> None:
         """Forget the points in ``mask`` ((n,) bool), or all points when None."""
@@ -191,7 +458,4 @@ class JointKalman:
             mask = np.asarray(mask, dtype=bool)
             if mask.shape != (self._n,):
                 raise ValueError(f"expected mask ({self._n},), got {mask.shape}")
-        self._x[mask] = np.nan
-        self._P[mask] = np.nan
-        self._last[mask] = np.nan
-        self._init[mask] = False
+        self.state.assign(FilterState.empty(self._n), mask)

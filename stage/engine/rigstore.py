@@ -11,6 +11,9 @@ Writes for one path are coalesced: only the newest text is written.
 from __future__ import annotations
 
 import logging
+import os
+import shutil
+import stat
 import threading
 
 import yaml
@@ -67,6 +70,13 @@ class RigStore:
                     self._cond.notify_all()
 
     def _write(self, path: str, snapshot: dict, what: str) -> None:
+        if _read_only(path):
+            # an installer who made the rig read-only means it (root could still replace it)
+            self.errors += 1
+            log.warning("rig %s is read-only: %s is in use but not saved", path,
+                        what or "the calibration")
+            return
+        _keep_original(path)
         try:
             write_atomic(path, yaml.safe_dump(snapshot, sort_keys=False))
         except (OSError, StageError) as exc:
@@ -76,3 +86,28 @@ class RigStore:
             return
         self.saved += 1
         log.info("rig %s updated%s", path, f" with {what}" if what else "")
+
+
+def _read_only(path: str) -> bool:
+    """The file exists and nobody may write it (its mode, not our rights: root may)."""
+    try:
+        return not os.stat(path).st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
+    except OSError:
+        return False
+
+
+def _keep_original(path: str) -> None:
+    """Before the first rewrite of a rig written by hand (it has comments, which YAML
+    rewriting loses), keep it as ``PATH.orig``."""
+    original = path + ".orig"
+    try:
+        if os.path.exists(original):
+            return
+        with open(path, encoding="utf-8") as f:
+            if not any(line.lstrip().startswith("#") for line in f):
+                return
+        shutil.copy2(path, original)
+        log.info("rig %s is rewritten with its calibrations: the hand-written file, with its "
+                 "comments, is kept as %s", path, original)
+    except OSError:
+        return

@@ -3,27 +3,40 @@
 ``Track`` is one sensor's view of one user; ``Person`` a fused person with the
 views bound to it; ``Tracker`` decides the binding -- association against
 the predicted person with hysteresis, merging of two persons no sensor sees
-together, expiry after a grace period, and person ids. ``OffsetEstimator``
-follows a client's clock. The engine thread owns every object here.
+together, expiry after a grace period, and person ids (a person who comes
+back soon after being lost, near where they went and with the same body
+size, gets their id back). ``OffsetEstimator`` follows a client's clock. The
+engine thread owns every object here.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..joints import N_JOINTS, TORSO, HandState
-from ..settings import FusionSettings, KalmanSettings
-from .kalman import JointKalman
+from ..joints import JOINT_INDEX, N_JOINTS, TORSO, HandState
+from ..settings import FusionSettings
+from .fuser import BodyFilter
+from .fusion import torso_centre
+from .hands import HandVoter
 
 log = logging.getLogger("stage.engine")
 
 
-_TORSO_MASK = np.zeros(N_JOINTS, dtype=bool)
-_TORSO_MASK[list(TORSO)] = True
+_TORSO_IDX = np.array(TORSO)
+_NECK, _BASE = JOINT_INDEX["Neck"], JOINT_INDEX["SpineBase"]
+
+
+def body_size(joints: np.ndarray, conf: np.ndarray) -> float | None:
+    """Trunk length (m): SpineBase to Neck, which no pose stretches; None if either is unseen."""
+    if conf[_NECK] <= 0 or conf[_BASE] <= 0:
+        return None
+    d = joints[_NECK] - joints[_BASE]
+    return math.sqrt(float(d @ d))
 
 
 class OffsetEstimator:
@@ -74,10 +87,17 @@ class Track:
 
 @dataclass(eq=False)
 class Person:
-    """A fused person: the views bound to it and its smoothed skeleton."""
+    """A fused person: the views bound to it, its filter and its smoothed skeleton.
+
+    ``filter`` (``fuser.BodyFilter``) holds the joint filters' full state (position,
+    velocity, covariance and motion-mode probabilities per joint and axis);
+    ``joints``/``velocity`` are its estimate at ``t``, the capture time of the newest
+    frame folded in.
+    """
 
     id: int
-    kalman: JointKalman
+    filter: BodyFilter
+    voter: HandVoter
     created: float
     tracks: set = field(default_factory=set)   # of Track
     joints: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
@@ -90,10 +110,22 @@ class Person:
     announced: bool = False
     orphan_since: float | None = None       # when its last view went away
     sent_hands: list[HandState | None] = field(default_factory=lambda: [None, None])
+    size: float | None = None               # trunk length, m (mean of the frames seen)
+    size_n: int = 0
+    merged: bool = False                    # folded into another person: never comes back
+    #: (client, user) -> (capture time, (25,) confidence) of each view's latest frame
+    recent: dict = field(default_factory=dict)
 
     @classmethod
-    def new(cls, pid: int, t: float, settings: KalmanSettings) -> "Person":
-        return cls(pid, JointKalman(N_JOINTS, settings), t)
+    def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
+        return cls(pid, BodyFilter(), HandVoter(settings.hand_memory_s, settings.hand_hold_s), t)
+
+    def measure_size(self, joints: np.ndarray, conf: np.ndarray) -> None:
+        """Fold one view's trunk length into the running mean."""
+        size = body_size(joints, conf)
+        if size is not None:
+            self.size_n += 1
+            self.size = size if self.size is None else self.size + (size - self.size) / self.size_n
 
     def distance(self, joints: np.ndarray, conf: np.ndarray, t: float) -> float | None:
         """Mean distance (m) from a view's joints to this person predicted at ``t``.
@@ -102,14 +134,16 @@ class Person:
         so a view that sees only part of the body is not judged by a centre
         that jumps with what happens to be occluded.
         """
-        shared = (conf > 0) & self.known
-        on_torso = shared & _TORSO_MASK
-        mask = on_torso if on_torso.any() else shared
-        if not mask.any():
-            return None
+        on_torso = (conf[_TORSO_IDX] > 0) & self.known[_TORSO_IDX]
+        if on_torso.any():
+            idx = _TORSO_IDX[on_torso]
+        else:
+            idx = np.flatnonzero((conf > 0) & self.known)
+            if not len(idx):
+                return None
         dt = min(max(t - self.t, 0.0), 0.5)
-        predicted = self.joints[mask] + self.velocity[mask] * dt
-        return float(np.linalg.norm(joints[mask] - predicted, axis=1).mean())
+        diff = joints[idx] - self.joints[idx] - self.velocity[idx] * dt
+        return float(np.sqrt((diff * diff).sum(axis=1)).mean())
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
@@ -123,14 +157,19 @@ class Tracker:
     nearest person within ``associate_m`` that no view of the same sensor is
     bound to, else starts a new person. Two persons closer than ``merge_m``
     for ``merge_s`` that no sensor sees together are one. A person with no
-    views is kept ``lost_grace_s`` before it is lost.
+    views is kept ``lost_grace_s`` before it is lost. A new person whose torso
+    is within ``rejoin_m`` of where a person was lost less than ``rejoin_s``
+    ago, with a trunk length within ``rejoin_size_m`` of theirs, is that
+    person back: they get the old id (the nearest such, once).
     """
 
-    def __init__(self, fusion: FusionSettings, smoothing: KalmanSettings) -> None:
-        self.fusion, self.smoothing = fusion, smoothing
+    def __init__(self, fusion: FusionSettings) -> None:
+        self.fusion = fusion
         self.persons: dict[int, Person] = {}
         self._next_id = 1
         self._close_since: dict[tuple[int, int], float] = {}
+        #: persons lost recently: (id, torso centre (3,), trunk length m, when lost)
+        self.departed: list[tuple[int, np.ndarray, float, float]] = []
 
     def associate(self, track: Track, t: float) -> Person:
         """The person ``track`` (a view with fresh joints at time ``t``) belongs to."""
@@ -155,15 +194,37 @@ class Tracker:
             if d is not None and d <= best_d:
                 best, best_d = person, d
         if best is None:
-            best = Person.new(self._next_id, t, self.smoothing)
-            self._next_id += 1
-            self.persons[best.id] = best
+            pid = self._rejoin(track, t)
+            if pid is None:
+                pid = self._next_id
+                self._next_id += 1
+            best = self.persons[pid] = Person.new(pid, t, fs)
         elif best.orphan_since is not None:
             log.info("person %d picked up again by sensor %s", best.id, track.client)
         best.tracks.add(track)
         best.orphan_since = None
         track.person, track.far_frames = best.id, 0
         return best
+
+    def _rejoin(self, track: Track, t: float) -> int | None:
+        """The id of a recently lost person this view is (see the class docstring), or None."""
+        fs = self.fusion
+        self.departed = [d for d in self.departed if t - d[3] <= fs.rejoin_s]
+        size = body_size(track.joints, track.conf)
+        centre = torso_centre(track.joints, track.conf)
+        if size is None or centre is None or not self.departed:
+            return None
+        best, best_d = None, fs.rejoin_m
+        for k, (pid, where, old_size, _) in enumerate(self.departed):
+            d = float(np.linalg.norm(centre - where))
+            if d <= best_d and abs(size - old_size) <= fs.rejoin_size_m and pid not in self.persons:
+                best, best_d = k, d
+        if best is None:
+            return None
+        pid, _, _, lost_at = self.departed.pop(best)
+        log.info("person %d is back after %.1f s (%.2f m from where they were lost)", pid,
+                 t - lost_at, best_d)
+        return pid
 
     def unbind(self, track: Track, t: float) -> int | None:
         """Detach ``track`` from its person; returns that person's id (None if unbound)."""
@@ -181,10 +242,15 @@ class Tracker:
         fs = self.fusion
         live = [p for p in self.persons.values() if p.centre is not None and p.tracks]
         close_now: set[tuple[int, int]] = set()
-        for i, a in enumerate(live):
-            for b in live[i + 1:]:
-                if np.linalg.norm(a.centre - b.centre) > fs.merge_m:
-                    continue
+        if len(live) < 2:
+            self._close_since.clear()
+            return
+        centres = np.stack([p.centre for p in live])
+        diff = centres[:, None] - centres[None]
+        near = (diff * diff).sum(axis=2) <= fs.merge_m ** 2      # every pair at once
+        for i, j in zip(*np.nonzero(np.triu(near, 1))):
+            a, b = live[i], live[j]
+            if a.tracks and b.tracks:
                 if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
                     continue  # one sensor sees both: two people
                 key = (min(a.id, b.id), max(a.id, b.id))
@@ -198,6 +264,7 @@ class Tracker:
                         track.person = keep.id
                         keep.tracks.add(track)
                     gone.tracks.clear()
+                    gone.merged = True
                     gone.orphan_since = now - fs.lost_grace_s  # lost at once
                     close_now.discard(key)
         self._close_since = {k: v for k, v in self._close_since.items() if k in close_now}
@@ -212,4 +279,7 @@ class Tracker:
                 if person.announced:
                     log.info("person %d lost", pid)
                     lost.append(pid)
+                    if not person.merged and person.centre is not None and person.size:
+                        self.departed.append((pid, person.centre.copy(), person.size,
+                                              person.orphan_since))
         return lost

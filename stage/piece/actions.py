@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from ..events import AllNotesOff, ControlChange, Note, OscOut, ProgramChange
+from ..events import ControlChange, Note, OscOut, PhraseSkipped, ProgramChange
 from ..joints import JOINTS
 from .model import (BODY, Action, Condition, Goto, Phrase, Play, PlayNote, SendCC, SendOsc,
-                    SendProgram, Silence, joint_label)
+                    SendProgram, Silence, joint_label, voice_times)
 from .triggers import Person
 
 
@@ -32,6 +32,9 @@ class FireContext:
     joint: int | None
     value: float | None
     speed: float
+    quantize: str | None = None    # beat | bar | none: where phrases and notes start
+    firing: int = 0                # which firing (a trigger's phrases queue per firing)
+    detail: dict | None = None     # step: gait's step_length, step_width, step_time
 
     def ref(self, name: str):
         if name in ("x", "y", "z"):
@@ -52,6 +55,9 @@ class FireContext:
             return self.runtime.section.name
         if name == "trigger":
             return self.trigger
+        if name.startswith("step_"):
+            value = (self.detail or {}).get(name)
+            return 0.0 if value is None else float(value)
         return float(self.t - self.runtime.started_at)  # "time"
 
     def joint_ref(self, j: int, axis: str):
@@ -107,15 +113,7 @@ class Actions:
         if isinstance(action, Play):
             return self.play(action, ctx)
         if isinstance(action, PlayNote):
-            velocity = self.velocity(action.velocity, ctx, rt.piece.defaults.velocity)
-            length = action.seconds if action.seconds is not None else \
-                action.beats * 60.0 / self.tempo(None)
-            length = max(0.01, length * rt.piece.defaults.gate)
-            for pitch in action.pitches:
-                out.append(Note(t, action.output, action.channel - 1, pitch, velocity, length))
-            rt.counts["notes"] += len(action.pitches)
-            rt.last_note_end = max(rt.last_note_end, t + length)
-            return action.describe() + f" v{velocity}"
+            return self.note(action, ctx)
         if isinstance(action, SendCC):
             value = action.value if isinstance(action.value, int) else \
                 min(127, max(0, self.velocity("speed", ctx, 0)))
@@ -130,10 +128,10 @@ class Actions:
             return f"osc {action.address}" + (f" {' '.join(_fmt(a) for a in args)}" if args else "")
         if isinstance(action, Goto):
             if rt._pending_goto is None:  # one section change per frame: the first wins
-                rt._pending_goto = (action.target, ctx.trigger)
+                rt._pending_goto = (action.target, ctx.trigger, action.now)
             return action.describe()
         if isinstance(action, Silence):
-            out.append(AllNotesOff(t, action.output, None))
+            rt.voices.cut(t, action.output, None, "silence")
             return action.describe()
         raise TypeError(f"unknown action {action!r}")
 
@@ -150,22 +148,74 @@ class Actions:
             return phrase.tempo
         return self.rt.section.tempo or self.rt.piece.tempo
 
+    def note(self, action: PlayNote, ctx: FireContext) -> str:
+        rt = self.rt
+        name = action.describe()
+        velocity = self.velocity(action.velocity, ctx, rt.piece.defaults.velocity)
+        value = action.seconds if action.seconds is not None else \
+            action.beats * 60.0 / self.tempo(None)
+        gate, channel = rt.piece.defaults.gate, action.channel - 1
+
+        def render(start: float, play: int) -> list[Note]:
+            return [Note(onset, action.output, channel, pitch, velocity, length, play)
+                    for onset, length, pitch in voice_times(start, value, gate,
+                                                            list(action.pitches),
+                                                            action.arpeggiate)]
+        if rt.ending:
+            return self._skip(action.output, name, ctx, "the piece is ending")
+        planned, why = rt.voices.play(
+            output=action.output, name=name, length=value, now=ctx.t, grid=rt.grid,
+            quantize=ctx.quantize, render=render, trigger=ctx.trigger, firing=ctx.firing,
+            section=rt.section.name, policy=action.overlap, channel=channel)
+        if planned is None:
+            return f"{name} not played: {why}"
+        return f"{name} v{velocity}" + self._when(planned.start, ctx)
+
     def play(self, action: Play, ctx: FireContext) -> str:
+        rt = self.rt
+        policy = "replace" if action.interrupt else action.overlap
+        fixed = rt.piece.phrases[action.phrase] if action.phrase else None
+        pool = action.pool if action.pool is not None else rt.section.phrases
+        outputs = sorted({fixed.output} if fixed else {rt.piece.phrases[p].output for p in pool})
+        what = action.phrase or action.pick
+        if rt.ending and outputs:
+            return self._skip(outputs[0], what, ctx, "the piece is ending")
+        if len(outputs) == 1:   # decide before choosing: a phrase not played is not 'next'
+            why = rt.voices.would_skip(outputs[0], policy, ctx.trigger, ctx.firing, ctx.t)
+            if why:
+                return self._skip(outputs[0], what, ctx, why)
         name = action.phrase or self.pick(action)
         if name is None:
             return "nothing to play (the section has no phrases)"
-        phrase = self.rt.piece.phrases[name]
+        phrase = rt.piece.phrases[name]
         velocity = None if action.velocity is None else \
             self.velocity(action.velocity, ctx, phrase.velocity)
-        if action.interrupt:
-            self.rt._out.append(AllNotesOff(ctx.t, phrase.output, phrase.channel - 1))
-        notes = phrase.render(ctx.t, self.tempo(phrase), velocity, action.transpose)
-        self.rt._out.extend(notes)
-        self.rt.counts["notes"] += len(notes)
-        if notes:
-            end = max(n.t + n.duration for n in notes)
-            self.rt.last_note_end = max(self.rt.last_note_end, end)
-        return f"phrase {name} ({len(notes)} notes" + (f", v{velocity}" if velocity else "") + ")"
+        tempo = self.tempo(phrase)
+
+        def render(start: float, play: int) -> list[Note]:
+            return phrase.render(start, tempo, velocity, action.transpose, play)
+        planned, why = rt.voices.play(
+            output=phrase.output, name=name, length=phrase.seconds(tempo), now=ctx.t,
+            grid=rt.grid, quantize=ctx.quantize, render=render, trigger=ctx.trigger,
+            firing=ctx.firing, section=rt.section.name, policy=policy,
+            channel=phrase.channel - 1 if action.interrupt else None)
+        if planned is None:
+            return f"phrase {name} not played: {why}"
+        return (f"phrase {name} ({len(planned.notes)} notes"
+                + (f", v{velocity}" if velocity else "") + ")" + self._when(planned.start, ctx))
+
+    def _skip(self, output: str, what: str, ctx: FireContext, why: str) -> str:
+        """A phrase not played: counted, logged (PhraseSkipped) and said."""
+        self.rt.counts["skipped"] += 1
+        self.rt._out.append(PhraseSkipped(ctx.t, output, what, self.rt.section.name,
+                                          ctx.trigger, why))
+        return f"{what} not played: {why}"
+
+    def _when(self, start: float, ctx: FireContext) -> str:
+        """' in 0.6 s (bar 4 beat 1)' when a phrase does not start at once."""
+        if start <= ctx.t + 1e-6:
+            return ""
+        return f" in {start - ctx.t:.1f} s ({self.rt.grid.where(start)})"
 
     def pick(self, action: Play) -> str | None:
         """The phrase to play: random (weighted, never twice in a row), next, or shuffle."""

@@ -28,7 +28,9 @@ DIRECTIONS = ("up", "down", "downstage", "upstage", "stage_left", "stage_right")
 #: words ``play:`` understands instead of a phrase name
 PICKS = ("random", "next", "shuffle")
 CURVES = ("linear", "exp", "log", "smooth")
-MEASURES = ("x", "y", "z", "height", "speed", "distance")
+#: voice policies: what a phrase does when another still sounds (or waits) on its output
+OVERLAPS = ("queue", "layer", "replace", "ignore")
+MEASURES = ("x", "y", "z", "height", "speed", "distance", "angle")
 
 JOINT = JointName(extra=("body",), doc="A joint (HandLeft, Head, ...), a group (hands, feet, "
                   "...) or 'body' (the torso centre).")
@@ -52,6 +54,18 @@ VECTOR2 = ListOf(Number(), 2, 2, doc="[x, z] metres on the floor.")
 VECTOR3 = ListOf(Number(), 3, 3, doc="[x, y, z] metres.")
 RANGE = ListOf(Number(), 2, 2, doc="[from, to].")
 OUTPUT_NAME = Text(expected="an output name", doc="An output declared under 'outputs'.")
+QUANTIZE = Choice(("beat", "bar", "none"),
+                  doc="Start phrases and notes on the next beat or bar line of the piece's grid "
+                      "(its tempo and meter, counted from the start), or at once (none). The "
+                      "trigger's, else the section's, else the piece's; default none.")
+OVERLAP = Choice(OVERLAPS, doc="What a phrase does when another still sounds or waits on its "
+                               "output: queue (default: it starts when they end; a trigger "
+                               "whose phrase still waits is not heard again), layer (it sounds "
+                               "with them), replace (it cuts them) or ignore (it is not played).")
+ARPEGGIATE = Number(minimum=0.0, unit="seconds",
+                    doc="Break chords as a cellist does: the voices enter this far apart, "
+                        "bottom up; each lower voice gives way after the next one, the top "
+                        "voice is held (default 0: struck together).")
 
 
 def _named(kind_word: str):
@@ -67,8 +81,29 @@ OUTPUT = AnyOf((
         "type": Field(Choice(("midi", "osc")), required=True),
         "target": Field(Text(), doc="A MIDI port name, or HOST:PORT for OSC. Left out: from the "
                                     "command line (--midi, --midi-file, --osc)."),
+    "overlap": Field(OVERLAP, doc="midi: the voice policy of this output (default queue)."),
+    "skeletons": Field(Boolean(), doc="osc: also send the skeleton stream (the Server-to-View "
+                                      "API) to this output's target (default false: only the "
+                                      "piece's messages)."),
     }, doc="Where events of this name go."),
 ))
+
+#: the longest anticipation or forecast a piece may ask for (the rig's forecast: max_s default)
+MAX_AHEAD_S = 0.2
+AHEAD = Number(minimum=0.0, maximum=MAX_AHEAD_S, unit="seconds")
+ANTICIPATE = AnyOf((AHEAD, Obj("Anticipate", {
+    "ahead": Field(AHEAD, required=True, doc="How far ahead of the measurements to look."),
+    "max_sd": Field(Number(exclusive_minimum=0.0, unit="metres"),
+                    doc="A predicted crossing fires only while the prediction's position s.d. "
+                        "is at most this (default 0.1)."),
+    "within": Field(Number(exclusive_minimum=0.0, unit="seconds"),
+                    doc="A predicted crossing the measurements have not made this long after "
+                        "the predicted moment counts as contradicted (default 0.1)."),
+    "cut": Field(Boolean(), doc="Cut short what a contradicted firing played (default false)."),
+}, doc="How boldly a trigger fires on what the filter predicts.")),
+    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut}",
+    doc="Fire on a crossing predicted this far ahead (enters, leaves, rises_above, "
+        "falls_below; docs/anticipation.md). 0: off.")
 
 DEFAULTS = Obj("Defaults", {
     "cooldown": Field(SECONDS, doc="A trigger does not fire again for this long (default 0.5)."),
@@ -85,6 +120,9 @@ DEFAULTS = Obj("Defaults", {
                   doc="Fraction of each note's value that sounds (default 0.9)."),
     "speed_range": Field(RANGE, doc="Joint speeds (m/s) mapped to velocity_range (default [0.3, 3])."),
     "velocity_range": Field(RANGE, doc="Velocities for 'velocity: speed' (default [40, 120])."),
+    "arpeggiate": Field(ARPEGGIATE),
+    "anticipate": Field(ANTICIPATE, doc="Every trigger that can anticipate does, unless it "
+                                        "says otherwise (default 0: none)."),
 }, doc="Defaults for every trigger and phrase of the piece.")
 
 ZONE = Obj("Zone", {
@@ -116,6 +154,7 @@ PHRASE = Obj("Phrase", {
     "velocity": Field(Integer(1, 127)),
     "gate": Field(Number(exclusive_minimum=0.0, maximum=1.0)),
     "transpose": Field(Integer(-48, 48), doc="Semitones."),
+    "arpeggiate": Field(ARPEGGIATE),
     "about": Field(Text()),
 }, one_of=("notes", "bars"), doc="A musical phrase; notes get their own note-offs.")
 
@@ -138,8 +177,9 @@ PLAY = AnyOf((
         "weights": Field(ListOf(Number(minimum=0.0), 1), doc="For pick: random, one per phrase."),
         "velocity": Field(VELOCITY, doc="Scales the phrase's velocities so its loudest note has this."),
         "transpose": Field(Integer(-48, 48)),
-        "interrupt": Field(Boolean(), doc="Silence the phrase's channel first (default false: "
-                                          "phrases overlap)."),
+        "interrupt": Field(Boolean(), doc="Silence the phrase's channel first (the same as "
+                                          "overlap: replace, for this channel only)."),
+        "overlap": Field(OVERLAP, doc="This phrase's policy instead of its output's."),
     }),
 ))
 
@@ -155,8 +195,19 @@ NOTE_ACTION = AnyOf((
         "velocity": Field(VELOCITY),
         "channel": Field(CHANNEL),
         "output": Field(OUTPUT_NAME),
+        "arpeggiate": Field(ARPEGGIATE),
+        "overlap": Field(OVERLAP, doc="This note's policy instead of its output's."),
     }),
 ))
+
+GOTO = AnyOf((
+    Text(expected="next, previous, end or a section name"),
+    Obj("Goto", {
+        "to": Field(Text(expected="next, previous, end or a section name"), required=True),
+        "now": Field(Boolean(), doc="Do not wait for the sounding phrase to end (default "
+                                    "false)."),
+    }),
+), says="next, previous, end, a section name, or {to: ..., now: true}")
 
 OSC_ARG = AnyOf((Integer(), Number(), Text(), Boolean()),
                 doc="A value, or a reference: $x $y $z $speed $value $person $joint $section "
@@ -185,9 +236,10 @@ ACTION = Obj("Action", {
                             "args": Field(ListOf(OSC_ARG)),
                             "output": Field(OUTPUT_NAME),
                         }))), doc="An OSC message."),
-    "goto": Field(Text(expected="next, previous, end or a section name"),
-                  doc="Move to another section: next, previous or its name; 'end' ends the "
-                      "piece (its last notes ring, then nothing acts any more)."),
+    "goto": Field(GOTO, doc="Move to another section: next, previous or its name, when the "
+                            "phrases sounding and waiting have ended ({to: next, now: true}: at "
+                            "once); 'end' ends the piece: the last phrase finishes, its last "
+                            "notes ring and fade (see 'ending'), then nothing acts any more."),
     "silence": Field(Text(expected="an output name or all"),
                      doc="Stop every note of an output (or all), pending ones included."),
 }, one_of=("play", "note", "cc", "program", "osc", "goto", "silence"),
@@ -212,7 +264,10 @@ TRIGGER = Obj("Trigger", {
     "rises_above": Field(HEIGHT),
     "falls_below": Field(HEIGHT),
     "hand": Field(Choice(HAND_STATES), doc="A hand becomes open, closed or lasso (pointing)."),
-    "step": Field(Boolean(), doc="A foot is put down after a swing."),
+    "step": Field(AnyOf((Boolean(), Choice(("gait",))), says="true or gait"),
+                  doc="true: a foot is put down after a swing. gait: a walking step as gait "
+                      "analysis counts it (seed 003): one foot passes the other; $value is the "
+                      "step length (m), $step_width, $step_time, $speed the walking speed."),
     "appears": Field(Boolean(), doc="A performer is seen for the first time."),
     "disappears": Field(Boolean(), doc="A performer is lost."),
     "stage_empty": Field(SECONDS, doc="Nobody has been on stage for this long."),
@@ -229,6 +284,8 @@ TRIGGER = Obj("Trigger", {
     "once": Field(Boolean(), doc="At most once per visit to the section."),
     "probability": Field(Number(0.0, 1.0), doc="Chance that a firing sounds (seeded)."),
     "while": Field(CONDITION, doc="Fires only while this holds."),
+    "quantize": Field(QUANTIZE),
+    "anticipate": Field(ANTICIPATE),
     "do": Field(ACTIONS, required=True),
 }, one_of=TRIGGER_KINDS, one_of_what=" (what to watch for)", label=_named("trigger"),
     doc="When a joint does something, do these actions.")
@@ -246,10 +303,12 @@ OSC_TARGET = AnyOf((Text(pattern=r"/\S*", expected="an OSC address like /pan"), 
 MAPPING = Obj("Mapping", {
     "name": Field(NAME),
     "joint": Field(SINGLE_JOINT, required=True),
-    "measure": Field(Choice(MEASURES), doc="What of the joint (default height)."),
+    "measure": Field(Choice(MEASURES), doc="What of the joint (default height); angle: the "
+                                            "angle at an elbow, knee, shoulder or hip (degrees)."),
     "to_joint": Field(SINGLE_JOINT, doc="measure: distance, between 'joint' and this one."),
     "performer": Field(ONE_PERFORMER),
-    "in_range": Field(RANGE, required=True, doc="Input range (metres or m/s); clamped."),
+    "in_range": Field(RANGE, required=True, doc="Input range (metres, m/s, or degrees for "
+                                               "angle); clamped."),
     "out_range": Field(RANGE, doc="Output range (default 0-127 for cc, 0-1 for osc)."),
     "curve": Field(AnyOf((Choice(CURVES), Number(exclusive_minimum=0.0))),
                    doc="linear, exp, log, smooth, or a power."),
@@ -270,12 +329,28 @@ SECTION = Obj("Section", {
     "mappings": Field(ListOf(MAPPING, item_word="mapping")),
     "on_enter": Field(ACTIONS, doc="Done when the section begins."),
     "next": Field(NAME, doc="Where 'goto: next' leads (default the following section)."),
+    "quantize": Field(QUANTIZE),
 }, label=_named("section"), doc="A part of the piece.")
+
+ENDING = Obj("Ending", {
+    "fade": Field(SECONDS, doc="After the last phrase, its last notes are held (sustain, CC 64) "
+                               "and faded out over expression (CC 11) for this long (default 3)."),
+    "ring": Field(SECONDS, doc="Then this long for the room to ring (reverb tails) before the "
+                               "piece has ended (default 1)."),
+}, doc="How the piece ends ('goto: end'). Triggers of the whole piece act until it has ended.")
 
 SAFETY = Obj("Safety", {
     "keys": Field(Boolean(), doc="n / p + Enter on the console: next / previous section."),
     "osc_port": Field(Integer(1, 65535), doc="UDP port for /stage/section next|previous|NAME."),
 }, doc="Ways for the cellist or the operator to force a section change.")
+
+IDLE = Obj("Idle", {
+    "after": Field(Number(exclusive_minimum=0.0, unit="seconds"), required=True,
+                   doc="Nobody on stage for this long starts the idle section."),
+    "section": Field(NAME, required=True, doc="The attract section (a section of the piece)."),
+    "back": Field(NAME, doc="Where the piece goes when someone arrives: 'start' (default), "
+                            "'previous' (the section it left) or a section name."),
+}, doc="An attract/idle section for unattended exhibits: played while the room is empty.")
 
 PIECE = Obj("Piece", {
     "piece": Field(Text(), required=True, doc="The title."),
@@ -284,6 +359,11 @@ PIECE = Obj("Piece", {
     "tempo": Field(Number(exclusive_minimum=0.0, unit="quarter notes per minute"),
                    doc="Default 60."),
     "meter": Field(Text(pattern=r"\d+/(1|2|4|8|16)", expected="a meter like 3/4")),
+    "quantize": Field(QUANTIZE),
+    "forecast_s": Field(AHEAD, doc="Triggers and mappings see every body predicted this far "
+                                   "past its capture time (default 0: as measured; "
+                                   "docs/anticipation.md)."),
+    "ending": Field(ENDING),
     "seed": Field(Integer(0), doc="Seed of the aleatoric choices (--seed overrides)."),
     "rehearsal": Field(Text(), doc="Simulator scenario for 'stage play --sim' (relative to "
                                    "this file)."),
@@ -299,4 +379,5 @@ PIECE = Obj("Piece", {
     "mappings": Field(ListOf(MAPPING, item_word="mapping"),
                       doc="Active in every section."),
     "safety": Field(SAFETY),
+    "idle": Field(IDLE),
 }, doc="A piece for stage: sections of triggers, phrases and mappings over tracked bodies.")

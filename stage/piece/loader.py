@@ -11,15 +11,16 @@ import os
 from typing import Any
 
 from ..errors import ConfigError, MusicError
+from ..analysis.features import ANGLES
 from ..events import OutputDecl
-from ..joints import GROUPS, JOINT_INDEX, JOINTS, parse_hand_state, suggest_joint
+from ..joints import JOINT_INDEX, JOINTS, parse_hand_state
 from ..network import parse_hostport
 from ..yamlio import Mark, Where, load_marked, loads_marked
 from . import language as L
-from .model import (BODY, Action, Condition, Defaults, Goto, Mapping, Phrase, Piece, Play,
-                    PlayNote, Safety, Section, SendCC, SendOsc, SendProgram, Silence, Trigger,
-                    Zone, curve_function)
-from .music import parse_chord, phrase_notes
+from .model import (ANTICIPATING, Anticipation, Condition, Defaults, Ending, Idle, Mapping, Phrase, Piece, Safety,
+                    Section, Trigger, Zone, curve_function)
+from .loader_actions import ActionCompiler, joint_indices as _joint_indices, m as _m
+from .music import phrase_notes
 from .spec import did_you_mean
 
 _DIRECTIONS = {"up": (0.0, 1.0, 0.0), "down": (0.0, -1.0, 0.0), "downstage": (0.0, 0.0, 1.0),
@@ -28,7 +29,6 @@ _DIRECTIONS = {"up": (0.0, 1.0, 0.0), "down": (0.0, -1.0, 0.0), "downstage": (0.
 _HAND_JOINTS = {"HandLeft", "HandRight", "HandTipLeft", "HandTipRight", "ThumbLeft", "ThumbRight",
                 "WristLeft", "WristRight", "hands", "wrists"}
 _FOOT_JOINTS = {"FootLeft", "FootRight", "AnkleLeft", "AnkleRight", "feet", "ankles"}
-_REFS = ("x", "y", "z", "speed", "value", "person", "joint", "section", "trigger", "time")
 _JOINTLESS = ("appears", "disappears", "stage_empty", "elapsed")
 
 
@@ -43,20 +43,7 @@ def loads_piece(text: str, path: str = "<piece>") -> Piece:
     return _Compiler(path).compile(loads_marked(text, path))
 
 
-def _m(d: dict, key: str) -> Mark | None:
-    """Where the value of ``key`` was written in a checked mapping."""
-    return d.get("__marks__", {}).get(key, d.get("__mark__"))
-
-
-def _joint_indices(name: str) -> tuple[int, ...]:
-    if name == "body":
-        return (BODY,)
-    if name in GROUPS:
-        return tuple(JOINT_INDEX[j] for j in GROUPS[name])
-    return (JOINT_INDEX[name],)
-
-
-class _Compiler:
+class _Compiler(ActionCompiler):
     def __init__(self, path: str) -> None:
         self.path = path
         self.where = Where(path)
@@ -64,7 +51,9 @@ class _Compiler:
         self.zones: dict[str, Zone] = {}
         self.phrases: dict[str, Phrase] = {}
         self.outputs: dict[str, OutputDecl] = {}
+        self.overlap: dict[str, str] = {}
         self.section_names: list[str] = []
+        self.meter: str | None = None
 
     def error(self, message: str, mark: Mark | None) -> ConfigError:
         return self.where.error(message, mark)
@@ -78,6 +67,7 @@ class _Compiler:
         self.outputs = self._outputs(data)
         self.meter = data.get("meter")
         self.tempo = data.get("tempo", 60.0)
+        quantize = self._quantize(data, "the piece") or "none"
         self.zones = {name: self._zone(name, z) for name, z in data.get("zones", {}).items()}
         phrases = data.get("phrases", {})
         self.phrases = {name: self._phrase(name, p, getattr(phrases, "marks", {}).get(name))
@@ -94,7 +84,11 @@ class _Compiler:
             title=data["piece"], path=self.path, outputs=self.outputs, zones=self.zones,
             phrases=self.phrases, composer=data.get("composer", ""), about=data.get("about", ""),
             tempo=self.tempo, meter=self.meter, seed=data.get("seed"), defaults=self.defaults,
+            quantize=quantize, overlap=dict(self.overlap), forecast_s=data.get("forecast_s", 0.0),
             sections=[self._section(k, s) for k, s in enumerate(sections)])
+        if "ending" in data:
+            e = data["ending"]
+            piece.ending = Ending(fade=e.get("fade", Ending.fade), ring=e.get("ring", Ending.ring))
         piece.triggers = [self._trigger(t, None) for t in data.get("triggers", [])]
         piece.mappings = [self._mapping(m) for m in data.get("mappings", [])]
         piece.start = data.get("start", sections[0]["name"])
@@ -107,6 +101,15 @@ class _Compiler:
         if "safety" in data:
             s = data["safety"]
             piece.safety = Safety(keys=s.get("keys", False), osc_port=s.get("osc_port"))
+        if "idle" in data:
+            idle = data["idle"]
+            for key in ("section", "back"):
+                name = idle.get(key)
+                if name is not None and name not in self.section_names and not (
+                        key == "back" and name in ("start", "previous")):
+                    raise self.error(self._unknown("section", name, self.section_names),
+                                     _m(idle, key))
+            piece.idle = Idle(float(idle["after"]), idle["section"], idle.get("back", "start"))
         return piece
 
     # ------------------------------------------------------------ top level
@@ -121,17 +124,46 @@ class _Compiler:
         if "velocity_range" in values and not all(1 <= v <= 127 for v in values["velocity_range"]):
             raise self.error("'velocity_range' in 'defaults' must be within 1-127",
                              _m(d, "velocity_range"))
+        if "anticipate" in values:
+            values["anticipate"] = self._anticipation(d["anticipate"])
         return Defaults(**values)
+
+    def _anticipation(self, value) -> Anticipation | None:
+        """``anticipate:`` as written (seconds, or a mapping), None for 0."""
+        if isinstance(value, dict):
+            a = Anticipation(float(value["ahead"]), float(value.get("max_sd", Anticipation.max_sd)),
+                             float(value.get("within", Anticipation.within)),
+                             bool(value.get("cut", False)))
+        else:
+            a = Anticipation(float(value))
+        return a if a.ahead > 0 else None
+
+    def _quantize(self, d: dict, what: str) -> str | None:
+        """The ``quantize`` of a piece, section or trigger (None when not given)."""
+        value = d.get("quantize")
+        if value == "bar" and self.meter is None:
+            raise self.error(f"'quantize: bar' in {what} needs the piece's 'meter' (e.g. "
+                             "meter: 3/4)", _m(d, "quantize"))
+        return value
 
     def _outputs(self, data: dict) -> dict[str, OutputDecl]:
         if "outputs" not in data or not data["outputs"]:
+            self.overlap = {"midi": "queue"}
             return {"midi": OutputDecl("midi", "midi")}
         out = {}
         marks = data["outputs"]
         for name, value in data["outputs"].items():
             if isinstance(value, str):
                 out[name] = OutputDecl(name, value)
+                if value == "midi":
+                    self.overlap[name] = "queue"
                 continue
+            for key, kind in (("overlap", "midi"), ("skeletons", "osc")):
+                if key in value and value["type"] != kind:
+                    raise self.error(f"output '{name}': '{key}' applies to {kind} outputs only",
+                                     _m(value, key))
+            if value["type"] == "midi":
+                self.overlap[name] = value.get("overlap", "queue")
             target = value.get("target")
             if value["type"] == "osc" and target is not None:
                 try:
@@ -139,7 +171,7 @@ class _Compiler:
                 except ValueError as exc:
                     raise self.error(f"output '{name}': {exc}", _m(value, "target")) from None
                 target = f"{host}:{port}"
-            out[name] = OutputDecl(name, value["type"], target)
+            out[name] = OutputDecl(name, value["type"], target, value.get("skeletons", False))
         del marks
         return out
 
@@ -226,6 +258,7 @@ class _Compiler:
                       channel=p.get("channel", self.defaults.channel),
                       velocity=p.get("velocity", self.defaults.velocity),
                       gate=p.get("gate", self.defaults.gate), transpose=p.get("transpose", 0),
+                      arpeggiate=p.get("arpeggiate", self.defaults.arpeggiate),
                       about=p.get("about", ""))
 
     # ------------------------------------------------------------ sections
@@ -239,7 +272,8 @@ class _Compiler:
         if nxt is not None and nxt not in self.section_names:
             raise self.error(self._unknown("section", nxt, self.section_names), _m(s, "next"))
         section = Section(name=s["name"], index=index, about=s.get("about", "").strip(),
-                          tempo=s.get("tempo"), phrases=tuple(names), next=nxt)
+                          tempo=s.get("tempo"), phrases=tuple(names), next=nxt,
+                          quantize=self._quantize(s, f"section '{s['name']}'"))
         self.current = section
         section.on_enter = tuple(self._action(a, section, f"'on_enter' of section '{s['name']}'")
                                  for a in s.get("on_enter", []))
@@ -256,10 +290,24 @@ class _Compiler:
                        cooldown=t.get("cooldown", d.cooldown),
                        cooldown_per=t.get("cooldown_per", "trigger"), after=t.get("after", 0.0),
                        once=t.get("once", False), probability=t.get("probability", 1.0),
-                       line=(t["__mark__"] or (0, 0))[0])
+                       line=(t["__mark__"] or (0, 0))[0], quantize=self._quantize(t, label))
         value, vmark = t[kind], _m(t, kind)
-        if kind in ("step", "appears", "disappears") and value is not True:
+        if "anticipate" in t:
+            trig.anticipate = self._anticipation(t["anticipate"])
+            if trig.anticipate is not None and kind not in ANTICIPATING:
+                raise self.error(f"'anticipate' applies to {', '.join(ANTICIPATING)} triggers "
+                                 f"(a predicted crossing of a position), not '{kind}'",
+                                 _m(t, "anticipate"))
+        elif kind in ANTICIPATING:
+            trig.anticipate = d.anticipate
+        if kind in ("appears", "disappears") and value is not True:
             raise self.error(f"write '{kind}: true' to use this trigger", vmark)
+        if kind == "step" and value not in (True, "gait"):
+            raise self.error("write 'step: true' (a foot is put down after a swing) or "
+                             "'step: gait' (a walking step: one foot passes the other)", vmark)
+        if kind == "step" and value == "gait" and "speed" in t:
+            raise self.error("'speed' is the swing speed of 'step: true'; 'step: gait' takes "
+                             "none", _m(t, "speed"))
         for key, owners in (("for", ("dwells",)), ("speed", ("moves", "step"))):
             if key in t and kind not in owners:
                 raise self.error(f"'{key}' only applies to {' and '.join(owners)} triggers",
@@ -311,6 +359,7 @@ class _Compiler:
             trig.hand_state = parse_hand_state(value)
         elif kind == "step":
             trig.threshold = t.get("speed", 0.8)
+            trig.gait = value == "gait"
         elif kind in ("stage_empty", "elapsed"):
             trig.threshold = value
         if "while" in t:
@@ -350,101 +399,6 @@ class _Compiler:
             out["hand"] = parse_hand_state(c["hand"])
         return Condition(**out)
 
-    # ------------------------------------------------------------ actions
-    def _action(self, a: dict, section: Section | None, where: str) -> Action:
-        kind = next(k for k in ("play", "note", "cc", "program", "osc", "goto", "silence")
-                    if k in a)
-        value, mark = a[kind], _m(a, kind)
-        d = self.defaults
-        if kind == "play":
-            return self._play(value, mark, section)
-        if kind == "note":
-            spec = value if isinstance(value, dict) else {"pitch": value, "__mark__": mark,
-                                                          "__marks__": {}}
-            try:
-                pitches = parse_chord(spec["pitch"])
-            except MusicError as exc:
-                raise self.error(str(exc), _m(spec, "pitch")) from None
-            if "beats" in spec and "seconds" in spec:
-                raise self.error("a note takes 'beats' or 'seconds', not both", _m(spec, "seconds"))
-            return PlayNote(pitches, beats=spec.get("beats", None if "seconds" in spec else 1.0),
-                            seconds=spec.get("seconds"), velocity=spec.get("velocity"),
-                            channel=spec.get("channel", d.channel),
-                            output=self._output(spec.get("output"), "midi", mark, "a note"))
-        if kind == "cc":
-            return SendCC(value["control"], value["value"], value.get("channel", d.channel),
-                          self._output(value.get("output"), "midi", mark, "a control change"))
-        if kind == "program":
-            spec = value if isinstance(value, dict) else {"program": value}
-            return SendProgram(spec["program"], spec.get("channel", d.channel),
-                               self._output(spec.get("output"), "midi", mark, "a program change"))
-        if kind == "osc":
-            spec = value if isinstance(value, dict) else {"address": value}
-            args = spec.get("args", [])
-            marks = getattr(args, "marks", [mark] * len(args))
-            funcs = tuple(self._osc_arg(arg, marks[k]) for k, arg in enumerate(args))
-            return SendOsc(spec["address"], funcs,
-                           self._output(spec.get("output"), "osc", mark, "an OSC message"),
-                           tuple(str(x) for x in args))
-        if kind == "goto":
-            if value not in ("next", "previous", "end") and value not in self.section_names:
-                raise self.error(self._unknown("section", value, self.section_names)
-                                 + " (or next, previous, end)", mark)
-            return Goto(value)
-        if value != "all" and value not in self.outputs:
-            raise self.error(self._unknown("output", value, self.outputs) + " (or all)", mark)
-        return Silence(None if value == "all" else value)
-
-    def _play(self, value: Any, mark: Mark | None, section: Section | None) -> Play:
-        spec = value if isinstance(value, dict) else (
-            {"pick": value} if value in L.PICKS else {"phrase": value})
-        if "phrase" in spec and ("pick" in spec or "from" in spec):
-            raise self.error("'play' takes a fixed 'phrase' or 'pick'/'from', not both", mark)
-        pool = spec.get("from")
-        for k, name in enumerate(pool or []):
-            if name not in self.phrases:
-                raise self.error(self._unknown("phrase", name, self.phrases), pool.marks[k])
-        if "phrase" in spec and spec["phrase"] not in self.phrases:
-            where = _m(spec, "phrase") if isinstance(value, dict) else mark
-            raise self.error(self._unknown("phrase", spec["phrase"], self.phrases), where)
-        if "phrase" not in spec and pool is None and section is not None and not section.phrases:
-            raise self.error(f"section '{section.name}' has no phrases to {spec.get('pick', 'random')}"
-                             " from; list them under its 'phrases' or give 'from'", mark)
-        weights = spec.get("weights")
-        if weights is not None:
-            count = len(pool) if pool is not None else len(section.phrases) if section else None
-            if spec.get("pick", "random") != "random":
-                raise self.error("'weights' only apply to pick: random", _m(spec, "weights"))
-            if count is not None and len(weights) != count:
-                raise self.error(f"'weights' needs one number per phrase ({count}), got "
-                                 f"{len(weights)}", _m(spec, "weights"))
-            if sum(weights) <= 0:
-                raise self.error("'weights' must not all be 0", _m(spec, "weights"))
-        return Play(phrase=spec.get("phrase"), pick=spec.get("pick", "random"),
-                    pool=tuple(pool) if pool is not None else None,
-                    weights=tuple(weights) if weights is not None else None,
-                    velocity=spec.get("velocity"), transpose=spec.get("transpose", 0),
-                    interrupt=spec.get("interrupt", False))
-
-    def _osc_arg(self, arg: Any, mark: Mark | None):
-        if not isinstance(arg, str) or not arg.startswith("$"):
-            return lambda ctx, v=arg: v
-        ref = arg[1:]
-        if ref in _REFS:
-            return lambda ctx, r=ref: ctx.ref(r)
-        joint, _, axis = ref.partition(".")
-        if joint not in JOINT_INDEX:
-            hint = suggest_joint(joint)
-            if hint in JOINT_INDEX:
-                raise self.error(f"unknown joint '{joint}' in '{arg}'; did you mean "
-                                 f"'${hint}.{axis or 'y'}'?", mark)
-            raise self.error(f"'{arg}' is not a reference; expected ${', $'.join(_REFS)} or "
-                             "$Joint.x/.y/.z/.speed (e.g. $HandLeft.y)", mark)
-        if axis not in ("x", "y", "z", "speed"):
-            raise self.error(f"'{arg}': a joint reference ends in .x, .y, .z or .speed", mark)
-        index = JOINT_INDEX[joint]
-        return lambda ctx, j=index, a=axis: ctx.joint_ref(j, a)
-
     # ------------------------------------------------------------ mappings
     def _mapping(self, m: dict) -> Mapping:
         measure = m.get("measure", "height")
@@ -453,6 +407,9 @@ class _Compiler:
             raise self.error(f"{label} measures a distance: give 'to_joint'", _m(m, "measure"))
         if "to_joint" in m and measure != "distance":
             raise self.error("'to_joint' only applies to measure: distance", _m(m, "to_joint"))
+        if measure == "angle" and m["joint"] not in ANGLES:
+            raise self.error(f"{label} measures an angle: 'joint' must be where two segments "
+                             f"meet: {', '.join(ANGLES)}", _m(m, "joint"))
         lo, hi = m["in_range"]
         if lo == hi:
             raise self.error(f"'in_range' of {label} needs two different numbers", _m(m, "in_range"))

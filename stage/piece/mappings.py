@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from ..analysis.features import ANGLE_JOINTS, angle_at
 from ..events import ControlChange, MappingValue, OscOut
 from .actions import holds
 from .model import Mapping
@@ -71,12 +72,14 @@ class MappingRun:
 
 
 def measure(m: Mapping, p: Person) -> float | None:
-    """The mapping's input for ``p`` this frame (metres or m/s), None if its joint is unseen."""
+    """The mapping's input for ``p`` this frame (metres, m/s or degrees), None if unseen."""
     if m.measure == "speed":
         return p.speed(m.joint) if p.xyz(m.joint) is not None else None
     pos = p.xyz(m.joint)
     if pos is None:
         return None
+    if m.measure == "angle":
+        return angle_at({k: p.xyz(k) for k in ANGLE_JOINTS[m.joint]}, m.joint)
     if m.measure == "distance":
         other = p.xyz(m.to_joint)
         if other is None:

@@ -24,6 +24,20 @@ def joint_label(index: int) -> str:
 
 
 @dataclass(frozen=True)
+class Anticipation:
+    """A trigger that fires on a crossing predicted ``ahead`` s past the measurements."""
+
+    ahead: float
+    max_sd: float = 0.1         # m: the prediction's position s.d. must be at most this
+    within: float = 0.1         # s after the predicted moment before it counts as contradicted
+    cut: bool = False           # cut short what a contradicted firing played
+
+
+#: trigger kinds that can anticipate (a crossing of a position: zones and heights)
+ANTICIPATING = ("enters", "leaves", "rises_above", "falls_below")
+
+
+@dataclass(frozen=True)
 class Defaults:
     cooldown: float = 0.5
     hysteresis: float = 0.05
@@ -35,6 +49,8 @@ class Defaults:
     gate: float = 0.9
     speed_range: tuple[float, float] = (0.3, 3.0)
     velocity_range: tuple[float, float] = (40.0, 120.0)
+    arpeggiate: float = 0.0          # seconds between the voices of a chord (0: together)
+    anticipate: Anticipation | None = None
 
     def velocity_for(self, speed: float) -> int:
         """A note velocity from a joint speed (m/s), linear over the two ranges, clamped."""
@@ -105,6 +121,7 @@ class Phrase:
     velocity: int = 80
     gate: float = 0.9
     transpose: int = 0
+    arpeggiate: float = 0.0          # seconds between a chord's voices, bottom up (0: together)
     about: str = ""
     _cache: dict = field(default_factory=dict, repr=False)
 
@@ -115,6 +132,11 @@ class Phrase:
     def length_beats(self) -> Fraction:
         return sum((n.length for n in self.notes), Fraction(0))
 
+    def seconds(self, tempo: float) -> float:
+        """The phrase's musical length (the sum of its note values) in seconds at ``tempo``."""
+        scale = 60.0 / tempo if self.unit == "beats" else 1.0
+        return float(self.length_beats()) * scale
+
     def schedule(self, tempo: float) -> list[tuple[float, float, int, int]]:
         """(onset s, sounding length s, MIDI note, velocity) at ``tempo``, cached per tempo."""
         key = tempo if self.unit == "beats" else 0.0
@@ -124,16 +146,16 @@ class Phrase:
         scale = 60.0 / tempo if self.unit == "beats" else 1.0
         out = []
         for n in self.notes:
-            for pitch in n.pitches:
-                note = pitch + self.transpose
-                if 0 <= note <= 127:
-                    out.append((float(n.onset) * scale, max(0.01, float(n.length) * scale * self.gate),
-                                note, n.velocity or self.velocity))
+            pitches = [p + self.transpose for p in n.pitches if 0 <= p + self.transpose <= 127]
+            value = float(n.length) * scale
+            for onset, length, note in voice_times(float(n.onset) * scale, value, self.gate,
+                                                   pitches, self.arpeggiate):
+                out.append((onset, length, note, n.velocity or self.velocity))
         self._cache[key] = out
         return out
 
     def render(self, t: float, tempo: float, velocity: int | None = None,
-               transpose: int = 0) -> list[Note]:
+               transpose: int = 0, play: int = 0) -> list[Note]:
         """Note events for a performance starting at engine time ``t`` (seconds).
 
         ``velocity``: the loudest note gets this, the others keep their ratio to it.
@@ -145,13 +167,36 @@ class Phrase:
             scale = velocity / loudest
         ch = self.channel - 1
         return [Note(t + onset, self.output, ch, min(127, max(0, note + transpose)),
-                     min(127, max(1, round(v * scale))), length)
+                     min(127, max(1, round(v * scale))), length, play)
                 for onset, length, note, v in schedule]
 
     def describe(self) -> str:
         pitches = [pitch_name(p) for n in self.notes for p in n.pitches[-1:]]
         head = " ".join(pitches[:6]) + (" ..." if len(pitches) > 6 else "")
         return f"{len(self.notes)} notes ({head})"
+
+
+def voice_times(onset: float, value: float, gate: float, pitches: list[int],
+                arpeggiate: float = 0.0) -> list[tuple[float, float, int]]:
+    """(onset s, sounding length s, MIDI note) of each voice of a note or chord.
+
+    ``value``: the note's value in seconds; it sounds ``gate`` of it. With
+    ``arpeggiate`` > 0 a chord is broken as a cellist does: voice k (from the
+    bottom) enters ``k * arpeggiate`` late; each lower voice sounds with the one
+    above it and gives way (2 x arpeggiate), the top voice is held to the end.
+    """
+    end = onset + max(0.01, value * gate)
+    if arpeggiate <= 0.0 or len(pitches) < 2:
+        return [(onset, end - onset, p) for p in pitches]
+    voices = sorted(pitches)
+    # never let the top voice enter after half of the note's value
+    step = min(arpeggiate, 0.5 * value / (len(voices) - 1))
+    out = []
+    for k, p in enumerate(voices):
+        start = onset + k * step
+        stop = end if k == len(voices) - 1 else min(end, start + 2.0 * step)
+        out.append((start, max(0.01, stop - start), p))
+    return out
 
 
 @dataclass(frozen=True)
@@ -193,6 +238,7 @@ class Play:
     velocity: int | str | None = None         # number, "speed" or None
     transpose: int = 0
     interrupt: bool = False
+    overlap: str | None = None                # None: the output's policy
 
     def describe(self) -> str:
         if self.phrase:
@@ -208,6 +254,8 @@ class PlayNote:
     velocity: int | str | None = None
     channel: int = 1
     output: str = "midi"
+    arpeggiate: float = 0.0
+    overlap: str | None = None
 
     def describe(self) -> str:
         return "note " + "+".join(pitch_name(p) for p in self.pitches)
@@ -247,10 +295,11 @@ class SendOsc:
 
 @dataclass(frozen=True)
 class Goto:
-    target: str                       # "next" | "previous" | a section name
+    target: str                       # "next" | "previous" | "end" | a section name
+    now: bool = False                 # False: when the phrases sounding and waiting have ended
 
     def describe(self) -> str:
-        return f"go to {self.target}"
+        return f"go to {self.target}" + (" now" if self.now else "")
 
 
 @dataclass(frozen=True)
@@ -287,6 +336,9 @@ class Trigger:
     condition: Condition | None = None
     actions: tuple[Action, ...] = ()
     line: int = 0
+    quantize: str | None = None        # beat | bar | none; None: the section's or piece's
+    gait: bool = False                 # step: gait (seed 003's foot events), not step: true
+    anticipate: Anticipation | None = None
 
     def describe(self) -> str:
         joints = "+".join(joint_label(j) for j in self.joints) if self.joints else ""
@@ -306,7 +358,7 @@ class Trigger:
         elif k == "hand":
             what = f"{joints} {self.hand_state.wire_name}"
         elif k == "step":
-            what = f"{joints} step"
+            what = f"{joints} {'gait ' if self.gait else ''}step"
         elif k in ("appears", "disappears"):
             what = f"a performer {k}"
         elif k == "stage_empty":
@@ -329,7 +381,7 @@ def _direction_name(d: tuple[float, float, float]) -> str:
 class Mapping:
     name: str
     joint: int
-    measure: str = "height"           # x | y | z | height | speed | distance
+    measure: str = "height"           # x | y | z | height | speed | distance | angle
     to_joint: int | None = None
     performer: str | int = "first"
     in_range: tuple[float, float] = (0.0, 1.0)
@@ -371,12 +423,31 @@ class Section:
     mappings: list[Mapping] = field(default_factory=list)
     on_enter: tuple[Action, ...] = ()
     next: str | None = None
+    quantize: str | None = None        # None: the piece's
+
+
+@dataclass(frozen=True)
+class Ending:
+    """How the piece ends: the last notes held and faded over CC 11, then the room rings."""
+
+    fade: float = 3.0                 # seconds
+    ring: float = 1.0                 # seconds
 
 
 @dataclass
 class Safety:
     keys: bool = False
     osc_port: int | None = None
+
+
+@dataclass
+class Idle:
+    """The attract section: ``section`` after ``after`` s with nobody on stage; someone
+    arriving goes ``back`` ('start', 'previous' or a section name)."""
+
+    after: float
+    section: str
+    back: str = "start"
 
 
 @dataclass
@@ -394,10 +465,25 @@ class Piece:
     about: str = ""
     tempo: float = 60.0
     meter: str | None = None
+    quantize: str = "none"           # beat | bar | none
+    ending: Ending = field(default_factory=Ending)
+    #: MIDI output -> voice policy (queue, layer, replace, ignore)
+    overlap: dict[str, str] = field(default_factory=dict)
     seed: int | None = None
     rehearsal: str | None = None     # absolute path of the simulator scenario, if any
     defaults: Defaults = field(default_factory=Defaults)
     safety: Safety = field(default_factory=Safety)
+    idle: Idle | None = None
+    forecast_s: float = 0.0          # triggers and mappings see bodies this far ahead
+
+    def horizons(self) -> set[float]:
+        """Every forecast (s) the piece needs from the engine."""
+        out = {self.forecast_s}
+        for trig in self.triggers + [t for s in self.sections for t in s.triggers]:
+            if trig.anticipate is not None:
+                out.add(trig.anticipate.ahead)
+        out.discard(0.0)
+        return out
 
     def section(self, name: str) -> Section:
         for s in self.sections:

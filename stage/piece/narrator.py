@@ -19,9 +19,15 @@ def check_summary(piece: Piece, path: str) -> list[str]:
     out = [f"{path}: ok -- \"{piece.title}\"" + (f" ({piece.composer})" if piece.composer else "")
            + f", {len(piece.sections)} section(s), {len(piece.zones)} zone(s), "
            f"{len(piece.phrases)} phrase(s)"]
-    outputs = ", ".join(f"{o.name} ({o.kind}{' ' + o.target if o.target else ''})"
-                        for o in piece.outputs.values())
+    outputs = ", ".join(
+        f"{o.name} ({o.kind}{' ' + o.target if o.target else ''}"
+        + (f", {piece.overlap.get(o.name, 'queue')}" if o.kind == "midi" else "")
+        + (", with skeletons" if o.skeletons else "") + ")" for o in piece.outputs.values())
     out.append(f"  outputs: {outputs}")
+    e = piece.ending
+    out.append(f"  time: {piece.tempo:g} bpm" + (f", {piece.meter}" if piece.meter else "")
+               + f", quantize {piece.quantize}; ending: the last notes fade for {e.fade:g} s, "
+               f"then ring for {e.ring:g} s")
     for zone in piece.zones.values():
         out.append(f"  zone {zone.name}: {zone.describe()}")
     if piece.rehearsal:

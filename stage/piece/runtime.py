@@ -21,12 +21,15 @@ from typing import Callable
 import numpy as np
 
 from ..frames import FusedFrame
-from ..events import AllNotesOff, Event, EventSink, SectionChange, TriggerFired, ZoneState
+from ..events import ControlChange, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
+from .anticipation import anticipate, contradicted
 from .mappings import MappingRun
 from .model import Piece, Section, Trigger, joint_label
+from .music import meter_beats
 from .sinks import FanoutSink, RecordingSink
 from .triggers import ClockDetector, Detector, Firing, Person, PresenceDetector, detector_for
+from .voices import EPS, Grid, Voices
 
 log = logging.getLogger("stage.piece")
 
@@ -39,17 +42,25 @@ Narrator = Callable[[float, str], None]
 class _TriggerRun:
     """A trigger with its detector and the state that decides whether a firing sounds."""
 
-    __slots__ = ("trigger", "detector", "last", "fired_in_visit")
+    __slots__ = ("trigger", "detector", "last", "fired_in_visit", "ahead", "pending")
 
     def __init__(self, trigger: Trigger) -> None:
         self.trigger = trigger
         self.detector: Detector = detector_for(trigger)
         self.last: dict = {}
         self.fired_in_visit = False
+        #: anticipation: the same detector on the bodies predicted ahead, and the firings
+        #: made on a prediction the measurements have not yet confirmed:
+        #: (person, joint) -> (fired at, contradicted unless measured by, firing number)
+        self.ahead: Detector | None = detector_for(trigger) if trigger.anticipate else None
+        self.pending: dict[tuple, tuple[float, float, int]] = {}
 
     def reset(self) -> None:
         self.detector.reset()
         self.fired_in_visit = False
+        if self.ahead is not None:
+            self.ahead.reset()
+            self.pending.clear()
 
 
 class PieceRuntime:
@@ -67,7 +78,9 @@ class PieceRuntime:
         self.min_conf = piece.defaults.min_confidence
         self.section: Section = piece.section(piece.start)
         self.started = False
-        self.ended = False          # 'goto: end' happened: the piece is over, its notes ring out
+        self.ending = False         # 'goto: end' happened: the last phrase plays, then the fade
+        self.ended = False          # the piece is over: its last notes have rung out
+        self.ends_at = float("inf")  # when it will be over (once ending)
         self.started_at = 0.0
         self.section_start = 0.0
         self.arrivals: dict[int, float] = {}
@@ -82,13 +95,37 @@ class PieceRuntime:
         self._maps: dict[int, list[MappingRun]] = {
             s.index: [MappingRun(m) for m in s.mappings] for s in piece.sections}
         self.actions = Actions(self)
-        self._pending_goto: tuple[str, str] | None = None
+        self._pending_goto: tuple[str, str, bool] | None = None
+        #: a section change waiting for the sounding phrases: (target, cause, when)
+        self.transition: tuple[str, str, float] | None = None
         self._out: list[Event] = []
         self.visited: list[str] = []
-        #: engine time when the last note emitted so far ends (to let a show ring out)
-        self.last_note_end = float("-inf")
-        self.counts = {"frames": 0, "fired": 0, "notes": 0, "errors": 0, "section_changes": 0}
+        #: "notes" counts the notes that sound (scheduled, less those cancelled before
+        #: their onset); "cancelled", "shortened" and "skipped" (phrases) are the rest
+        self.counts = {"frames": 0, "fired": 0, "notes": 0, "cancelled": 0, "shortened": 0,
+                       "skipped": 0, "errors": 0, "section_changes": 0, "idle": 0,
+                       # anticipation (docs/anticipation.md): fired on a prediction, then
+                       # confirmed or contradicted by the measurements; predicted crossings
+                       # too uncertain to fire on; frames without the forecast asked for
+                       "anticipated": 0, "confirmed": 0, "contradicted": 0, "unsure": 0,
+                       "forecast_missing": 0}
+        #: the piece sees every body this far past its capture time (0: as measured)
+        self.forecast_s = piece.forecast_s
+        self._ahead: dict[float, dict[int, Person]] = {}   # this frame's predicted persons
+        self._frame: FusedFrame | None = None
+        self.voices = Voices(piece.overlap, self._emit, self.counts)
+        self.grid = Grid(0.0, piece.tempo, float(meter_beats(piece.meter)) if piece.meter else 4.0)
+        self._firings = 0
+        self._before_idle: str | None = None    # the section the idle section interrupted
         self._last_error_log = float("-inf")
+
+    @property
+    def last_note_end(self) -> float:
+        """Engine time when the last note scheduled so far ends (-inf if none)."""
+        return self.voices.last_note_end()
+
+    def _emit(self, event: Event) -> None:
+        self._out.append(event)
 
     # ------------------------------------------------------------ entry points
     def __call__(self, frame: FusedFrame) -> None:
@@ -99,6 +136,7 @@ class PieceRuntime:
         if self.started:
             return
         self.started, self.started_at = True, t
+        self.grid.origin = t
         self._enter(self.section, None, t, "start")
         self._flush()
 
@@ -116,17 +154,31 @@ class PieceRuntime:
                 self.start(t)
             if self.ended:
                 return
+            self._due(t)
+            if self.ended:
+                self._flush()
+                return
+            contradicted(self, t)
             self._clock_triggers(t, self._active_runs())
+            self._idle(t)
             self._apply_goto(t)
             self._flush()
         except Exception:
             self._error(t, "tick skipped")
 
     def goto(self, target: str, t: float, cause: str = "operator") -> bool:
-        """Force a section change (the cellist's or operator's safety). False if nothing changed."""
+        """Force a section change at once (the cellist's or operator's safety); 'end' begins
+        the ending. False if nothing changed."""
         try:
             if not self.started:
                 self.start(t)
+            if self.ending or self.ended:
+                return False
+            if target == "end":
+                self._begin_ending(t, cause, now=False)
+                self._flush()
+                return True
+            self.transition = None
             changed = self._change_section(target, t, cause)
             self._flush()
             return changed
@@ -144,12 +196,14 @@ class PieceRuntime:
                           "logged once a minute)", t, what, self.counts["errors"])
 
     def stop(self, t: float) -> None:
-        """End of the show: cancel pending notes and silence every output."""
-        self._out.append(AllNotesOff(t, None, None))
+        """End of the show: cancel pending notes and silence every output (each cut logged)."""
+        self.voices.cut(t, None, None, "stop")
         self._flush()
 
     # ------------------------------------------------------------ frame
     def _active_runs(self) -> list[_TriggerRun]:
+        if self.transition is not None or self.ending:
+            return self._global     # the section has said its last word
         return self._runs[self.section.index] + self._global
 
     def _on_frame(self, frame: FusedFrame) -> None:
@@ -159,9 +213,22 @@ class PieceRuntime:
         self.counts["frames"] += 1
         if self.ended:
             return
+        self._due(t)
+        if self.ended:
+            self._flush()
+            return
         min_conf, arrivals = self.min_conf, self.arrivals
         persons = {}
-        for pid, body in frame.bodies.items():
+        bodies = frame.bodies
+        if self.forecast_s > 0:
+            ahead = frame.forecasts.get(self.forecast_s)
+            if ahead is None:
+                self.counts["forecast_missing"] += 1   # the engine was not asked: as measured
+            else:
+                bodies = ahead
+        self._frame = frame
+        self._ahead = {}
+        for pid, body in bodies.items():
             since = arrivals.get(pid)
             if since is None:
                 since = arrivals[pid] = t
@@ -173,6 +240,10 @@ class PieceRuntime:
                 arrivals.pop(pid, None)
             for run in self._all_runs():
                 run.detector.forget(frame.lost)
+                if run.ahead is not None:
+                    run.ahead.forget(frame.lost)
+                    for key in [k for k in run.pending if k[0] in frame.lost]:
+                        del run.pending[key]   # the person is gone: nothing to contradict
         if persons:
             self.empty_since = None
         elif self.empty_since is None:
@@ -193,15 +264,22 @@ class PieceRuntime:
                 chosen = plist if trig.performer == "any" else self._select(trig.performer)
                 if chosen:
                     det.frame(t, chosen, firings)
+                    if run.ahead is not None:
+                        anticipate(self, run, t, chosen)
             if firings:
                 for f in firings:
+                    if run.pending and run.pending.pop((f.person, f.joint), None) is not None:
+                        self.counts["confirmed"] += 1   # measured as predicted: fired already
+                        continue
                     self._consider(run, f, t)
                 firings.clear()
+        contradicted(self, t)
         self._clock_triggers(t, runs)
-        for mrun in self._maps[self.section.index]:
+        for mrun in (*self._maps[self.section.index], *self._global_maps):
+            if self.ending and mrun.mapping.kind == "cc":
+                continue      # the ending's fade owns the sound; OSC mappings go on
             mrun.update(self, t)
-        for mrun in self._global_maps:
-            mrun.update(self, t)
+        self._idle(t)
         self._apply_goto(t)
         self._flush()
 
@@ -252,52 +330,115 @@ class PieceRuntime:
                 firings.clear()
 
     # ------------------------------------------------------------ firing
-    def _consider(self, run: _TriggerRun, f: Firing, t: float) -> None:
+    def _consider(self, run: _TriggerRun, f: Firing, t: float, anticipated: float = 0.0) -> bool:
+        """Whether the firing sounds (cooldown, once, after, while, probability), and if so
+        its actions."""
         trig = run.trigger
         if trig.after and t - self.section_start < trig.after:
-            return
+            return False
         if trig.once and run.fired_in_visit:
-            return
+            return False
         person = self.persons.get(f.person) if f.person is not None else None
         if trig.condition is not None and not holds(trig.condition, person, f.joint):
-            return
+            return False
         scope = trig.cooldown_per
         key = None if scope == "trigger" else f.person if scope == "performer" else (f.person, f.joint)
         last = run.last.get(key)
         if last is not None and t - last < trig.cooldown:
-            return
+            return False
         run.last[key] = t
         if trig.probability < 1.0 and self.rng.random() >= trig.probability:
             self._narrate(t, f"[{self.section.index + 1}] {trig.name}: (silence, by chance)")
-            return
+            return False
         run.fired_in_visit = True
         self.counts["fired"] += 1
+        self._firings += 1
         joint = None if f.joint is None else joint_label(f.joint)
         self._out.append(TriggerFired(t, self.section.name, trig.name, f.person, joint,
-                                      None if f.value is None else round(float(f.value), 4)))
-        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed)
+                                      None if f.value is None else round(float(f.value), 4),
+                                      anticipated))
+        quantize = trig.quantize or self.section.quantize or self.piece.quantize
+        ctx = FireContext(t, self, trig.name, f.person, person, f.joint, f.value, f.speed,
+                          quantize, self._firings, f.detail)
         done = [self.actions.act(a, ctx) for a in trig.actions]
         who = "" if f.person is None else f" [person {f.person}" + (
             f", {joint}" if joint else "") + (f" {f.value:.2f}" if f.value is not None else "") + "]"
-        self._narrate(t, f"[{self.section.index + 1}] {trig.name}{who} -> "
+        ahead = f" (predicted {anticipated * 1000:.0f} ms ahead)" if anticipated else ""
+        self._narrate(t, f"[{self.section.index + 1}] {trig.name}{who}{ahead} -> "
                          f"{'; '.join(d for d in done if d)}")
+        return True
 
     # ------------------------------------------------------------ sections
-    def _apply_goto(self, t: float) -> None:
-        if self._pending_goto is not None:
-            target, cause = self._pending_goto
-            self._pending_goto = None
-            self._change_section(target, t, cause)
+    def _idle(self, t: float) -> None:
+        """The piece's attract section: entered when the room has been empty ``after`` s,
+        left (``back``) as soon as someone is on stage. A goto asked for in this frame wins."""
+        idle = self.piece.idle
+        if idle is None or self._pending_goto is not None:
+            return
+        in_idle = self.section.name == idle.section
+        if not in_idle and not self.persons and self.empty_since is not None \
+                and t - self.empty_since >= idle.after:
+            self._before_idle = self.section.name
+            self.counts["idle"] += 1
+            self._pending_goto = (idle.section, "idle", False)   # the phrase may finish
+        elif in_idle and self.persons and self._before_idle is not None:
+            back = idle.back
+            target = (self.piece.start if back == "start" else
+                      self._before_idle if back == "previous" else back)
+            self._before_idle = None
+            if target != self.section.name:
+                self._pending_goto = (target, "someone arrived", True)   # answer a visitor at once
 
-    def _change_section(self, target: str, t: float, cause: str) -> bool:
+    def _apply_goto(self, t: float) -> None:
+        if self._pending_goto is None:
+            return
+        target, cause, now = self._pending_goto
+        self._pending_goto = None
+        if self.ending or self.ended:
+            return
+        if target == "end":
+            self._begin_ending(t, cause, now)
+            return
+        at = self.voices.busy_until()
+        if now or at <= t + EPS:
+            self.transition = None
+            self._change_section(target, t, cause)
+        elif self.transition is None:     # the first decision stands
+            self.transition = (target, cause, at)
+            self._narrate(t, f"[{self.section.index + 1}] {cause}: moving on ({target}) when "
+                             f"the sounding phrase ends, in {at - t:.1f} s")
+
+    def _due(self, t: float) -> None:
+        """What the clock brings: a waiting section change, the end of the ending."""
+        if self.transition is not None and t >= self.transition[2] - EPS:
+            target, cause, at = self.transition
+            self.transition = None
+            self._change_section(target, t, cause, at)
+        if self.ending and t >= self.ends_at - EPS:
+            self.ended = True
+            self._narrate(t, "== the end == the last notes have rung out; nothing acts any more")
+
+    def _begin_ending(self, t: float, cause: str, now: bool) -> None:
+        """'goto: end': the last phrase finishes, its last notes are held and faded, the room
+        rings; triggers of the whole piece (exits) act until then."""
+        ending = self.piece.ending
+        last_end = t if now else max(t, self.voices.busy_until())
+        fade_end = self.voices.ending(t, last_end, ending.fade)
+        self.ending, self.transition = True, None
+        self.ends_at = fade_end + ending.ring
+        if fade_end > last_end:
+            self.voices.restore(self.ends_at)
+        self._narrate(t, f"== the ending == ({cause}): the last phrase ends in "
+                         f"{last_end - t:.1f} s, fades for {ending.fade:g} s and rings for "
+                         f"{ending.ring:g} s: over in {self.ends_at - t:.1f} s")
+
+    def _change_section(self, target: str, t: float, cause: str,
+                        at: float | None = None) -> bool:
+        """Enter ``target`` now (``at``: the musical moment it was due, for the grid)."""
         sections = self.piece.sections
         current = self.section
-        if self.ended:
+        if self.ended or self.ending:
             return False
-        if target == "end":
-            self.ended = True
-            self._narrate(t, f"== the end == ({cause}): no trigger or mapping acts any more")
-            return True
         if target == "next":
             if current.next is not None:
                 new = self.piece.section(current.next)
@@ -321,10 +462,14 @@ class PieceRuntime:
             if run.active and run.mapping.otherwise is not None:
                 run.send(self._out, t, run.mapping.otherwise, force=True)
             run.active, run.smoothed, run.sent = False, None, None
-        self._enter(new, current, t, cause)
+        self._enter(new, current, t, cause, at)
         return True
 
-    def _enter(self, new: Section, previous: Section | None, t: float, cause: str) -> None:
+    def _enter(self, new: Section, previous: Section | None, t: float, cause: str,
+               at: float | None = None) -> None:
+        tempo = new.tempo or self.piece.tempo
+        if tempo != self.grid.tempo:    # a new tempo: its grid starts with the section
+            self.grid.origin, self.grid.tempo = (t if at is None else at), tempo
         self.section, self.section_start = new, t
         self.visited.append(new.name)
         if previous is not None:
@@ -340,7 +485,9 @@ class PieceRuntime:
         self._narrate(t, f"== section {new.index + 1}/{n}: {new.name} =="
                          + (f" ({cause})" if cause != "start" else "")
                          + (f" -- {new.about}" if new.about else ""))
-        ctx = FireContext(t, self, "on_enter", None, None, None, None, 0.0)
+        self._firings += 1
+        ctx = FireContext(t, self, "on_enter", None, None, None, None, 0.0,
+                          new.quantize or self.piece.quantize, self._firings)
         done = [self.actions.act(a, ctx) for a in new.on_enter]
         if done:
             self._narrate(t, f"on entering {new.name} -> {'; '.join(done)}")
@@ -356,6 +503,10 @@ class PieceRuntime:
     def _flush(self) -> None:
         if self._out:
             events, self._out = self._out, []
+            if not self.ending:   # the fade starts from the last expression the piece sent
+                for e in events:
+                    if isinstance(e, ControlChange):
+                        self.voices.note_control(e)
             self.sink.emit(events)
 
 

@@ -22,6 +22,9 @@ import math
 from dataclasses import dataclass
 from typing import Iterable
 
+import numpy as np
+
+from ..analysis.gait import LiveSteps
 from ..joints import JOINTS, HandState
 from .model import BODY, Trigger
 
@@ -78,6 +81,7 @@ class Firing:
     joint: int | None
     value: float | None      # what crossed: metres, m/s, seconds
     speed: float = 0.0       # the joint's speed then (for velocity: speed)
+    detail: dict | None = None  # more values for $references (step: gait: step_width, ...)
 
 
 class Detector:
@@ -257,6 +261,46 @@ class StepDetector(Detector):
                     st[1] = s
 
 
+class GaitStepDetector(Detector):
+    """step: gait -- seed 003's foot events, one ``LiveSteps`` per person.
+
+    Fires when one foot passes the other, for the step the standing foot
+    ended: value = step length (m), speed = walking speed (m/s), detail =
+    step_length, step_width (m), step_time (s). A walk's first placement
+    (no step before it) and feet the trigger does not watch do not fire.
+    """
+
+    def __init__(self, trigger: Trigger) -> None:
+        super().__init__(trigger)
+        self.feet = {_SIDE[j]: j for j in trigger.joints}
+        self.walkers: dict[int, LiveSteps] = {}
+
+    def reset(self) -> None:
+        super().reset()
+        self.walkers.clear()
+
+    def forget(self, pids: Iterable[int]) -> None:
+        for pid in pids:
+            self.walkers.pop(pid, None)
+
+    def frame(self, t, persons, out):
+        for p in persons:
+            walker = self.walkers.get(p.id)
+            if walker is None:
+                walker = self.walkers[p.id] = LiveSteps()
+            joints = np.array(p.body.joints, dtype=float)
+            joints[np.asarray(p.body.conf) < p.min_conf] = np.nan
+            step = walker.update(t, joints)
+            if step is None or step.length is None or step.time is None:
+                continue
+            joint = self.feet.get(0 if step.side == "left" else 1)
+            if joint is None:
+                continue
+            out.append(Firing(p.id, joint, step.length, step.length / step.time,
+                              {"step_length": step.length, "step_width": step.width,
+                               "step_time": step.time}))
+
+
 class PresenceDetector(Detector):
     """appears / disappears: from the frame's new and lost ids (see ``presence``)."""
 
@@ -301,7 +345,7 @@ def detector_for(trigger: Trigger) -> Detector:
     if kind == "hand":
         return HandDetector(trigger)
     if kind == "step":
-        return StepDetector(trigger)
+        return GaitStepDetector(trigger) if trigger.gait else StepDetector(trigger)
     if kind in ("appears", "disappears"):
         return PresenceDetector(trigger)
     return ClockDetector(trigger)

@@ -16,11 +16,12 @@ Client-to-Server (4.1.1)::
 View-to-Server (4.1.2): ``/registerView ip port``. Server-to-View (4.1.3):
 the same addresses without the clientID. Our additions are new addresses
 only (``/floorPlane clientID a b c d``, ``/unregisterView ip port``,
-``/stage/stats [port]``), so a Kuatro client works unchanged. See docs/osc-api.md.
+``/stage/stats [port]``, ``/stage/health [port]``), so a Kuatro client works unchanged. See docs/osc-api.md.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from dataclasses import dataclass, field
@@ -51,10 +52,17 @@ DROP_REASONS: tuple[str, ...] = (
     "bad_hand_state",   # state not one of the five names or codes
     "flood",            # a client over its message-rate budget
     "queue_full",       # the engine queue is full (engine far behind)
-    "not_allowed",      # client not in the rig's allow-list
+    "not_allowed",      # client or address not in the rig's allow-lists (docs/security.md)
+    "wrong_source",     # a known sensor id sent from another address than it registered from
+    "too_many_clients", # a new sensor id while the client table is full of active sensors
+    "too_many_views",   # a /registerView while the view table is full
+    "bad_time",         # a timetag further from our wall clock than clients.max_clock_skew_s
     "late",             # older than the frame already fused for that user
+    "kernel_overflow",  # the kernel dropped it: the socket's receive queue was full
     "internal_error",   # the engine failed on this message (a bug; logged with a traceback)
 )
+#: sensor types and other free text from the wire are cut to this many characters
+MAX_TEXT = 64
 
 
 @dataclass(slots=True)
@@ -105,6 +113,8 @@ class RegisterView:
     host: str
     port: int
     register: bool = True  # False for /unregisterView
+    rate_hz: float | None = None  # a fixed output rate asked for (stage addition); None: every update
+    forecast_s: float | None = None  # bodies predicted this far ahead (stage addition); None: 0
 
 
 @dataclass(slots=True)
@@ -112,8 +122,23 @@ class StatsQuery:
     reply_port: int | None  # None: reply to the sender's port
 
 
+@dataclass(slots=True)
+class HealthQuery:
+    """stage extension: ``/stage/health [port]``: the health messages, to the sender's address."""
+
+    reply_port: int | None
+
+
+@dataclass(slots=True)
+class ViewUnreachable:
+    """Not from the wire: the kernel said a datagram to this address was refused (ICMP)."""
+
+    host: str
+    port: int
+
+
 ClientMessage = Union[RegisterDevice, NewUser, LostUser, JointCoordinates, HandStateMsg, FloorPlane]
-Message = Union[ClientMessage, RegisterView, StatsQuery]
+Message = Union[ClientMessage, RegisterView, StatsQuery, HealthQuery, ViewUnreachable]
 
 
 @dataclass(slots=True)
@@ -156,7 +181,10 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
         else:
             out.drops.append((source, "malformed"))
     except Exception:  # python-osc raises several types on garbage; all mean the same here
+        # the whole datagram is one drop: what its first elements gave counts no more
+        # (found by tests/test_fuzz.py: a bundle whose last size lies counted twice)
         out.messages.clear()
+        out.drops.clear()
         out.drops.append((source, "malformed"))
     return out
 
@@ -192,6 +220,8 @@ def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None
 
 _FIXED_SIZES = {"i": 4, "f": 4, "c": 4, "r": 4, "m": 4, "d": 8, "h": 8, "t": 8,
                 "T": 0, "F": 0, "N": 0, "I": 0}
+#: the type tags python-osc parses (arrays and exotic tags are refused as malformed)
+_PARSED_TAGS = b"ifcrmdhtTFNsb"
 
 
 def _parse_message(data: bytes) -> osc_message.OscMessage:
@@ -201,6 +231,14 @@ def _parse_message(data: bytes) -> osc_message.OscMessage:
     one synth), so a truncated skeleton would decode with a wrong last value;
     here the arguments must fill the datagram exactly.
     """
+    # type tags python-osc does not know make it log a warning on the root logger per
+    # datagram (a flood of them would fill the log): refuse them before it parses
+    end = data.find(b"\0")
+    start = (end // 4 + 1) * 4 if end >= 0 else -1
+    stop = data.find(b"\0", start) if start >= 0 else -1
+    if stop < 0 or not data.startswith(b",", start) or \
+            data[start + 1:stop].strip(_PARSED_TAGS):
+        raise ValueError("type tags missing or not supported")
     msg = osc_message.OscMessage(data)
     tags = msg.dgram[len(_pad(msg.address.encode())):].split(b"\0", 1)[0].decode("ascii")
     size = len(_pad(msg.address.encode())) + len(_pad(tags.encode()))
@@ -403,6 +441,8 @@ def _h_register_device(params: list, source: str) -> RegisterDevice:
     sensor_type = params[1] if len(params) == 2 else "unknown"
     if not isinstance(sensor_type, str):
         raise _Drop("bad_types")
+    if len(sensor_type) > MAX_TEXT:  # it goes into logs and stats: never 60 KB of it
+        sensor_type = sensor_type[:MAX_TEXT - 1] + "~"
     return RegisterDevice(_client(params[0]), sensor_type)
 
 
@@ -477,11 +517,28 @@ def _port(v: object) -> int:
 
 
 def _h_register_view(params: list, source: str, register: bool = True) -> RegisterView:
+    rate = forecast = None
+    if register and len(params) == 4 and isinstance(params[3], float):
+        # rate (0: every update) and forecast in seconds (a float): stage additions
+        forecast = params[3]
+        if not (math.isfinite(forecast) and 0 <= forecast <= 1.0):
+            raise _Drop("out_of_range")
+        params = params[:3]
+        if params[2] == 0 and not isinstance(params[2], bool):
+            params = params[:2]
+    if register and len(params) == 3:  # trailing rate in Hz: a stage addition
+        rate = params[2]
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)):
+            raise _Drop("bad_types")
+        if not (math.isfinite(rate) and 0 < rate <= 1000):
+            raise _Drop("out_of_range")
+        params = params[:2]
     _arity(params, 2)
     host = params[0]
     if not isinstance(host, str) or not host or len(host) > 255:
         raise _Drop("bad_types")
-    return RegisterView(host, _port(params[1]), register)
+    return RegisterView(host, _port(params[1]), register, None if rate is None else float(rate),
+                        None if forecast is None else round(float(forecast), 6))  # float32 on the wire
 
 
 def _h_unregister_view(params: list, source: str) -> RegisterView:
@@ -494,6 +551,12 @@ def _h_stats(params: list, source: str) -> StatsQuery:
     return StatsQuery(_port(params[0]) if params else None)
 
 
+def _h_health(params: list, source: str) -> HealthQuery:
+    if len(params) > 1:
+        raise _Drop("bad_arity")
+    return HealthQuery(_port(params[0]) if params else None)
+
+
 _HANDLERS = {
     "/registerDevice": _h_register_device,
     "/newUser": _h_new_user,
@@ -504,6 +567,7 @@ _HANDLERS = {
     "/registerView": _h_register_view,
     "/unregisterView": _h_unregister_view,
     "/stage/stats": _h_stats,
+    "/stage/health": _h_health,
 }
 
 
@@ -542,15 +606,36 @@ def encode_message(address: str, *args: object) -> bytes:
     return _pad(address.encode()) + _pad(b"".join(tags)) + b"".join(data)
 
 
+@functools.lru_cache(maxsize=256)
+def _block_layout(prefix_tags: bytes, selected: bytes) -> tuple[bytes, bytes, np.ndarray, np.ndarray]:
+    """The fixed part of a joint block for one set of joints: (address and type tags, the
+    joint names with room for their floats, where the floats go, which joints). Cached:
+    a skeleton stream uses few joint sets, and filling a template costs a fraction of
+    building the message (lru_cache is thread-safe)."""
+    idx = np.flatnonzero(np.frombuffer(selected, dtype=bool))
+    head = _ADDR_JOINTS + _pad(b"," + prefix_tags + b"sffff" * len(idx))
+    body = bytearray()
+    slots = []
+    for i in idx:
+        body += _NAME_BYTES[i]
+        slots.append(len(body))
+        body += bytes(16)
+    where = (np.array(slots, dtype=np.intp)[:, None] + np.arange(16)).ravel()
+    where.setflags(write=False)
+    idx.setflags(write=False)
+    return head, bytes(body), where, idx
+
+
 def _joint_block(prefix_tags: bytes, prefix: bytes, joints: np.ndarray, conf: np.ndarray,
                  mask: np.ndarray | None) -> bytes:
-    idx = np.flatnonzero(conf > 0 if mask is None else mask)
+    selected = np.ascontiguousarray(conf > 0 if mask is None else mask, dtype=bool)
+    head, template, where, idx = _block_layout(prefix_tags, selected.tobytes())
     values = np.empty((len(idx), 4), dtype=">f4")
     values[:, :3] = joints[idx]
     values[:, 3] = conf[idx]
-    rows = values.tobytes()
-    body = b"".join(_NAME_BYTES[i] + rows[16 * k:16 * k + 16] for k, i in enumerate(idx))
-    return _ADDR_JOINTS + _pad(b"," + prefix_tags + b"sffff" * len(idx)) + prefix + body
+    body = np.frombuffer(template, dtype=np.uint8).copy()
+    body[where] = values.view(np.uint8).ravel()
+    return head + prefix + body.tobytes()
 
 
 def encode_view_joints(user: int, joints: np.ndarray, conf: np.ndarray,

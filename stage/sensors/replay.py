@@ -6,11 +6,14 @@ the same fused output bit for bit, as fast as the CPU allows.
 
 Live (``ReplaySource.start``) paces the records by their arrival times
 (x ``speed``, or as fast as possible) from one UDP socket per recorded
-sender, so the server sees the same distinct clients. Bundle timetags are
-re-anchored to the wall clock when playback starts (keeping the sensors'
-clock offsets to one another), scaled with ``--speed``, and keep moving
-forwards across ``--loop`` restarts, so the server sees what it would from
-live clients.
+sender, so the server sees the same distinct clients. Every datagram goes
+out in a bundle whose timetag is its original capture time shifted to now
+(the recorded capture time, else its own timetag brought onto the
+recording's clock, else its arrival), on one clock for all senders and
+moving forwards across ``--loop`` restarts. Faster than real time the
+timetags keep the recording's pace, so a server fuses every frame at any
+speed (it follows a client sending faster than real time on that client's
+own time line); slower than real time they are slowed with the playback.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from pythonosc.parsing import ntp
 
 from ..errors import ConfigError
 from ..rig import Rig, load_rig
+from .protocol import encode_bundle
 from .recording import Record, read_recording
 from .source import ThreadedSource
 
@@ -105,7 +109,6 @@ class ReplaySource(ThreadedSource):
             raise ConfigError(f"{self.path}: no such recording") from None
         self.speed, self.loop = speed, loop
         self.loops = 0
-        self._first_tag: float | None = None  # the first timetag in the recording
         self._scan: dict | None = None
 
     def describe(self) -> str:
@@ -148,6 +151,10 @@ class ReplaySource(ThreadedSource):
     def _play(self, target: tuple[str, int], stop: threading.Event,
               socks: dict[tuple[str, int], socket.socket]) -> None:
         fast = not math.isfinite(self.speed)
+        # timetags advance at the recording's pace (x1) when playing faster, and slow down
+        # with the playback when playing slower, so they never run behind the arrivals
+        pace = min(self.speed, 1.0)
+        clocks = self._source_clocks()
         mono0, wall0 = time.monotonic(), time.time()
         offset = 0.0  # recording seconds already played by earlier loops
         while not stop.is_set():
@@ -164,7 +171,8 @@ class ReplaySource(ThreadedSource):
                         return
                 if stop.is_set():
                     return
-                self._send(rec, self._clock_of(wall0, offset), target, socks)
+                captured = _capture_of(rec, clocks)
+                self._send(rec, wall0 + (offset + captured - first) / pace, target, socks)
             if first is None:
                 log.warning("%s holds no records", self.path)
                 return
@@ -173,20 +181,36 @@ class ReplaySource(ThreadedSource):
             self.loops += 1
             offset += last + 1.0 / 30.0  # the next pass starts one frame after the last record
 
-    def _clock_of(self, wall0: float, offset: float):
-        """Timetag mapping: sensor clocks re-anchored to now, scaled by the speed, and moved on
-        by the loops already played, so they always run forwards like a live client's."""
-        speed = self.speed if math.isfinite(self.speed) else 1.0
+    def _source_clocks(self) -> dict[tuple[str, int], list[float]]:
+        """Per sender, its clock's offset onto the recording's clock: the minimum of
+        ``arrival - timetag`` per 10 s block (network delay only ever adds to it)."""
+        blocks: dict[tuple[str, int], dict[int, float]] = {}
+        start = None
+        for rec in self.recording:
+            start = rec.arrival if start is None else start
+            tag = _bundle_tag(rec.data)
+            if tag is None:
+                continue
+            k = int((rec.arrival - start) // _BLOCK_S)
+            per = blocks.setdefault(rec.source, {})
+            d = rec.arrival - tag
+            if d < per.get(k, math.inf):
+                per[k] = d
+        out: dict[tuple[str, int], list[float]] = {}
+        for source, per in blocks.items():
+            n = max(per) + 1
+            values = [per.get(k, math.inf) for k in range(n)]
+            best = [min(values[max(k - 1, 0):k + 2]) for k in range(n)]
+            filled, last = [], next(v for v in best if math.isfinite(v))
+            for v in best:  # blocks with no bundle take their neighbour's
+                last = v if math.isfinite(v) else last
+                filled.append(last)
+            out[source] = [start or 0.0] + filled
+        return out
 
-        def fn(t: float) -> float:
-            if self._first_tag is None:
-                self._first_tag = t
-            return wall0 + ((t - self._first_tag) + offset) / speed
-        return fn
-
-    def _send(self, rec: Record, fn, target: tuple[str, int],
+    def _send(self, rec: Record, captured: float, target: tuple[str, int],
               socks: dict[tuple[str, int], socket.socket]) -> None:
-        data = _retimed(rec.data, fn)
+        data = _stamped(rec.data, captured)
         self.sent += 1
         sock = socks.get(rec.source)
         if sock is None:
@@ -195,6 +219,44 @@ class ReplaySource(ThreadedSource):
             sock.sendto(data, target)
         except OSError:
             pass  # the server went away; keep the rhythm, it may come back
+
+
+_BLOCK_S = 10.0
+
+
+def _bundle_tag(data: bytes) -> float | None:
+    """The outer timetag of a bundle (Unix s), or None (not a bundle, or "immediately")."""
+    if not data.startswith(b"#bundle\0") or len(data) < 16:
+        return None
+    (stamp,) = struct.unpack_from(">Q", data, 8)
+    return None if stamp == 1 else ntp.ntp_to_system_time(data[8:16])
+
+
+def _capture_of(rec: Record, clocks: dict[tuple[str, int], list[float]]) -> float:
+    """A record's capture time on the recording's clock (see the module docstring)."""
+    if rec.capture is not None and math.isfinite(rec.capture):
+        return rec.capture
+    tag = _bundle_tag(rec.data)
+    clock = clocks.get(rec.source)
+    if tag is None or clock is None:
+        return rec.arrival
+    k = int((rec.arrival - clock[0]) // _BLOCK_S)
+    offset = clock[1 + min(max(k, 0), len(clock) - 2)]
+    return min(tag + offset, rec.arrival)
+
+
+def _stamped(data: bytes, t: float) -> bytes:
+    """``data`` in a bundle timetagged ``t`` (Unix s): a bundle's timetags all move by the
+    same amount (nested ones keep their spacing); a message is wrapped; other bytes (not
+    OSC) go out unchanged, for the server to count."""
+    if data.startswith(b"#bundle\0") and len(data) >= 16:
+        tag = _bundle_tag(data)
+        if tag is None:  # "immediately": give it the capture time
+            return data[:8] + ntp.system_time_to_ntp(t) + data[16:]
+        return _retimed(data, lambda old: old + (t - tag))
+    if data.startswith(b"/") and len(data) % 4 == 0:
+        return encode_bundle([data], t)
+    return data
 
 
 __all__ = ["rig_from_meta", "ReplaySource"]

@@ -74,6 +74,9 @@ class Status:
     sensors: dict[str, SensorStatus]
     views: dict[str, dict[str, Any]] = field(default_factory=dict)
     registered_views: tuple[tuple[str, int], ...] = ()
+    #: the show's health (``stage.app.health``: sensors, views, synths, engine), when a
+    #: live show checks it; {} otherwise
+    health: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,6 +135,10 @@ class View:
     autostart: ClassVar[bool] = True
     #: Fused frames that may wait for this view; beyond that the oldest are dropped.
     max_pending_frames: ClassVar[int] = 4
+    #: > 0: ``on_frame`` gets every body predicted this many seconds past its capture time
+    #: (``Body.horizon``, ``Body.sd``; docs/anticipation.md) instead of as measured. Set it
+    #: before the host is attached to the engine (a class attribute or in ``__init__``).
+    forecast_s: float = 0.0
 
     name: str = ""   # set by the host before start()
 

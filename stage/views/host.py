@@ -55,6 +55,8 @@ class ViewHost:
         self.failed_plugins: list[PluginInfo] = []
         self.engine: Engine | None = None
         self._collector = StatusCollector()
+        #: the show's latest health (set by the app's health monitor), sent with the status
+        self.health: dict[str, Any] = {}
         self._last_status = float("-inf")
         self._status_pending = False
         self._scene = Scene()
@@ -127,7 +129,8 @@ class ViewHost:
                  midi_clock_bpm: float | None = None, osc_bundles: bool = False,
                  monitor_host: str = "127.0.0.1",
                  plugin_options: dict[str, dict[str, Any]] | None = None,
-                 threaded: bool = True) -> "ViewHost":
+                 threaded: bool = True, audio: str | None = None, synth: bool = False,
+                 soundfont: str | None = None) -> "ViewHost":
         """The views of a show, built from the piece's outputs and the command line.
 
         outputs: the piece's declared outputs (kind "midi" or "osc").
@@ -137,7 +140,9 @@ class ViewHost:
         plugins: also run every installed view that starts by itself (``autostart``);
         relay: other stage servers to send our fused bodies to (Client-to-Server API);
         midi_clock_bpm: send MIDI clock at this tempo; osc_bundles: OSC in timetagged bundles;
-        plugin_options: keyword options per view name.
+        plugin_options: keyword options per view name; audio: render the MIDI to this WAV
+        file through FluidSynth; synth: play it live through FluidSynth on JACK; soundfont:
+        theirs (default: a General MIDI one where the system installs it).
         """
         host = cls(clock=clock, threaded=threaded)
         found = discover_views()
@@ -147,9 +152,12 @@ class ViewHost:
                 log.warning("output '%s' has kind '%s': only 'midi' and 'osc' are played; "
                             "its events are ignored", output.name, output.kind)
         midi = [o for o in outputs if o.kind == "midi"]
-        if midi or midi_port or midi_file:
+        if midi or midi_port or midi_file or audio or synth:
+            extra = {k: v for k, v in (("audio", audio), ("synth", synth),
+                                       ("soundfont", soundfont)) if v}
             host.add_plugin(found.get("midi"), "midi", outputs=midi, port=midi_port,
-                            file=midi_file, clock_bpm=midi_clock_bpm, **options.pop("midi", {}))
+                            file=midi_file, clock_bpm=midi_clock_bpm, **extra,
+                            **options.pop("midi", {}))
         osc_outputs = [o for o in outputs if o.kind == "osc"]
         if osc_outputs or osc:
             host.add_plugin(found.get("osc"), "osc", outputs=osc_outputs, targets=list(osc),
@@ -178,6 +186,10 @@ class ViewHost:
     def attach(self, engine: Engine) -> "ViewHost":
         """Listen to ``engine``'s fused frames and collect its status; call before start()."""
         self.engine = engine
+        for slot in self.slots:
+            ahead = float(getattr(slot.view, "forecast_s", 0.0) or 0.0)
+            if ahead > 0 and slot.wants_frames:
+                engine.people.want_forecast(ahead)
         engine.listeners.append(self._on_frame)
         return self
 
@@ -189,7 +201,10 @@ class ViewHost:
         """Engine thread: enqueue only."""
         for slot in self.slots:
             if slot.wants_frames:
-                slot.offer_frame(frame)
+                ahead = getattr(slot.view, "forecast_s", 0.0)
+                bodies = frame.forecasts.get(ahead) if ahead else None
+                slot.offer_frame(frame if bodies is None else FusedFrame(
+                    frame.t, bodies, frame.updated, frame.new, frame.lost, frame.forecasts))
         if frame.t - self._last_status >= self.status_interval_s:
             self.collect_status()
 
@@ -200,7 +215,7 @@ class ViewHost:
             return None
         now = self.engine.clock.now()
         self._last_status = now
-        status = self._collector.collect(self.engine, self.stats(own=False))
+        status = self._collector.collect(self.engine, self.stats(own=False), self.health)
         for slot in self.slots:
             if slot.wants_status:
                 slot.offer_status(status)

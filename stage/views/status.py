@@ -58,7 +58,8 @@ class StatusCollector:
         self.low_fitness = low_fitness
         self._last: tuple[float, dict[str, int]] | None = None
 
-    def collect(self, engine: Engine, views: dict[str, dict[str, Any]] | None = None) -> Status:
+    def collect(self, engine: Engine, views: dict[str, dict[str, Any]] | None = None,
+                health: dict[str, Any] | None = None) -> Status:
         """Call on the engine thread only (reads the engine's live state)."""
         stats = engine.stats()
         now = engine.clock.now()
@@ -93,4 +94,4 @@ class StatusCollector:
                     round(float(v), 4) for v in transform[:3, 3])
                 sensors[sid] = SensorStatus(sid, position, 0.0, False, transform is not None,
                                             None, "", False, "in the rig but not connected")
-        return Status(now, stats, sensors, views or {}, tuple(engine.views))
+        return Status(now, stats, sensors, views or {}, tuple(engine.views), health or {})

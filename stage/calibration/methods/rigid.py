@@ -21,7 +21,7 @@ import numpy as np
 
 from ...errors import CalibrationError
 from ..fitness import kabsch, weighted_median
-from ...geometry import matrix, yaw_matrices
+from ...geometry import yaw_matrices
 from ..pairs import PairSet
 
 

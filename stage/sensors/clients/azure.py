@@ -3,7 +3,8 @@
 Install the Azure Kinect Sensor SDK and Body Tracking SDK (for an Orbbec
 Femto: Orbbec's K4A wrapper, which the same Body Tracking SDK drives), then
 ``pip install 'stage-kuatro[azure]'`` and run ``stage client azure --to
-SERVER:7770 --id femto-a``.
+SERVER:7770 --id femto-a``. ``stage client azure --check`` says what is
+installed and missing and, with a device, prints one tracked skeleton.
 
 The body tracker reports 32 joints in millimetres in the depth camera's
 space (x right, y down, z away) with a confidence level per joint (0 none,
@@ -17,7 +18,10 @@ arrays; ``run`` needs the device.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
+import os
+import sys
 import time
 
 import numpy as np
@@ -93,6 +97,80 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
                 sender.send(data)
     finally:
         sender.close()
+
+
+#: where the SDK installers put the libraries when they are not on the loader's path
+_WIN_BIN = r"sdk\windows-desktop\amd64\release\bin"
+_K4A_PATHS = {"linux": ["/usr/lib/x86_64-linux-gnu/libk4a.so.1.4",
+                        "/usr/lib/aarch64-linux-gnu/libk4a.so.1.4", "/usr/local/lib/libk4a.so"],
+              "win32": [rf"C:\Program Files\Azure Kinect SDK v1.4.{v}\{_WIN_BIN}\k4a.dll"
+                        for v in (1, 2, 0)]}
+_K4ABT_PATHS = {"linux": ["/usr/lib/libk4abt.so", "/usr/lib/x86_64-linux-gnu/libk4abt.so",
+                          "/usr/lib/libk4abt.so.1.1"],
+                "win32": [rf"C:\Program Files\Azure Kinect Body Tracking SDK\{_WIN_BIN}"
+                          r"\k4abt.dll"]}
+
+
+def _first_body(wait_s: float) -> tuple[BodyFrame | None, float]:  # pragma: no cover
+    """Open the device and body tracker, wait up to ``wait_s`` for a body: (body or None, s)."""
+    import pykinect_azure as pykinect
+    pykinect.initialize_libraries(track_body=True)
+    config = pykinect.default_configuration
+    config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
+    config.depth_mode = pykinect.K4A_DEPTH_MODE_NFOV_UNBINNED
+    device = pykinect.start_device(config=config)
+    tracker = pykinect.start_body_tracker()
+    start = time.monotonic()
+    try:
+        while time.monotonic() - start < wait_s:
+            device.update()
+            frame = tracker.update()
+            if frame.get_num_bodies() > 0:
+                body = frame.get_body(0)
+                return azure_body(body.id, [(j.position.x, j.position.y, j.position.z)
+                                            for j in body.joints],
+                                  [j.confidence_level for j in body.joints]), \
+                    time.monotonic() - start
+        return None, time.monotonic() - start
+    finally:
+        device.close()
+
+
+def check(wait_s: float = 5.0, platform: str = sys.platform, find_spec=importlib.util.find_spec,
+          find_library=None, exists=os.path.exists, first_body=_first_body) -> tuple[str, bool]:
+    """``stage client azure --check``: (report, everything needed is there and a body was seen)."""
+    import ctypes.util
+    from ... import install_hint
+    from .check import Item, format_skeleton, library_item, module_item, report
+    find_library = find_library or ctypes.util.find_library
+    key = "win32" if platform == "win32" else "linux"
+    items = [Item("Linux or Windows (x64)", platform in ("linux", "win32"), platform)]
+    items.append(library_item(
+        "Azure Kinect Sensor SDK (or Orbbec's K4A wrapper)", "k4a", _K4A_PATHS[key],
+        "Linux: apt install libk4a1.4 k4a-tools from Microsoft's package repository (Ubuntu "
+        "18.04/20.04), or Orbbec's OrbbecSDK-K4A-Wrapper for a Femto; Windows: the Azure "
+        "Kinect SDK 1.4 installer", find_library, exists))
+    items.append(library_item(
+        "Azure Kinect Body Tracking SDK", "k4abt", _K4ABT_PATHS[key],
+        "Linux: apt install libk4abt1.1; Windows: the Body Tracking SDK 1.1 installer (it needs "
+        "an NVIDIA GPU with CUDA, or DirectML on Windows)", find_library, exists))
+    items.append(module_item("pykinect_azure", ("pykinect_azure", "pykinect-azure"),
+                             install_hint("azure"), find_spec))
+    extra: list[str] = []
+    if all(item.ok for item in items):
+        try:
+            body, waited = first_body(wait_s)
+        except Exception as exc:  # no device, a driver error: one line
+            items.append(Item("device", False, f"cannot open it: {exc}"))
+        else:
+            if body is None:
+                items.append(Item("a tracked body", False, f"none in {waited:.1f} s: is "
+                                  "someone 0.5-4 m in front of the sensor?"))
+            else:
+                items.append(Item("a tracked body", True, f"after {waited:.1f} s; Kinect camera "
+                                  "space, metres (x to the sensor's left, y up, z away)"))
+                extra = format_skeleton(body)
+    return report("stage client azure --check", items, extra)
 
 
 class AzureSource(ThreadedSource):

@@ -3,7 +3,9 @@
 Install on the Windows machine the Kinect is plugged into: the Kinect for
 Windows SDK 2.0, then ``pip install 'stage-kuatro[kinect2]'`` (``pykinect2024``, the
 maintained fork of Microsoft's PyKinect2, imported as ``pykinect2``). Run
-``stage client kinect2 --to SERVER:7770 --id kinect-a``.
+``stage client kinect2 --to SERVER:7770 --id kinect-a``. ``stage client
+kinect2 --check`` says what is installed and missing and, with a sensor,
+prints one tracked skeleton.
 
 The SDK already speaks our contract: the 25 joints in ``JointType`` order,
 camera space in metres (x to the sensor's left, y up, z away), joint
@@ -15,7 +17,11 @@ reads the sensor and cannot run without one.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
+import ntpath
+import os
+import sys
 import time
 
 import numpy as np
@@ -104,6 +110,67 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
     finally:
         kinect.close()
         sender.close()
+
+
+def _first_body(wait_s: float) -> tuple[BodyFrame | None, float]:  # pragma: no cover
+    """Open the sensor and wait up to ``wait_s`` for a tracked body: (body or None, seconds)."""
+    from pykinect2 import PyKinectRuntime, PyKinectV2
+    kinect = PyKinectRuntime.PyKinectRuntime(PyKinectV2.FrameSourceTypes_Body)
+    start = time.monotonic()
+    try:
+        while time.monotonic() - start < wait_s:
+            if not kinect.has_new_body_frame():
+                time.sleep(0.01)
+                continue
+            frame = kinect.get_last_body_frame()
+            for k in range(kinect.max_body_count):
+                body = frame.bodies[k]
+                if body.is_tracked:
+                    j = body.joints
+                    return kinect2_body(
+                        body.tracking_id,
+                        [(j[n].Position.x, j[n].Position.y, j[n].Position.z) for n in range(N_JOINTS)],
+                        [j[n].TrackingState for n in range(N_JOINTS)],
+                        body.hand_left_state, body.hand_right_state), time.monotonic() - start
+        return None, time.monotonic() - start
+    finally:
+        kinect.close()
+
+
+def check(wait_s: float = 5.0, platform: str = sys.platform, env=os.environ,
+          exists=os.path.exists, find_spec=importlib.util.find_spec,
+          first_body=_first_body) -> tuple[str, bool]:
+    """``stage client kinect2 --check``: (report, everything needed is there and a body was seen)."""
+    from ... import install_hint
+    from .check import Item, format_skeleton, module_item, report
+    items = [Item("Windows (64-bit)", platform == "win32",
+                  platform if platform == "win32" else
+                  f"this is {platform}: the Kinect v2 SDK runs only on Windows 8/10/11")]
+    sdk_dir = env.get("KINECTSDK20_DIR")
+    dll = ntpath.join(env.get("SystemRoot", r"C:\Windows"), "System32", "Kinect20.dll")
+    has_sdk = bool(sdk_dir) or exists(dll)
+    items.append(Item("Kinect for Windows SDK 2.0", has_sdk,
+                      (sdk_dir or dll) if has_sdk else
+                      "install KinectSDK-v2.0_1409-Setup.exe (Microsoft), then replug the sensor"))
+    items.append(module_item("pykinect2", ("pykinect2024", "pykinect2"), install_hint("kinect2"),
+                             find_spec))
+    items.append(module_item("comtypes", ("comtypes",), install_hint("kinect2"), find_spec))
+    extra: list[str] = []
+    if all(item.ok for item in items):
+        try:
+            body, waited = first_body(wait_s)
+        except Exception as exc:  # the runtime could not start: say so, in one line
+            items.append(Item("sensor", False, f"cannot open the Kinect: {exc}"))
+        else:
+            if body is None:
+                items.append(Item("a tracked body", False, f"none in {waited:.1f} s: is the "
+                                  "sensor on USB 3, powered, and someone 1-4 m in front of it? "
+                                  "(Kinect Configuration Verifier tests the setup)"))
+            else:
+                items.append(Item("a tracked body", True, f"after {waited:.1f} s; camera space, "
+                                  "metres (x to the sensor's left, y up, z away)"))
+                extra = format_skeleton(body)
+    return report("stage client kinect2 --check", items, extra)
 
 
 class Kinect2Source(ThreadedSource):

@@ -1,22 +1,31 @@
-"""Webcam client: MediaPipe pose landmarks mapped onto the 25 Kinect joints.
+"""Webcam client: MediaPipe pose and hand landmarks mapped onto the 25 Kinect joints.
 
 Anyone with a laptop can be a sensor: ``pip install 'stage-kuatro[webcam]'``
 (in a checkout: ``pip install -e '.[webcam]'``) then ``stage client webcam
---to HOST:7770``. MediaPipe gives 33 landmarks twice:
-normalised image coordinates, and "world" coordinates in metres centred on
-the hips (x to the image's right, y down, z away from the camera). A single
-camera has no depth, so the hips' distance is estimated with the pinhole
-model from how long body segments look in the image against their length
-in metres; the skeleton is then placed in Kinect camera space (x to the
-sensor's left, y up, z away from it). Confidence comes from each landmark's
-visibility: at least ``tracked`` -> 1, at least ``inferred`` -> 0.5, else 0.
-Joints MediaPipe lacks are derived (SpineBase, SpineMid, SpineShoulder,
-Neck from the hips and shoulders; Head from the ears; the palm from the
-wrist, index and pinky). Pose landmarks say nothing about fingers, so no
-hand state is sent.
+--to HOST:7770``, or ``--video FILE`` to play a recorded video as if a
+camera were filming it. The models come inside the pinned MediaPipe wheel
+(``mediapipe_models``); nothing is downloaded.
+
+MediaPipe gives 33 landmarks per person twice: normalised image
+coordinates, and "world" coordinates in metres centred on the hips (x to
+the image's right, y down, z away from the camera). A single camera has no
+depth, so the hips' distance is estimated with the pinhole model from how
+long body segments look in the image against their length in metres; the
+skeleton is then placed in Kinect camera space (x to the sensor's left, y
+up, z away from it). Confidence comes from each landmark's visibility: at
+least ``tracked`` -> 1, at least ``inferred`` -> 0.5, else 0. Joints
+MediaPipe lacks are derived (SpineBase, SpineMid, SpineShoulder, Neck from
+the hips and shoulders; Head from the ears; the palm from the wrist, index
+and pinky). Hand states come from the hand landmarker (``hands``): open,
+closed or lasso as the Kinect defines them, ``unknown`` when unsure,
+``notTracked`` when the pose does not see the wrist.
+
+Several people: the pose landmarker looks for up to ``people`` poses per
+frame; a pose keeps its user id from frame to frame by the nearest hip
+centre in the image (``PoseTracker``).
 
 Everything but ``run`` is pure and tested on recorded landmark arrays;
-``run`` needs ``mediapipe`` and ``opencv-python`` and a camera.
+``run`` needs ``mediapipe`` and OpenCV, and a camera or a video file.
 """
 
 from __future__ import annotations
@@ -24,12 +33,13 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ...joints import JOINT_INDEX as J
-from ...joints import N_JOINTS
+from ...joints import N_JOINTS, HandState
+from .hands import Hand, assign_hands
 from .osc import BodyFrame
 from ..source import ThreadedSource
 
@@ -100,13 +110,15 @@ def hip_distance(world: np.ndarray, image: np.ndarray, visibility: np.ndarray, c
 
 def landmarks_to_body(world: np.ndarray, image: np.ndarray, visibility: np.ndarray,
                       camera: Camera = Camera(), key: object = 0, tracked: float = 0.75,
-                      inferred: float = 0.4) -> BodyFrame | None:
+                      inferred: float = 0.4,
+                      hands: tuple[HandState, HandState] | None = None) -> BodyFrame | None:
     """One person's MediaPipe landmarks -> a Kinect-like body in camera space.
 
     world: (33, 3) metres, hip-centred, x right / y down / z away (MediaPipe
     ``pose_world_landmarks``); image: (33, 2 or 3) normalised image
-    coordinates (``pose_landmarks``); visibility: (33,). Returns None when
-    the distance cannot be estimated (too little of the body is visible).
+    coordinates (``pose_landmarks``); visibility: (33,); hands: the (left,
+    right) hand states to send, or None. Returns None when the distance
+    cannot be estimated (too little of the body is visible).
     """
     world = np.asarray(world, float)
     image = np.asarray(image, float)
@@ -141,107 +153,209 @@ def landmarks_to_body(world: np.ndarray, image: np.ndarray, visibility: np.ndarr
     conf[J["SpineMid"]] = conf[J["SpineBase"]]
     joints[J["Neck"]] = spine_shoulder + 0.35 * (joints[J["Head"]] - spine_shoulder)
     conf[J["Neck"]] = min(conf[J["SpineShoulder"]], conf[J["Head"]])
-    return BodyFrame(key, joints, conf, None)
+    return BodyFrame(key, joints, conf, hands)
+
+
+class PoseTracker:
+    """Keeps each person's key from frame to frame: the nearest hip centre in the image.
+
+    MediaPipe's pose landmarker numbers the poses it finds in each frame
+    afresh; a Kinect keeps a tracking id while it follows someone. A pose
+    takes the key of the nearest pose of the previous frame (normalised
+    image units, at most ``max_jump``); the others get new keys.
+    """
+
+    def __init__(self, max_jump: float = 0.2) -> None:
+        self.max_jump = max_jump
+        self._last: dict[int, np.ndarray] = {}
+        self._next = 0
+
+    def keys(self, centres: list[np.ndarray]) -> list[int]:
+        pairs = sorted((float(np.linalg.norm(c[:2] - prev[:2])), i, key)
+                       for i, c in enumerate(centres) for key, prev in self._last.items())
+        out: list[int | None] = [None] * len(centres)
+        taken: set[int] = set()
+        for d, i, key in pairs:
+            if d <= self.max_jump and out[i] is None and key not in taken:
+                out[i] = key
+                taken.add(key)
+        for i in range(len(out)):
+            if out[i] is None:
+                out[i] = self._next
+                self._next += 1
+        self._last = {key: np.asarray(c, float) for key, c in zip(out, centres)}
+        return out  # type: ignore[return-value]
+
+
+def hand_states(image: np.ndarray, visibility: np.ndarray, hands: list[Hand], camera: Camera,
+                inferred: float = 0.4) -> tuple[HandState, HandState]:
+    """(left, right) hand states of one pose from the hands found in the same frame.
+
+    A wrist the pose does not see is ``notTracked``; a seen wrist takes the
+    state of the detected hand whose own wrist is nearest (within 60 % of
+    the forearm's length in the image), else ``unknown``.
+    """
+    px = np.asarray(image, float)[:, :2] * [camera.width, camera.height]
+    wrists = px[[L["left_wrist"], L["right_wrist"]]]
+    forearms = np.linalg.norm(wrists - px[[L["left_elbow"], L["right_elbow"]]], axis=1)
+    scaled = [Hand(h.wrist_image[:2] * [camera.width, camera.height], h.state, h.confidence)
+              for h in hands]
+    given = assign_hands(wrists, scaled, np.maximum(0.6 * forearms, 10.0))
+    out = []
+    for wrist, hand in zip((L["left_wrist"], L["right_wrist"]), given):
+        if visibility[wrist] < inferred:
+            out.append(HandState.NOT_TRACKED)
+        else:
+            out.append(hand.state if hand is not None else HandState.UNKNOWN)
+    return out[0], out[1]
+
+
+def _percentiles(values: list[float]) -> str:
+    if not values:
+        return "-"
+    p50, p95 = np.percentile(np.asarray(values) * 1000, [50, 95])
+    return f"{p50:.1f}/{p95:.1f}"
+
+
+@dataclass
+class WebcamStats:
+    """What a run did, for the summary line and the tests."""
+
+    read: int = 0
+    processed: int = 0
+    skipped: int = 0
+    with_body: int = 0
+    bodies: int = 0
+    hands: dict = field(default_factory=lambda: {s.wire_name: 0 for s in HandState})
+    decode_s: list = field(default_factory=list)
+    mediapipe_s: list = field(default_factory=list)
+    stage_s: list = field(default_factory=list)
+    sent: int = 0
+    ended: bool = False
+
+    def summary(self) -> str:
+        known = sum(self.hands[s] for s in ("open", "closed", "lasso"))
+        return (f"{self.read} frames read, {self.processed} processed, {self.skipped} skipped "
+                f"(late); {self.with_body} with a body ({self.bodies} bodies); hand states: "
+                f"{known} known (open {self.hands['open']}, closed {self.hands['closed']}, "
+                f"lasso {self.hands['lasso']}), {self.hands['unknown']} unknown, "
+                f"{self.hands['notTracked']} not tracked; per frame ms p50/p95: decode "
+                f"{_percentiles(self.decode_s)}, MediaPipe {_percentiles(self.mediapipe_s)}, "
+                f"stage client {_percentiles(self.stage_s)}; {self.sent} datagrams sent"
+                + ("; the video ended" if self.ended else ""))
 
 
 def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: float = 60.0,
-        model: str | None = None, show: bool = False, stop=None) -> None:  # pragma: no cover
-    """Capture from a webcam and send the Client-to-Server API until ``stop`` is set.
+        model: str | None = None, show: bool = False, stop=None, video: str | None = None,
+        realtime: bool = True, people: int = 1, hands: bool = True,
+        hand_model: str | None = None, stats: WebcamStats | None = None, speed: float = 1.0
+        ) -> WebcamStats:  # pragma: no cover - needs mediapipe and a camera or video
+    """Capture from a camera (or play ``video``) and send the Client-to-Server API.
 
-    Needs ``mediapipe`` and ``opencv-python`` (``pip install 'stage-kuatro[webcam]'``).
-    Uses MediaPipe's legacy ``solutions.pose`` (model inside the package)
-    when present, else the Tasks API with the ``pose_landmarker`` model file
-    given as ``model`` (download it once; nothing is downloaded at run time).
+    Runs until ``stop`` is set or the video ends. Needs the ``webcam`` extra.
+    ``people``: how many poses to look for; ``hands``: send hand states;
+    ``speed``: a video's pace, times the pace it was filmed (with ``realtime``).
+    ``stats`` (optional) is filled in as it goes and returned.
     """
-    from ... import install_hint
-    from ...errors import StageError
+    from .mediapipe_models import Landmarkers, import_mediapipe
     from .osc import ClientEncoder, UdpSender
+    from .video import FrameReader, open_capture
+    _, cv2 = import_mediapipe()
+    stats = stats if stats is not None else WebcamStats()
+    cap, name, is_video = open_capture(cv2, camera_index, video)
     try:
-        import cv2
-        import mediapipe as mp
-    except ImportError as exc:
-        raise StageError(f"the webcam client needs mediapipe and opencv-python ({exc.name} is "
-                         f"missing): {install_hint('webcam')}") from None
-    cap = cv2.VideoCapture(camera_index)
-    if not cap.isOpened():
-        raise StageError(f"cannot open camera {camera_index}")
+        reader = FrameReader(cap, name, is_video, realtime, speed)
+    except Exception:
+        cap.release()
+        raise
     width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     camera = Camera(width, height, fov_h)
-    detect = _detector(mp, model)
+    try:
+        marks = Landmarkers(people, hands, model, hand_model)
+    except Exception:
+        reader.release()
+        raise
     encoder, sender = ClientEncoder(client_id, "webcam-mediapipe"), UdpSender(target)
     sender.send(encoder.register())
+    tracker = PoseTracker()
+    log.info("webcam: %s, %dx%d, %.0f degrees across, up to %d people", name, width, height,
+             fov_h, people)
     try:
         while stop is None or not stop.is_set():
-            ok, frame = cap.read()
-            if not ok:
-                log.warning("camera %d gave no frame", camera_index)
-                time.sleep(0.1)
-                continue
-            stamp = time.time()
-            found = detect(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB), stamp)
+            frame = reader.next(stop)
+            stats.read, stats.skipped = reader.read, reader.skipped
+            if frame is None:
+                break
+            t1 = time.perf_counter()
+            rgb = cv2.cvtColor(frame.image, cv2.COLOR_BGR2RGB)
+            found = marks.detect(rgb, frame.t)
+            t2 = time.perf_counter()
+            keys = tracker.keys([0.5 * (p.image[L["left_hip"]] + p.image[L["right_hip"]])
+                                 for p in found.people])
             bodies = []
-            if found is not None:
-                body = landmarks_to_body(*found, camera=camera)
+            for key, person in zip(keys, found.people):
+                states = hand_states(person.image, person.visibility, found.hands, camera) \
+                    if hands else None
+                body = landmarks_to_body(person.world, person.image, person.visibility,
+                                         camera=camera, key=key, hands=states)
                 if body is not None:
                     bodies.append(body)
-            data = encoder.frame(bodies, stamp)
+                    for state in states or ():
+                        stats.hands[state.wire_name] += 1
+            data = encoder.frame(bodies, frame.stamp)
             if data is not None:
                 sender.send(data)
+            t3 = time.perf_counter()
+            stats.processed += 1
+            stats.with_body += bool(bodies)
+            stats.bodies += len(bodies)
+            stats.decode_s.append(reader.decode_s)
+            stats.mediapipe_s.append(found.inference_s)
+            stats.stage_s.append((t3 - t1) - found.inference_s)
+            stats.sent = sender.sent
             if show:
-                cv2.imshow("stage webcam (q quits)", frame)
+                cv2.imshow("stage webcam (q quits)", frame.image)
                 if cv2.waitKey(1) & 0xFF == ord("q"):
                     break
+        if reader.ended:
+            stats.ended = True
+            final = encoder.frame([], time.time())   # the people leave with the video
+            if final is not None:
+                sender.send(final)
+            log.info("webcam: %s ended after %d frames", name, reader.read)
     finally:
-        cap.release()
+        stats.sent = sender.sent
+        marks.close()
+        reader.release()
         sender.close()
-
-
-def _detector(mp, model: str | None):  # pragma: no cover - needs mediapipe
-    """A function rgb image -> (world (33,3), image (33,3), visibility (33,)) or None."""
-    solutions = getattr(mp, "solutions", None)
-    if model is None and solutions is not None and hasattr(solutions, "pose"):
-        pose = solutions.pose.Pose(model_complexity=1, smooth_landmarks=True)
-
-        def legacy(rgb, stamp):
-            result = pose.process(rgb)
-            if result.pose_world_landmarks is None or result.pose_landmarks is None:
-                return None
-            w = result.pose_world_landmarks.landmark
-            i = result.pose_landmarks.landmark
-            return (np.array([[p.x, p.y, p.z] for p in w]), np.array([[p.x, p.y, p.z] for p in i]),
-                    np.array([p.visibility for p in i]))
-        return legacy
-    from ...errors import StageError
-    if model is None:
-        raise StageError("this mediapipe has no solutions.pose: give --model pose_landmarker.task "
-                         "(MediaPipe's pose landmarker model file)")
-    from mediapipe.tasks.python import BaseOptions, vision
-    options = vision.PoseLandmarkerOptions(base_options=BaseOptions(model_asset_path=model),
-                                           running_mode=vision.RunningMode.VIDEO)
-    landmarker = vision.PoseLandmarker.create_from_options(options)
-
-    def tasks(rgb, stamp):
-        image = mp.Image(image_format=mp.ImageFormat.SRGB, data=rgb)
-        result = landmarker.detect_for_video(image, int(stamp * 1000))
-        if not result.pose_world_landmarks:
-            return None
-        w, i = result.pose_world_landmarks[0], result.pose_landmarks[0]
-        return (np.array([[p.x, p.y, p.z] for p in w]), np.array([[p.x, p.y, p.z] for p in i]),
-                np.array([p.visibility for p in i]))
-    return tasks
+    return stats
 
 
 class WebcamSource(ThreadedSource):
-    """The ``webcam`` source: a webcam or camera through MediaPipe pose estimation; ``stage client webcam``."""
+    """The ``webcam`` source: a webcam or a video file through MediaPipe; ``stage client webcam``."""
 
     name = "webcam"
-    description = "a webcam or camera through MediaPipe pose estimation (extra: webcam)"
+    description = "a webcam or a video file through MediaPipe pose estimation (extra: webcam)"
 
     def __init__(self, client_id: str = "webcam", camera: int = 0, fov: float = 60.0,
-                 model: str | None = None, show: bool = False) -> None:
+                 model: str | None = None, show: bool = False, video: str | None = None,
+                 realtime: bool = True, people: int = 1, hands: bool = True,
+                 hand_model: str | None = None, speed: float = 1.0) -> None:
         super().__init__()
         self.client_id, self.camera, self.fov = client_id, camera, fov
-        self.model, self.show = model, show
+        self.model, self.show, self.video, self.realtime = model, show, video, realtime
+        self.people, self.hands, self.hand_model = people, hands, hand_model
+        self.speed = speed
+        self.stats = WebcamStats()
 
-    def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs hardware
-        run(target, self.client_id, self.camera, self.fov, self.model, self.show, stop)
+    def describe(self) -> str:
+        return f"webcam {self.video!r}" if self.video else f"webcam camera {self.camera}"
+
+    def summary(self) -> str:
+        """One line: frames, bodies, hand states, time per frame (printed by ``stage client``)."""
+        return self.stats.summary()
+
+    def _run(self, target: tuple[str, int], stop) -> None:  # pragma: no cover - needs mediapipe
+        run(target, self.client_id, self.camera, self.fov, self.model, self.show, stop,
+            self.video, self.realtime, self.people, self.hands, self.hand_model, self.stats,
+            self.speed)

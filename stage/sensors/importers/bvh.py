@@ -9,11 +9,14 @@ degrees and apply in the order listed: ``Zrotation Yrotation Xrotation``
 means R = Rz @ Ry @ Rx (each joint may list its own order). A joint's
 position channels, when present, replace its offset.
 
-Mapping: each Kinect joint takes the first BVH joint whose name is in its
-alias list (CMU, Mixamo and other common naming), compared case-insensitively;
-a few joints are derived (SpineMid between the hips and the shoulder line,
-Head half-way up the head segment). Joints found nowhere get confidence 0.
-Lengths are scaled so the performer has the requested height.
+Mapping: a built-in naming scheme (CMU, Bandai Namco, Mixamo, LAFAN;
+``bvh_maps``) recognised by the file's joint names, else the first BVH joint
+whose name is in each Kinect joint's alias list, compared case-insensitively;
+a joint map (ours -> the file's names) goes over either. A few joints are
+derived (SpineMid between the hips and the shoulder line, Head half-way up
+the head segment, a palm beyond the wrist). Joints found nowhere get
+confidence 0. Lengths are in the file's own unit, detected from the
+performer's size or given, or scaled to a requested height.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...geometry import axis_rotations
 from ...joints import JOINT_INDEX, JOINTS, N_JOINTS
+from .bvh_maps import UNITS, apply_overrides, detect, detect_units, scheme_mapping
 
 
 @dataclass
@@ -291,21 +295,44 @@ def resolve_mapping(available: list[str], overrides: dict[str, str] | None = Non
     return mapping
 
 
-def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | None = None,
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The file's motion as Kinect joints: ((T, 25, 3) metres, (25,) confidence).
+@dataclass
+class KinectTake:
+    """A BVH take as Kinect joints, and how it was read."""
 
-    Scaled so the performer, standing tallest, is ``height`` metres from the
-    lowest foot point to the top of the head; y up as in the file; feet on
-    y = 0 at their lowest.
+    frames: np.ndarray          # (T, 25, 3) metres, y up, the lowest point of the take at y = 0
+    conf: np.ndarray            # (25,) 1 mapped or derived, 0.5 extrapolated, 0 missing
+    scheme: str | None          # the built-in naming scheme detected, if any
+    units: str | None           # the length unit used (None: scaled to a height)
+    scale: float                # metres per file unit
+    mapping: dict[str, str]     # Kinect joint -> the file's joint ('X' or 'X/end')
+
+
+def kinect_joints(bvh: Bvh, height: float | None = 1.75, joint_map: dict[str, str] | None = None,
+                  units: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The file's motion as Kinect joints: ((T, 25, 3) metres, (25,) confidence); see ``to_kinect``."""
+    take = to_kinect(bvh, height, joint_map, units)
+    return take.frames, take.conf
+
+
+def to_kinect(bvh: Bvh, height: float | None = None, joint_map: dict[str, str] | None = None,
+              units: str | None = None) -> KinectTake:
+    """The file's motion as Kinect joints (``KinectTake``).
+
+    ``height``: scale so the performer, standing tallest, is that many metres
+    from the lowest foot point to the top of the head. Else ``units`` (a key
+    of ``bvh_maps.UNITS``; None: detected from the performer's size). y up as
+    in the file; the lowest point of the take on y = 0.
     """
     world = forward_kinematics(bvh)
-    mapping = resolve_mapping(list(world), joint_map)
+    names = list(world)
+    scheme = detect([j.name for j in bvh.joints])
+    mapping = scheme_mapping(scheme, names) if scheme is not None else resolve_mapping(names)
+    mapping = apply_overrides(mapping, names, joint_map or {})
     for needed in ("SpineBase", "HipLeft", "HipRight"):
         if needed not in mapping:
             raise ConfigError(f"cannot find a joint for {needed} in the BVH file (names: "
                               f"{', '.join(j.name for j in bvh.joints[:12])}...); give a "
-                              f"joint_map", path=bvh.path)
+                              f"joint map (--joint-map FILE)", path=bvh.path)
     # standing height in the motion itself (rest poses often splay the legs): the top of the
     # head above the lowest foot point, taken where the performer stands tallest
     head_top = world.get(mapping.get("Head", "") + "/end", world.get(mapping.get("Head", ""),
@@ -314,7 +341,14 @@ def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | No
         head_top = np.max(np.stack([p[:, 1] for p in world.values()]), axis=0)[:, None] * [0, 1, 0]
     lowest = np.min(np.stack([p[:, 1] for p in world.values()]), axis=0)
     standing = float(np.percentile(head_top[:, 1] - lowest, 90))
-    scale = height / max(standing, 1e-9)
+    if height is not None:
+        scale, units = height / max(standing, 1e-9), None
+    else:
+        if units is None:
+            units = detect_units(standing)
+        elif units not in UNITS:
+            raise ConfigError(f"unknown unit '{units}' (known: {', '.join(UNITS)})")
+        scale = UNITS[units]
     n = len(bvh.frames)
     out = np.zeros((n, N_JOINTS, 3))
     conf = np.zeros(N_JOINTS)
@@ -335,10 +369,17 @@ def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | No
         conf[JOINT_INDEX["SpineMid"]] = 1.0
     for side in ("Left", "Right"):
         hand, wrist, tip = "Hand" + side, "Wrist" + side, "HandTip" + side
+        elbow = "Elbow" + side
         if hand not in mapping and wrist in mapping and tip in mapping:
             # a skeleton without hand joints: the palm is half-way from the wrist to the tip
             out[:, JOINT_INDEX[hand]] = 0.5 * (world[mapping[wrist]] + world[mapping[tip]])
             conf[JOINT_INDEX[hand]] = 1.0
+        elif hand not in mapping and wrist in mapping and elbow in mapping:
+            # no hand joint and no tip (Bandai Namco, LAFAN): the palm centre continues the
+            # forearm by 30 % of its length (8 cm on a 26 cm forearm); a guess, so "inferred"
+            w, e = world[mapping[wrist]], world[mapping[elbow]]
+            out[:, JOINT_INDEX[hand]] = w + 0.3 * (w - e)
+            conf[JOINT_INDEX[hand]] = 0.5
     if "Head" in mapping and mapping["Head"] + "/end" in world:
         out[:, JOINT_INDEX["Head"]] = 0.5 * (world[mapping["Head"]] + world[mapping["Head"] + "/end"])
     if "Neck" not in mapping and "Head" in mapping and spine_shoulder is not None:
@@ -350,7 +391,8 @@ def kinect_joints(bvh: Bvh, height: float = 1.75, joint_map: dict[str, str] | No
     floor = out[:, seen, 1].min()
     out[:, :, 1] -= floor
     out[:, ~seen] = 0.0
-    return out, conf
+    return KinectTake(out, conf, scheme.name if scheme is not None else None, units, scale,
+                      mapping)
 
 
 def _branch_point(bvh: Bvh, shoulders: list[str | None]) -> str | None:
@@ -414,29 +456,35 @@ def resample(frames: np.ndarray, frame_time: float, fps: float) -> tuple[np.ndar
     return times, frames[i] * (1 - f) + frames[i + 1] * f
 
 
-def import_bvh(path: str, out: str, height: float = 1.75, fps: float = 30.0,
-               sensor: str = "bvh", joint_map: dict[str, str] | None = None) -> int:
+def import_bvh(path: str, out: str, height: float | None = None, fps: float = 30.0,
+               sensor: str = "bvh", joint_map: dict[str, str] | None = None,
+               units: str | None = None) -> tuple[int, KinectTake]:
     """A BVH take as a one-sensor recording: clean motion capture at ``fps`` (default 30 Hz).
 
     The sensor's space is stage space (y up, feet on y = 0, metres), so the
     recording's rig makes it the reference with no calibration needed. Every
-    mapped joint is tracked (confidence 1); BVH has no hand states.
+    mapped joint is tracked (confidence 1); BVH has no hand states. Lengths:
+    ``height`` (scale to it) or ``units`` (None: detected). Returns
+    (datagrams written, the take as read).
     """
     from ..clients.osc import BodyFrame
     from ...rig import Rig, SensorConfig
     from .common import Frame, Take, write_takes
     bvh = load_bvh(path)
-    frames, conf = kinect_joints(bvh, height, joint_map)
+    kinect = to_kinect(bvh, height, joint_map, units)
+    frames, conf = kinect.frames, kinect.conf
     times, resampled = resample(frames, bvh.frame_time, fps)
     take = Take(sensor, "mocap", [Frame(float(t), [BodyFrame(0, j, conf, None)])
                                   for t, j in zip(times, resampled)])
     rig = Rig(reference=sensor)
     rig.sensors[sensor] = SensorConfig(sensor, "mocap")
     meta = {"source": "stage import bvh", "files": [os.path.basename(path)], "height_m": height,
+            "units": kinect.units, "m_per_unit": kinect.scale, "scheme": kinect.scheme,
             "fps": fps, "file_fps": bvh.fps, "rig": rig.to_dict(),
             "joints_missing": [JOINTS[i] for i in range(N_JOINTS) if conf[i] == 0]}
-    return write_takes(out, [take], meta)
+    return write_takes(out, [take], meta), kinect
 
 
-__all__ = ["Bvh", "BvhJoint", "BvhMotion", "parse_bvh", "load_bvh", "forward_kinematics",
-           "kinect_joints", "resolve_mapping", "resample", "import_bvh", "ALIASES"]
+__all__ = ["Bvh", "BvhJoint", "BvhMotion", "KinectTake", "parse_bvh", "load_bvh",
+           "forward_kinematics", "kinect_joints", "to_kinect", "resolve_mapping", "resample",
+           "import_bvh", "ALIASES"]

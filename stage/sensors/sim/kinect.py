@@ -78,6 +78,10 @@ class KinectModel:
     far: float = 4.5                # seed 003
     fps: float = 30.0               # seed 003 / paper 4.1
     frame_jitter_s: float = 0.002   # s.d. of each frame's capture time about the 30 Hz grid
+    pipeline_delay_s: float = 0.060  # the sensor's own pipeline: a frame stamped t shows the
+                                    # body as it was at t - this (Kinect v2's ~60 ms; seed 004
+                                    # measured 60-80 ms end to end)
+    pipeline_jitter_s: float = 0.003  # s.d. of that delay, frame to frame (cut at 3 s.d.)
     drop_p: float = 0.005           # probability that a frame never comes out
     noise_m: float = 0.006          # s.d. per axis of a tracked joint at 1 m
     noise_per_m: float = 0.004      # added to the s.d. per metre beyond 1 m

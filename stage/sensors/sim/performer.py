@@ -91,6 +91,8 @@ class Performer:
         self.jumps: list[tuple[float, float, float]] = []   # (t0, t1, height)
         self.clip_segments: list[_ClipSegment] = []
         self.overrides: list[tuple[float, bool]] = []       # scenario enter/leave, absolute time
+        #: (start s, duration s, step) of each step as built: the choreography's times
+        self.schedule: list[tuple[float, float, Step]] = []
         self.length = self._build(steps)
         if loop is True:
             self.period = self.length if self.length > 0 else None
@@ -167,6 +169,7 @@ class Performer:
                                   f"(use 'with: previous' for steps at the same time)")
             handler: Callable[[Step, float], float] = getattr(self, "_do_" + step.verb)
             duration = handler(step, start)
+            self.schedule.append((start, duration, step))
             previous_start = start
             cursor = max(cursor, start + duration)
         return cursor
@@ -367,7 +370,22 @@ class Performer:
         return 0.0
 
     def _do_bvh(self, step: Step, start: float) -> float:
-        clip = self.clips[step.value]
+        return self._play_clip(step, start, self.clips[step.value])
+
+    def _do_gait(self, step: Step, start: float) -> float:
+        from .gait import GaitClip
+        o = step.opts
+        try:
+            clip = GaitClip(int(step.value), o.get("length", 0.70), o.get("width", 0.12),
+                            o.get("cadence", 110.0), first_step=o.get("first"),
+                            lead=o.get("lead", "left"), props=self.props)
+        except ValueError as exc:
+            raise self._error(step, str(exc)) from None
+        self.clips[f"gait@{start:g}"] = clip
+        step.opts = {k: v for k, v in o.items() if k == "facing"}
+        return self._play_clip(step, start, clip)
+
+    def _play_clip(self, step: Step, start: float, clip: Clip) -> float:
         begin = float(self._opt(step, "from", 0.0))
         end = float(self._opt(step, "to", clip.duration))
         if not 0 <= begin < end <= clip.duration + 1e-6:
@@ -396,6 +414,28 @@ class Performer:
         self.heading.add(Hold(start + duration, target_h + (clip.heading(end) - clip.heading(begin)
                                                             if repeat == 1 else 0.0)))
         return duration
+
+
+def describe_step(step: Step) -> str:
+    """A step in words, as a composer wrote it: 'raise left to 175 over 1'."""
+    def word(v: Any) -> str:
+        if isinstance(v, HandState):
+            return v.wire_name
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(word(x) for x in v) + "]"
+        if isinstance(v, float):
+            return f"{v:g}"
+        if isinstance(v, dict):
+            return ", ".join(f"{k} {word(x)}" for k, x in v.items())
+        return str(v)
+    value = "" if step.value is True or step.verb in ("wait", "stand") else " " + word(step.value)
+    if step.verb == "wait":
+        value = f" {word(step.value)} s"
+    opts = "".join(f" {k} {word(v)}" for k, v in step.opts.items()
+                   if not (k == "facing" and v == "keep"))
+    return f"{step.verb}{value}{opts}"
 
 
 def _align_arm(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

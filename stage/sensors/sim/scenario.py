@@ -20,7 +20,7 @@ from ...errors import ConfigError
 from ...joints import HandState, parse_hand_state
 from ...yamlio import MarkedDict, Where, load_marked
 from .kinect import PRESETS, KinectModel, VirtualPose, ring_poses
-from .performer import Clip, Performer, Step
+from .performer import Clip, Performer, Step, describe_step
 
 BUILTIN = "stage.sensors.sim.scenarios"
 
@@ -46,6 +46,8 @@ VERBS: dict[str, tuple[tuple[str, ...], str]] = {
     "enter": (("facing",), "true, or the point [x, z] where the performer appears"),
     "leave": ((), "true"),
     "bvh": (("from", "to", "speed", "repeat", "facing"), "a BVH file (path relative to the scenario)"),
+    "gait": (("length", "width", "cadence", "first", "lead", "facing"),
+             "the number of steps of a straight walk with planted feet"),
 }
 TIMING = ("at", "with", "after")
 SIDES = ("left", "right", "both")
@@ -87,6 +89,36 @@ class Scenario:
     path: str | None = None
     network_jitter_s: float = 0.0005
     latency_range: tuple[float, float] = (0.060, 0.080)   # seed 004: 60-80 ms
+
+
+def looks_like_scenario(path: str | os.PathLike) -> bool:
+    """Whether a YAML file is a scenario rather than a piece: it has 'performers' or
+    'sensors' at the top and no 'piece' (rehearsals live beside the pieces they rehearse)."""
+    try:
+        data = load_marked(path)
+    except ConfigError:
+        return False
+    return isinstance(data, dict) and "piece" not in data and (
+        "performers" in data or "sensors" in data)
+
+
+def describe(scenario: Scenario) -> list[str]:
+    """A scenario in words: its sensors, then each performer's choreography with the time
+    every step begins and ends (seconds from the start), as ``stage check`` prints it."""
+    out = [f"{len(scenario.sensors)} sensor(s) ({', '.join(s.id for s in scenario.sensors)}), "
+           f"{len(scenario.performers)} performer(s)"
+           + (f", {scenario.duration:g} s" if scenario.duration else "")]
+    for p in scenario.performers:
+        loop = f", repeating every {p.period:.1f} s" if p.period else ""
+        out.append(f"  {p.name}: {p.props.height:.2f} m tall, {p.length:.1f} s of "
+                   f"choreography{loop}")
+        for start, duration, step in p.schedule:
+            span = f"{start:5.1f}-{start + duration:5.1f} s" if duration > 0 else \
+                f"{start:5.1f}        "
+            out.append(f"    {span}  {describe_step(step)}")
+    for e in scenario.events:
+        out.append(f"  at {e.at:g} s: {e.kind} {e.target}")
+    return out
 
 
 def builtin_names() -> list[str]:
@@ -444,6 +476,10 @@ def _step_value(where: Where, entry: dict, verb: str, what: str, places: dict) -
         if not isinstance(value, str) or not value:
             raise bad
         return value
+    if verb == "gait":
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise bad
+        return value
     raise bad  # pragma: no cover - every verb is handled above
 
 
@@ -470,6 +506,10 @@ def _step_option(where: Where, entry: dict, verb: str, key: str, places: dict) -
         if isinstance(value, list) and len(value) == 3 and all(_num(v) for v in value):
             return [float(v) for v in value]
         raise where.at_key(entry, key, "'to' takes a point [x, y, z] in metres or a sensor id")
+    if key == "lead":
+        if value not in ("left", "right"):
+            raise where.at_key(entry, key, "'lead' is the foot that starts: left or right")
+        return value
     if key == "repeat":
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise where.at_key(entry, key, "'repeat' must be a whole number >= 1")

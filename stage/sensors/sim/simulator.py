@@ -11,6 +11,15 @@ Times: simulation seconds from 0. A sensor's bundles carry its own clock as
 timetag (an offset of up to +-2 s and a drift of up to +-20 ppm unless the
 scenario fixes them, seed 003). A datagram arrives ``latency`` (60-80 ms per
 sensor, seed 004) plus a little network jitter after its capture.
+
+The pipeline delay. A frame's capture timestamp (what the client sends) is
+later than the movement it shows: a frame stamped ``t`` holds the body as the
+ground truth had it at ``t - d``, where ``d`` is the sensor model's
+``pipeline_delay_s`` (default 60 ms, Kinect v2's own pipeline) plus
+``pipeline_jitter_s`` of Gaussian jitter per frame (cut at 3 s.d., never
+below 0). ``truth(t)`` is the movement itself, so a benchmark measures how
+late (or, with a forecast, how early) the engine acts against it. The
+delay is drawn from its own random stream, so changing it changes no noise.
 """
 
 from __future__ import annotations
@@ -65,6 +74,7 @@ class _SensorRun:
         seq = np.random.SeedSequence([seed, 1, index])
         self.rng = np.random.default_rng(seq)
         self.net_rng = np.random.default_rng(np.random.SeedSequence([seed, 2, index]))
+        self.delay_rng = np.random.default_rng(np.random.SeedSequence([seed, 3, index]))
         self.offset = spec.clock_offset if spec.clock_offset is not None else \
             float(rng_setup.uniform(-2.0, 2.0))
         self.drift = (spec.clock_drift_ppm if spec.clock_drift_ppm is not None else
@@ -117,6 +127,13 @@ class _SensorRun:
     def frame_time(self, k: int) -> float:
         return self.phase + k / self.model.fps
 
+    def pipeline_delay(self) -> float:
+        """This frame's pipeline delay, s: how long before its capture stamp it shows."""
+        d, sd = self.model.pipeline_delay_s, self.model.pipeline_jitter_s
+        if sd > 0:
+            d += float(np.clip(self.delay_rng.normal(0.0, sd), -3 * sd, 3 * sd))
+        return max(d, 0.0)
+
     def reset(self) -> None:
         """The sensor was unplugged: its client forgets everything."""
         self.encoder.reset()
@@ -144,8 +161,10 @@ class Simulator:
         return {run.id: run.pose_at(t) for run in self._runs()}
 
     def sensor_clocks(self) -> dict[str, dict[str, float]]:
-        """Per sensor: clock offset (s), drift (ppm) and latency (s) this seed gives."""
-        return {r.id: {"offset_s": r.offset, "drift_ppm": r.drift * 1e6, "latency_s": r.latency}
+        """Per sensor: clock offset (s), drift (ppm), latency (s) this seed gives and the
+        model's pipeline delay (s, before the capture stamp; see the module docs)."""
+        return {r.id: {"offset_s": r.offset, "drift_ppm": r.drift * 1e6, "latency_s": r.latency,
+                       "pipeline_delay_s": r.model.pipeline_delay_s}
                 for r in self._runs()}
 
     def rig(self, calibrated: bool = True) -> Rig:
@@ -231,9 +250,11 @@ class Simulator:
 
     def _frame(self, run: _SensorRun, t: float, cache: dict, epoch: float,
                time_scale: float) -> bytes | None:
-        truth = cache.get(t)
+        # the body as it was one pipeline delay before the frame's capture stamp
+        shown = max(t - run.pipeline_delay(), 0.0)
+        truth = cache.get(shown)
         if truth is None:
-            truth = cache[t] = [(p, p.state(t)) for p in self.performers]
+            truth = cache[shown] = [(p, p.state(shown)) for p in self.performers]
         present = [(p, s) for p, s in truth if s is not None]
         model = run.model
         pose = run.pose_at(t)

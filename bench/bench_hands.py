@@ -1,0 +1,274 @@
+"""Fused hand states on the simulator: three sensors that misread hands 20 % of the time.
+
+The scenario (below, in full: it does not depend on the simulator's default
+sensor model): three Kinect v2 sensors 120 degrees apart on a 2.5 m ring,
+each reporting a visible hand's state wrong 20 % of the time
+(``hand_misread_p: 0.2``, independently per sensor and frame; a wrong report
+is one of the two other states); a dancer walking circles inside the ring,
+both hands changing state every 5 s (open, closed, lasso, ...). The engine
+runs offline on the simulator's stream (its sensors' latencies, clock offsets
+and jitter included), with the default rig settings.
+
+Figures, per hand over the whole run:
+
+- false fused changes per minute: ``/handState`` changes to a state that is not
+  the hand's true state at that moment (a change to ``unknown``/``notTracked``
+  is counted apart: no sensor saw the hand);
+- the delay of each true change: from the arrival of the first datagram that
+  reports the new state to the fused change (the engine's own part; the
+  simulated sensors' 60-80 ms latency comes before), and from the true change;
+- reference, the same stream in the same run: the per-frame majority vote the
+  engine used before (each sensor's latest state, a tie to the higher code, no
+  hold), and each single sensor's raw stream.
+
+Targets (issue 10): fewer than 2 false fused changes per minute; a true change
+reported within 150 ms (of the first datagram that shows it).
+
+    python bench/bench_hands.py            # 120 s, seeds 1-3
+    python bench/bench_hands.py --quick    # 30 s, seed 1
+    python bench/bench_hands.py --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from pythonosc.osc_message import OscMessage
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchlib import machine_busy_s  # noqa: E402
+
+from stage.app.offline import feed  # noqa: E402
+from stage.clock import ManualClock  # noqa: E402
+from stage.engine.engine import Engine  # noqa: E402
+from stage.joints import HandState, parse_hand_state  # noqa: E402
+from stage.sensors.protocol import HandStateMsg, decode_datagram  # noqa: E402
+from stage.sensors.sim import Simulator  # noqa: E402
+from stage.sensors.sim.scenario import load_scenario  # noqa: E402
+
+VIEW = ("127.0.0.1", 9)
+CHANGE_EVERY_S = 5.0
+CYCLE = ("closed", "lasso", "open")
+FALSE_TARGET_PER_MIN, DELAY_TARGET_MS = 2.0, 150.0
+
+
+def scenario(duration: float) -> dict:
+    """The bench's scenario as a scenario file would spell it."""
+    hands = [{CYCLE[k % 3].replace("closed", "close"): "both", "at": CHANGE_EVERY_S * (k + 1)}
+             for k in range(int(duration // CHANGE_EVERY_S))]
+    return {
+        "name": "bench-hands",
+        "duration": duration,
+        "sensors": {"ring": {"count": 3, "radius": 2.5, "height": 0.8}},
+        # the sensor model named in full: noise and the hand misreads this bench is about
+        "kinect": {"hand_misread_p": 0.2, "hand_range_m": 3.5, "noise_m": 0.006,
+                   "noise_per_m": 0.004, "noise_correlation": 0.6, "fit_bias_m": 0.01,
+                   "occlusion_bias_m": 0.04, "drop_p": 0.005, "nan_p": 0.001, "glitch_p": 0.0},
+        "performers": [{
+            "name": "dancer", "height": 1.7, "position": [0.0, -0.9], "facing": 90,
+            "hands": "open",
+            "timeline": [{"circle": [0, 0], "turns": float(duration * 0.5 / (2 * np.pi * 0.9)),
+                          "speed": 0.5}, *hands],
+        }],
+    }
+
+
+class Transport:
+    """Records the engine's /handState datagrams with the engine clock's time."""
+
+    def __init__(self, clock: ManualClock) -> None:
+        self.clock = clock
+        self.changes: list[tuple[float, int, int]] = []   # t, hand, state
+
+    def send(self, data: bytes, address) -> None:
+        if data.startswith(b"/handState"):
+            m = OscMessage(data)
+            self.changes.append((self.clock.now(), 0 if m.params[1] == "left" else 1,
+                                 int(parse_hand_state(m.params[2]))))
+
+
+def true_changes(sim: Simulator, duration: float) -> list[tuple[float, int, int]]:
+    """(t, hand, new state) of every change of the dancer's true hand states."""
+    out, last = [], None
+    for t in np.arange(0.0, duration, 0.001):
+        hands = sim.truth(float(t))["dancer"][1]
+        if last is not None:
+            for h in (0, 1):
+                if hands[h] != last[h]:
+                    out.append((float(t), h, int(hands[h])))
+        last = hands
+    return out
+
+
+def truth_at(changes: list[tuple[float, int, int]], hand: int, t: float) -> int:
+    state = int(HandState.OPEN)
+    for tc, h, s in changes:
+        if h == hand and tc <= t:
+            state = s
+    return state
+
+
+def majority(states: list[int]) -> int:
+    """The engine's vote before issue 10: most sensors, a tie to the higher code."""
+    tally = [0] * 5
+    for s in states:
+        if s >= HandState.OPEN:
+            tally[s] += 1
+    best = max(range(2, 5), key=lambda c: (tally[c], c))
+    if tally[best]:
+        return best
+    return int(HandState.NOT_TRACKED) if HandState.NOT_TRACKED in states else int(HandState.UNKNOWN)
+
+
+def judge(changes: list[tuple[float, int, int]], truth: list[tuple[float, int, int]],
+          first_seen: dict[int, float], minutes: float) -> dict:
+    """Count false changes and the delay of true ones (two hands)."""
+    false_known = false_unknown = 0
+    for t, hand, state in changes:
+        if state == truth_at(truth, hand, t):
+            continue
+        if state >= HandState.OPEN:
+            false_known += 1
+        else:
+            false_unknown += 1
+    delays, delays_truth = [], []
+    for k, (tc, hand, state) in enumerate(truth):
+        nxt = next((t for t, h, _ in truth[k + 1:] if h == hand), float("inf"))
+        hit = next((t for t, h, s in changes if h == hand and s == state and tc <= t < nxt), None)
+        if hit is None:
+            continue
+        delays_truth.append(hit - tc)
+        if k in first_seen:
+            delays.append(hit - first_seen[k])
+    return {"changes": len(changes), "false_known_per_min": false_known / minutes,
+            "false_unknown_per_min": false_unknown / minutes,
+            "true_changes": len(truth), "true_changes_reported": len(delays_truth),
+            "delay_ms": _pcts(delays), "delay_from_truth_ms": _pcts(delays_truth)}
+
+
+def _pcts(values: list[float]) -> dict:
+    if not values:
+        return {"n": 0}
+    v = 1e3 * np.array(values)
+    return {"n": len(v), "p50": float(np.percentile(v, 50)), "p90": float(np.percentile(v, 90)),
+            "max": float(v.max())}
+
+
+def run(seed: int, duration: float, fusion: dict | None = None) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:   # the scenario as a file, as a user writes one
+        path = Path(tmp) / "bench-hands.yaml"
+        path.write_text(yaml.safe_dump(scenario(duration), sort_keys=False))
+        sim = Simulator(load_scenario(str(path)), seed=seed)
+    clock = ManualClock(0.0)
+    transport = Transport(clock)
+    rig = sim.rig()
+    rig.views = [VIEW]
+    if fusion:
+        rig.fusion = dataclasses.replace(rig.fusion, **fusion)
+    engine = Engine(rig, clock, transport)
+    items = list(sim.stream(duration))
+    truth = true_changes(sim, duration)
+    # what the sensors said, in arrival order: for the first-seen times and the references
+    reports: list[tuple[float, str, int, int]] = []     # arrival, sensor, hand, state
+    captured: list[float] = []
+    for d in items:
+        for m, _ in decode_datagram(d.data).messages:
+            if isinstance(m, HandStateMsg):
+                reports.append((d.arrival, m.client, m.hand, int(m.state)))
+                captured.append(d.capture)
+    # when the engine could first know: the first datagram captured after the change that
+    # reports the new state (a misread of the old state into the new one does not count)
+    first_seen = {}
+    for k, (tc, hand, state) in enumerate(truth):
+        seen = [a for (a, _, h, s), c in zip(reports, captured)
+                if h == hand and s == state and tc <= c < tc + 1.0]
+        if seen:
+            first_seen[k] = min(seen)
+    cpu0 = time.process_time()
+    feed(engine, clock, items, until=duration)
+    cpu = time.process_time() - cpu0
+    minutes = duration / 60.0
+    fused = judge(transport.changes, truth, first_seen, minutes)
+    # references on the same reports: the old majority vote and each sensor alone
+    latest: dict[tuple[str, int], int] = {}
+    old_changes, current = [], [None, None]
+    single: dict[str, list] = {}
+    single_last: dict[tuple[str, int], int] = {}
+    for arrival, sensor, hand, state in reports:
+        latest[(sensor, hand)] = state
+        vote = majority([s for (sid, h), s in latest.items() if h == hand])
+        if vote != current[hand]:
+            if current[hand] is not None:
+                old_changes.append((arrival, hand, vote))
+            current[hand] = vote
+        if single_last.get((sensor, hand)) != state:
+            if (sensor, hand) in single_last:
+                single.setdefault(sensor, []).append((arrival, hand, state))
+            single_last[(sensor, hand)] = state
+    old = judge(old_changes, truth, first_seen, minutes)
+    singles = {sid: judge(ch, truth, first_seen, minutes) for sid, ch in sorted(single.items())}
+    return {"seed": seed, "duration_s": duration, "engine_cpu_s": cpu, "fused": fused,
+            "old_majority": old, "single_sensor": singles}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=120.0)
+    parser.add_argument("--seeds", default="1,2,3")
+    parser.add_argument("--quick", action="store_true", help="30 s, seed 1")
+    parser.add_argument("--hand-memory", type=float, help="override fusion.hand_memory_s")
+    parser.add_argument("--hand-hold", type=float, help="override fusion.hand_hold_s")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.duration, args.seeds = 30.0, "1"
+    fusion = {}
+    if args.hand_memory is not None:
+        fusion["hand_memory_s"] = args.hand_memory
+    if args.hand_hold is not None:
+        fusion["hand_hold_s"] = args.hand_hold
+    started, busy0 = time.monotonic(), machine_busy_s()
+    rows = [run(int(s), args.duration, fusion) for s in args.seeds.split(",")]
+    elapsed = time.monotonic() - started
+    busy = (machine_busy_s() - busy0) / elapsed
+    if args.json:
+        json.dump({"rows": rows, "machine_busy_cores": busy}, sys.stdout, indent=1)
+        print()
+        return 0
+    print(f"hands: 3 sensors misreading 20 % of the time, a dancer changing both hands every "
+          f"{CHANGE_EVERY_S:g} s; {args.duration:g} s per seed; {elapsed:.0f} s, machine busy "
+          f"{busy:.2f} cores")
+    print(f"{'seed':>4} {'what':<16} {'changes':>8} {'false/min':>10} {'unknown/min':>12} "
+          f"{'true seen':>10} {'delay p50/p90/max ms (from first report)':>40} {'from truth p50':>15}")
+    worst_false, worst_delay = 0.0, 0.0
+    for r in rows:
+        entries = [("fused (shipped)", r["fused"]), ("old majority", r["old_majority"])]
+        entries += [(f"sensor {sid}", v) for sid, v in r["single_sensor"].items()]
+        for label, v in entries:
+            d, dt = v["delay_ms"], v["delay_from_truth_ms"]
+            delay = (f"{d['p50']:.0f}/{d['p90']:.0f}/{d['max']:.0f}" if d.get("n") else "-")
+            print(f"{r['seed']:>4} {label:<16} {v['changes']:>8} {v['false_known_per_min']:>10.2f} "
+                  f"{v['false_unknown_per_min']:>12.2f} "
+                  f"{v['true_changes_reported']:>4}/{v['true_changes']:<5} {delay:>40} "
+                  f"{dt.get('p50', float('nan')):>15.0f}")
+        worst_false = max(worst_false, r["fused"]["false_known_per_min"])
+        worst_delay = max(worst_delay, r["fused"]["delay_ms"].get("max", float("inf")))
+    print(f"false fused changes per minute (worst seed) {worst_false:.2f}: "
+          f"{'PASS' if worst_false < FALSE_TARGET_PER_MIN else 'FAIL'} (target < "
+          f"{FALSE_TARGET_PER_MIN:g})")
+    print(f"true change reported within (worst) {worst_delay:.0f} ms of the first report: "
+          f"{'PASS' if worst_delay <= DELAY_TARGET_MS else 'FAIL'} (target {DELAY_TARGET_MS:g} ms)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,146 @@
+"""Forecasts: each fused body predicted ahead of its capture time, bounded, with its uncertainty.
+
+A skeleton reaches the engine some 60 ms after the movement it shows (the
+sensor's pipeline; docs/anticipation.md). The filter knows each joint's
+velocity, so it can say where the joint will be ``h`` seconds after the
+body's capture time: the IMM prediction (``kalman.mix``, ``predict``,
+``combine``), whose mean is the estimate plus ``h`` times the velocity and
+whose covariance grows with ``h``. Two bounds keep a prediction a body:
+
+- **speed**: a joint moves at most its group's speed limit times the
+  horizon (``ForecastSettings``: torso, limbs, extremities), so a velocity
+  spoilt by a glitch cannot throw a hand across the stage;
+- **bones**: walking the skeleton from SpineBase outwards, each predicted
+  bone keeps its length at capture time within ``bone_tolerance``: a child
+  too far from (or too near to) its parent is moved along the bone.
+
+The uncertainty given with a forecast is each joint's position s.d. (m): the
+square root of the mean of its three axes' predicted variances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..joints import JOINT_INDEX, JOINTS, N_JOINTS
+from ..settings import ForecastSettings, KalmanSettings
+from .kalman import FilterState, combine, mix, predict, transition
+
+#: (parent, child) of every bone, parents before children (Kinect v2's joint tree)
+BONES: tuple[tuple[int, int], ...] = tuple((JOINT_INDEX[a], JOINT_INDEX[b]) for a, b in (
+    ("SpineBase", "SpineMid"), ("SpineMid", "SpineShoulder"), ("SpineShoulder", "Neck"),
+    ("Neck", "Head"),
+    ("SpineShoulder", "ShoulderLeft"), ("ShoulderLeft", "ElbowLeft"), ("ElbowLeft", "WristLeft"),
+    ("WristLeft", "HandLeft"), ("HandLeft", "HandTipLeft"), ("WristLeft", "ThumbLeft"),
+    ("SpineShoulder", "ShoulderRight"), ("ShoulderRight", "ElbowRight"),
+    ("ElbowRight", "WristRight"), ("WristRight", "HandRight"), ("HandRight", "HandTipRight"),
+    ("WristRight", "ThumbRight"),
+    ("SpineBase", "HipLeft"), ("HipLeft", "KneeLeft"), ("KneeLeft", "AnkleLeft"),
+    ("AnkleLeft", "FootLeft"),
+    ("SpineBase", "HipRight"), ("HipRight", "KneeRight"), ("KneeRight", "AnkleRight"),
+    ("AnkleRight", "FootRight"),
+))
+
+_LIMB = {"ElbowLeft", "ElbowRight", "KneeLeft", "KneeRight"}
+_EXTREMITY = {"WristLeft", "WristRight", "HandLeft", "HandRight", "HandTipLeft", "HandTipRight",
+              "ThumbLeft", "ThumbRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
+
+
+def speed_limits(s: ForecastSettings) -> np.ndarray:
+    """(25,) the fastest each joint may be predicted to move, m/s."""
+    return np.array([s.extremity_speed_m_s if n in _EXTREMITY else
+                     s.limb_speed_m_s if n in _LIMB else s.torso_speed_m_s for n in JOINTS])
+
+
+@dataclass
+class Forecast:
+    """One person's body ``horizon`` s after ``t`` (its capture time)."""
+
+    t: float                  # capture time the forecast starts from, engine clock
+    horizon: float            # seconds ahead of ``t``
+    joints: np.ndarray        # (25, 3) metres
+    velocity: np.ndarray      # (25, 3) m/s (the filter's: constant over the horizon)
+    sd: np.ndarray            # (25,) position s.d., m (NaN for joints never measured)
+    speed_capped: int = 0     # joints whose predicted move was cut to their speed limit
+    bones_fixed: int = 0      # joints moved to keep a bone's length
+
+
+class Forecaster:
+    """Predicts bodies ahead (engine thread; pure but for its counters)."""
+
+    def __init__(self, smoothing: KalmanSettings, settings: ForecastSettings) -> None:
+        self.smoothing, self.settings = smoothing, settings
+        self.limits = speed_limits(settings)
+        self._q = np.array([smoothing.quiet_noise, smoothing.fast_noise])
+        self.made = 0
+        self.speed_capped = 0
+        self.bones_fixed = 0
+        #: the latest forecast's mean s.d. over seen joints, m, per horizon (for stats)
+        self.last_sd: dict[float, float] = {}
+
+    def predict(self, state: FilterState, t: float, joints: np.ndarray, seen: np.ndarray,
+                horizon: float) -> Forecast:
+        """The body whose filter is ``state`` and whose output at capture time ``t`` is
+        ``joints`` (25, 3), predicted ``horizon`` s past ``t``; ``seen`` (25,) bool: the
+        joints that are predicted (others stay where ``joints`` has them, s.d. NaN)."""
+        target = t + horizon
+        dt = np.maximum(target - state.t, 0.0)
+        dt = np.where(np.isnan(dt), 0.0, dt)
+        s = self.smoothing
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
+            xp, Pp = predict(x0, P0, dt, self._q)
+            xm, Pm = combine(xp, Pp, cbar)
+        pos, vel = xm[0], xm[1]
+        sd = np.sqrt(Pm[0].mean(axis=1))
+        ok = seen & np.isfinite(pos).all(axis=1)
+        # speed: the move from the body at capture time, at most limit * horizon
+        move = np.where(ok[:, None], pos - joints, 0.0)
+        dist = np.sqrt((move * move).sum(axis=1))
+        cap = self.limits * horizon
+        over = ok & (dist > cap)
+        if over.any():
+            move[over] *= (cap[over] / dist[over])[:, None]
+        out = joints + move
+        fixed = _keep_bones(out, joints, ok, self.settings.bone_tolerance)
+        self.made += 1
+        n_over = int(over.sum())
+        self.speed_capped += n_over
+        self.bones_fixed += fixed
+        if ok.any():
+            self.last_sd[horizon] = float(np.nanmean(sd[ok]))
+        vel = np.where(ok[:, None] & np.isfinite(vel), vel, 0.0)
+        return Forecast(t, horizon, out, vel, np.where(ok, sd, np.nan), n_over, fixed)
+
+    def stats(self) -> dict:
+        return {"made": self.made, "speed_capped": self.speed_capped,
+                "bones_fixed": self.bones_fixed,
+                "sd_mm": {f"{h:g}": round(v * 1000.0, 1) for h, v in sorted(self.last_sd.items())}}
+
+
+def _keep_bones(pred: np.ndarray, now: np.ndarray, ok: np.ndarray, tol: float) -> int:
+    """Move predicted joints (in place) so that every bone whose two ends are predicted keeps
+    its length in ``now`` within ``tol`` (a fraction); returns how many joints moved."""
+    fixed = 0
+    for parent, child in BONES:
+        if not (ok[parent] and ok[child]):
+            continue
+        ref = now[child] - now[parent]
+        length = float(np.sqrt(ref @ ref))
+        if length <= 0.0:
+            continue
+        bone = pred[child] - pred[parent]
+        got = float(np.sqrt(bone @ bone))
+        lo, hi = length * (1.0 - tol), length * (1.0 + tol)
+        if lo <= got <= hi:
+            continue
+        # along the predicted bone (or the bone at capture time if the two ends meet)
+        direction = bone / got if got > 1e-9 else ref / length
+        pred[child] = pred[parent] + direction * min(max(got, lo), hi)
+        fixed += 1
+    return fixed
+
+
+__all__ = ["BONES", "Forecast", "Forecaster", "speed_limits", "N_JOINTS"]

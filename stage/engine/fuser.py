@@ -1,0 +1,303 @@
+"""Asynchronous fusion: every sensor frame is one measurement update of its person's filter.
+
+A ``View`` is one sensor's frame of one person in stage space, with each
+joint's measurement variance (confidence and distance from the sensor). A
+``BodyFilter`` is one person's 25 joint filters (``kalman.FilterState``)
+and a short history of the views folded into it, each with the state before
+it. The ``Fuser`` folds views in, for all persons of a batch in one numpy
+step per wave (a wave holds at most one view per person; a batch with two
+frames of one person has two waves).
+
+Order. A person's views are folded in in capture-time order, each exactly
+once, at its own capture time. A view captured before the newest one already
+folded in (sensors whose frames reach the engine out of order) is inserted
+where it belongs and the views after it are folded in again from the state
+stored before them: a short replay. History is kept for ``replay_s``
+(``FusionSettings``); a view older than that is dropped as late (unless
+nothing older than it was ever folded in: a new person's first frames). We chose
+replay over an update at the past time because it is exact (the result is
+what in-order arrival would have given) and cheap at this size: a few steps
+of 25 rows.
+
+Views of one instant (captured within ``group_s`` of the first of them)
+are checked against each other before they reach the filter:
+``fusion.consistent_views`` keeps, joint by joint, the views that agree with
+the largest group, so one sensor's bad joint is dropped even when the filter
+is too unsure to judge it (just after a person is found, after an
+occlusion). A view that joins an instant and leaves the choice made for the
+earlier ones unchanged is a plain update; otherwise the instant is replayed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..joints import N_JOINTS
+from ..settings import FusionSettings, KalmanSettings
+from .fusion import consistent_views
+from .kalman import (ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED, STARTED, FilterState, combine,
+                     mix, predict, step, transition)
+
+_USED = np.array([False] * 8)
+_USED[[STARTED, ACCEPTED, DOWNWEIGHTED, RESTARTED]] = True
+
+
+@dataclass(eq=False)
+class View:
+    """One sensor frame of one person, ready to fuse (arrays in stage space)."""
+
+    key: tuple[str, int]          # (client, user)
+    t: float                      # capture time, engine clock, s
+    joints: np.ndarray            # (25, 3) metres
+    conf: np.ndarray              # (25,)
+    r: np.ndarray                 # (25,) per-axis variance, m^2; NaN where not seen
+    arrival: float                # when its datagram reached the server, engine clock
+    #: (25,) bool, after fusion: the joints that went into the filter (not dropped by the
+    #: instant's consistency check nor rejected by the gate)
+    used: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
+    excluded: int = 0             # joints the consistency check left out (for the stats)
+
+
+@dataclass(eq=False)
+class _Step:
+    view: View
+    before: FilterState           # the state before this view (never changed)
+    anchor: float                 # capture time of the first view of its instant
+    mask: np.ndarray              # (25,) joints the instant's consistency check let through
+    #: the mask is every joint the view sees (nothing of it was left out)
+    whole: bool = True
+    #: on the first view of an instant: the filter's prediction for the instant (cached)
+    prior: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class BodyFilter:
+    """One person's joint filters and recent history (engine thread only).
+
+    ``state`` is a ``kalman.FilterState`` of 25 rows (SpineBase ... ThumbRight): for
+    each joint and axis the two modes' [position, velocity], covariances and mode
+    probabilities, and the time each joint's state refers to. It is replaced, never
+    changed in place, so a reference taken from it stays valid. ``estimate(t)`` is
+    the usual way to read it.
+    """
+
+    def __init__(self, n: int = N_JOINTS) -> None:
+        self.state = FilterState.empty(n)
+        self.history: list[_Step] = []
+        #: after a fold: (t, (25, 3) position, (25, 3) velocity), the estimate at the newest
+        #: view's capture time, computed for a whole wave at once
+        self.output: tuple[float, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def newest(self) -> float:
+        """Capture time of the newest view folded in (-inf: none yet)."""
+        return self.history[-1].view.t if self.history else float("-inf")
+
+    def estimate(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """((25, 3) position m, (25, 3) velocity m/s) predicted to ``t`` (never backwards);
+        NaN for joints never measured."""
+        return self.state.predicted(t)
+
+    def prior(self, t: float, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+        """The IMM prediction for ``t``: ((25, 3) mean, (25,) per-axis variance, mean of
+        the three axes); NaN for joints never measured."""
+        st = self.state
+        dt = np.maximum(t - st.t, 0.0)
+        dt = np.where(np.isnan(dt), 0.0, dt)
+        x0, P0, cbar = mix(st.x, st.P, st.mu, *transition(dt, s))
+        xp, Pp = predict(x0, P0, dt, np.array([s.quiet_noise, s.fast_noise]))
+        xm, Pm = combine(xp, Pp, cbar)
+        return xm[0], Pm[0].mean(axis=1)
+
+
+@dataclass
+class FoldStats:
+    views: int = 0
+    late: int = 0            # older than the replay history: dropped
+    replays: int = 0         # out-of-order views and instants whose choice changed
+    disagreeing: int = 0     # joints left out because other views of the instant disagreed
+    downweighted: int = 0    # joints beyond the gate
+    rejected: int = 0        # joints beyond reject_sigma
+    restarted: int = 0       # joints started afresh after two rejections in a row
+
+
+class Fuser:
+    """Folds views into ``BodyFilter``s; see the module docstring."""
+
+    def __init__(self, smoothing: KalmanSettings, fusion: FusionSettings,
+                 q_scale: np.ndarray | None = None) -> None:
+        self.s, self.f = smoothing, fusion
+        self.q_scale = q_scale
+        self.stats = FoldStats()
+
+    # ------------------------------------------------------------ entry point
+    def fold(self, pairs: list[tuple[BodyFilter, View]]) -> list[View]:
+        """Fold views into their filters (``pairs`` in capture-time order); returns the views
+        dropped as late."""
+        waves: list[list[tuple[BodyFilter, View]]] = []
+        depth: dict[int, int] = {}
+        for body, view in pairs:
+            k = depth.get(id(body), 0)
+            depth[id(body)] = k + 1
+            if k == len(waves):
+                waves.append([])
+            waves[k].append((body, view))
+        late: list[View] = []
+        for wave in waves:
+            plain: list[tuple[BodyFilter, View, np.ndarray | None, float]] = []
+            for body, view in wave:
+                self.stats.views += 1
+                if not body.history or (view.t >= body.newest and
+                                        view.t - body.history[-1].anchor > self.f.group_s):
+                    plain.append((body, view, None, view.t))
+                    continue
+                if view.t < body.history[0].view.t and not self._fits_before(body, view.t):
+                    late.append(view)
+                    self.stats.late += 1
+                    continue
+                if view.t >= body.newest:
+                    anchor = body.history[-1].anchor
+                    start = self._instant_start(body, len(body.history) - 1)
+                    members = body.history[start:]
+                    if all(m.whole for m in members) and self._agrees(view, members):
+                        # the views so far all agree and so does this one: all are used
+                        plain.append((body, view, np.isfinite(view.r), anchor))
+                        continue
+                    mask = self._choose(body, [m.view for m in members] + [view], members[0],
+                                        anchor)
+                    if all(np.array_equal(mask[k], m.mask) for k, m in enumerate(members)):
+                        plain.append((body, view, mask[-1], anchor))
+                        continue
+                self._replay(body, view)
+                self._trim(body)
+            if plain:
+                self._fold_plain(plain)
+            for body, *_ in plain:
+                self._trim(body)
+        return late
+
+    # ------------------------------------------------------------ the plain path
+    def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]]) -> None:
+        n = N_JOINTS
+        before = FilterState.concat([body.state for body, *_ in items])
+        work = FilterState(before.x, before.P, before.mu, before.t, before.held_z, before.held_t)
+        t = np.repeat([view.t for _, view, _, _ in items], n)
+        z = np.concatenate([view.joints for _, view, _, _ in items])
+        r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
+                            for _, view, mask, _ in items])
+        q = None if self.q_scale is None else np.tile(self.q_scale, len(items))
+        outcome = step(work, t, z, r, self.s, q)
+        self._count(outcome)
+        pos, vel = work.predicted(t)
+        for k, (body, view, mask, anchor) in enumerate(items):
+            a, b = k * n, (k + 1) * n
+            body.state = work.view_rows(a, b)
+            body.output = (view.t, pos[a:b], vel[a:b])
+            view.used = _USED[outcome[a:b]]
+            if mask is None:
+                mask = np.isfinite(view.r)
+            else:
+                view.excluded = int((np.isfinite(view.r) & ~mask).sum())
+                self.stats.disagreeing += view.excluded
+            body.history.append(_Step(view, before.view_rows(a, b), anchor, mask,
+                                      view.excluded == 0))
+
+    # ------------------------------------------------------------ instants and replays
+    def _instant_start(self, body: BodyFilter, i: int) -> int:
+        """Index of the first step of the instant that step ``i`` belongs to."""
+        anchor = body.history[i].anchor
+        while i > 0 and body.history[i - 1].anchor == anchor:
+            i -= 1
+        return i
+
+    def _agrees(self, view: View, members: list[_Step]) -> bool:
+        """Whether ``view`` agrees with every view of its instant on every joint both see
+        (the test of ``fusion.consistent_views``; the prior cannot change the choice then)."""
+        z = np.stack([m.view.joints for m in members])
+        r = np.stack([m.view.r for m in members])
+        d = z - view.joints
+        with np.errstate(invalid="ignore"):
+            d2 = (d * d).sum(axis=2) / (r + view.r + 2.0 * self.f.view_bias_m ** 2)
+        return not (d2 > self.s.gate_sigma ** 2).any()       # NaN (a joint unseen): no test
+
+    def _choose(self, body: BodyFilter, views: list[View], first: _Step,
+                anchor: float) -> np.ndarray:
+        """(G, 25) the joints of each view of one instant that agree with the rest; ``first``
+        is the instant's first step (its state before, and the prediction cached on it)."""
+        if len(views) == 1:
+            return np.isfinite(views[0].r)[None]
+        if first.prior is None:
+            saved = body.state
+            body.state = first.before
+            first.prior = body.prior(anchor, self.s)
+            body.state = saved
+        prior, var = first.prior
+        z = np.stack([v.joints for v in views])
+        r = np.stack([v.r for v in views])
+        gate2 = self.s.gate_sigma ** 2
+        return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2)
+
+    def _replay(self, body: BodyFilter, view: View) -> None:
+        """Insert ``view`` in capture order and fold in again from the instant it joins."""
+        self.stats.replays += 1
+        hist = body.history
+        p = len(hist)
+        while p > 0 and hist[p - 1].view.t > view.t:
+            p -= 1
+        start = p
+        if p > 0 and view.t - hist[p - 1].anchor <= self.f.group_s:
+            start = self._instant_start(body, p - 1)
+        state = hist[start].before if start < len(hist) else body.state
+        views = [s.view for s in hist[start:p]] + [view] + [s.view for s in hist[p:]]
+        del hist[start:]
+        state = FilterState(state.x, state.P, state.mu, state.t, state.held_z, state.held_t)
+        k = 0
+        while k < len(views):
+            anchor = views[k].t
+            g = k + 1
+            while g < len(views) and views[g].t - anchor <= self.f.group_s:
+                g += 1
+            group = views[k:g]
+            first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
+            masks = self._choose(body, group, first, anchor)
+            for j, (v, mask) in enumerate(zip(group, masks)):
+                before = FilterState(state.x, state.P, state.mu, state.t, state.held_z,
+                                     state.held_t)       # step replaces, never writes into
+                outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
+                               np.where(mask, v.r, np.nan), self.s, self.q_scale)
+                self._count(outcome)
+                v.used = _USED[outcome]
+                excluded = int((np.isfinite(v.r) & ~mask).sum())
+                self.stats.disagreeing += excluded - v.excluded
+                v.excluded = excluded
+                hist.append(_Step(v, before, anchor, mask, excluded == 0,
+                                  first.prior if j == 0 else None))
+            k = g
+        body.state = state
+        body.output = (body.newest, *state.predicted(body.newest))
+
+    @staticmethod
+    def _fits_before(body: BodyFilter, t: float) -> bool:
+        """Whether a view at ``t`` can still go before the oldest step kept: the state
+        before that step refers to nothing later than ``t`` (always so for a new person)."""
+        times = body.history[0].before.t
+        return bool(np.isnan(times).all() or np.nanmax(times) <= t)
+
+    def _trim(self, body: BodyFilter) -> None:
+        """Forget whole instants older than ``replay_s`` before the newest view."""
+        hist = body.history
+        horizon = body.newest - self.f.replay_s
+        cut = 0
+        while cut < len(hist) - 1 and hist[cut].anchor < horizon:
+            cut += 1
+        if cut and hist[cut].anchor == hist[cut - 1].anchor:
+            cut = self._instant_start(body, cut)
+        if cut:
+            del hist[:cut]
+
+    def _count(self, outcome: np.ndarray) -> None:
+        counts = np.bincount(outcome, minlength=8)
+        self.stats.downweighted += int(counts[DOWNWEIGHTED])
+        self.stats.rejected += int(counts[REJECTED])
+        self.stats.restarted += int(counts[RESTARTED])

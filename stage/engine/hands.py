@@ -1,0 +1,166 @@
+"""Hand states voted across sensors and time, so that one sensor's misreads do not flicker.
+
+Each sensor that sees a person reports each hand's state with every frame
+(the state it last sent counts as repeated with each skeleton, so a client
+that sends ``/handState`` only when it changes votes as often as one that
+sends it every frame). A report's weight decays by e every
+``hand_memory_s``; once it has decayed below e^-4 (four memories) it no longer
+counts.
+
+The vote for a hand at time t:
+
+1. each sensor with recent reports has one vote, worth the hand joint's
+   confidence in its newest frame (1 with ``hand_vote: plain``), shared among
+   the states it reported recently in proportion to their decayed weights
+   (ages counted from the sensor's own newest report, so a sensor whose frame
+   is a little older than another's is not worth less): one misread frame
+   among a sensor's last few counts for part of its vote only;
+2. only known states (open, closed, lasso) count while any sensor gives one
+   a share: ``unknown`` and ``notTracked`` never outvote a known state;
+3. the known state with the largest total wins; between known states with
+   exactly equal support the higher code wins (the K-Multiscope paper's tie
+   rule, section 4.1.3);
+4. with no known state: ``notTracked`` if any sensor said so, else ``unknown``.
+
+A change of the vote is reported only after the new state has won the vote
+for ``hand_hold_s`` (100 ms by default) -- in all, and counted faster the more
+of the vote it has (twice as fast when every sensor agrees, at its own pace
+with half of it): a moment in which it loses counts against it rather than
+starting the count again, so one misread sensor frame during the hold delays
+the change by that moment only. A wrong state needs most sensors to misread
+it alike, together, for that long. A hand
+whose reported state is not a known state (a new person, a hand that was not
+seen) takes its first known state at once -- there is nothing to flicker from.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..joints import HandState
+
+
+#: a state's decayed weight below this (one report four memories old) no longer counts
+_FORGOTTEN = math.exp(-4.0)
+
+
+class HandVoter:
+    """The two hands of one person (engine thread only).
+
+    Per sensor and hand it keeps the decayed weight of each state it reported
+    (``shares``), updated in O(1) per report, so a vote costs a few operations per
+    sensor however often they report.
+    """
+
+    __slots__ = ("memory_s", "hold_s", "reports", "reported", "_candidate", "_last_t")
+
+    def __init__(self, memory_s: float, hold_s: float) -> None:
+        self.memory_s, self.hold_s = memory_s, hold_s
+        #: per hand: sensor key -> [newest report time, shares per state code (5), weight,
+        #: state of the newest report]
+        self.reports: tuple[dict, dict] = ({}, {})
+        #: what was last reported per hand (None: nothing yet)
+        self.reported: list[HandState | None] = [None, None]
+        #: per hand: (a state that is winning but not reported yet, for how long, s)
+        self._candidate: list[tuple[HandState, float] | None] = [None, None]
+        self._last_t: float | None = None
+
+    def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
+            t: float) -> None:
+        """One report; a second report by the same sensor at the same ``t`` replaces the first."""
+        entry = self.reports[hand].get(key)
+        if entry is None:
+            shares = [0.0] * 5
+            shares[state] = 1.0
+            self.reports[hand][key] = [t, shares, weight, state]
+            return
+        newest, shares = entry[0], entry[1]
+        if t == newest:
+            shares[entry[3]] -= 1.0
+            shares[state] += 1.0
+            entry[2], entry[3] = weight, state
+        elif t > newest:
+            decay = math.exp(-(t - newest) / self.memory_s)
+            for k in range(5):
+                shares[k] *= decay
+            shares[state] += 1.0
+            entry[0], entry[2], entry[3] = t, weight, state
+        else:  # an older report, out of order: counts as old as it is
+            shares[state] += math.exp(-(newest - t) / self.memory_s)
+
+    def forget(self, key: tuple[str, int]) -> None:
+        """A sensor view left this person: its reports no longer vote."""
+        for reports in self.reports:
+            reports.pop(key, None)
+
+    def vote(self, hand: int, t: float) -> HandState:
+        """The winning state of ``hand`` at ``t`` (rules in the module docstring)."""
+        return self._vote(hand, t)[0]
+
+    def _vote(self, hand: int, t: float) -> tuple[HandState, float]:
+        """(winner, its share of the known states' total: 1 when every sensor says so; 0.5
+        for unknown and notTracked, which no hold should hurry)."""
+        window = 4.0 * self.memory_s
+        o = c = l = 0.0
+        not_tracked = False
+        for newest, shares, weight, _ in self.reports[hand].values():
+            if t - newest > window:
+                continue
+            total = shares[0] + shares[1] + shares[2] + shares[3] + shares[4]
+            floor = _FORGOTTEN * total
+            scale = weight / total
+            so, sc, sl = shares[2], shares[3], shares[4]
+            if so > floor:
+                o += scale * so
+            if sc > floor:
+                c += scale * sc
+            if sl > floor:
+                l += scale * sl
+            if shares[1] > floor:
+                not_tracked = True
+        # the largest total wins; a tie between known states goes to the higher code
+        total = o + c + l
+        if l > 0.0 and l >= c and l >= o:
+            return HandState.LASSO, l / total
+        if c > 0.0 and c >= o:
+            return HandState.CLOSED, c / total
+        if o > 0.0:
+            return HandState.OPEN, o / total
+        return (HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN), 0.5
+
+    def update(self, t: float) -> list[int]:
+        """Vote both hands at ``t``; returns the hands whose reported state changes now."""
+        dt = 0.0 if self._last_t is None else max(t - self._last_t, 0.0)
+        self._last_t = t if self._last_t is None else max(t, self._last_t)
+        changed = []
+        for hand in (0, 1):
+            winner, share = self._vote(hand, t)
+            current = self.reported[hand]
+            cand = self._candidate[hand]
+            if winner != current and (current is None or current < HandState.OPEN
+                                      and winner >= HandState.OPEN):
+                self._report(hand, winner, changed)
+                continue
+            if cand is not None and cand[0] == winner:
+                # the candidate keeps winning: the more sensors agree, the faster its time
+                # counts (twice as fast when all do, as fast when half the votes are its)
+                cand = (winner, cand[1] + dt * min(max(2.0 * share, 1.0), 2.0))
+            elif cand is not None and cand[1] - dt > 0.0:
+                cand = (cand[0], cand[1] - dt)          # a moment lost counts against it
+            else:
+                cand = None if winner == current else (winner, 0.0)
+            self._candidate[hand] = cand
+            if cand is not None and cand[1] >= self.hold_s - 1e-9:
+                self._report(hand, cand[0], changed)
+        return changed
+
+    @property
+    def newest(self) -> float:
+        """The newest report's time (-inf: none)."""
+        return max((e[0] for reports in self.reports for e in reports.values()),
+                   default=float("-inf"))
+
+    def _report(self, hand: int, state: HandState, changed: list[int]) -> None:
+        self.reported[hand] = state
+        self._candidate[hand] = None
+        changed.append(hand)

@@ -1,0 +1,345 @@
+"""The people on stage: calibrated sensor frames in, fused persons and their messages out.
+
+``People`` is the engine's fusion path, on the engine thread. Per batch of
+inbound items (live: one datagram) the engine hands it each calibrated frame
+(``frame``) and hand state (``hand``); at the end of the batch ``flush`` folds
+every frame into its person's filter -- all persons of the batch in one numpy
+step per wave (``fuser``) -- votes hands (``hands``) and sends each updated
+person once, at once: nothing waits for a later frame. ``tick`` merges and expires persons
+and serves views that asked for a fixed rate.
+
+Latency is recorded per input frame: from its datagram's arrival to the
+emission that includes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..clock import Clock
+from ..errors import ConfigError
+from ..frames import Body, FusedFrame
+from ..joints import JOINT_INDEX, TORSO, HandState
+from ..rig import Rig
+from ..stats import DropCounter, LatencyWindow
+from .callbacks import Callbacks
+from .forecast import Forecast, Forecaster
+from .fuser import Fuser, View
+from .fusion import apply_transform, torso_centre
+from .kalman import KalmanSettings, measurement_variance
+from .output import ViewOutput
+from .tracking import Person, Track, Tracker
+
+log = logging.getLogger("stage.engine")
+_TORSO = np.array(TORSO)
+_HAND_JOINT = (JOINT_INDEX["HandLeft"], JOINT_INDEX["HandRight"])
+_NO_R = np.full(25, np.nan)
+#: smoothing off: a filter so loose that every joint is its latest measurement
+_UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
+
+
+class People:
+    """Persons, their filters and hand votes, and what views are sent (engine thread only)."""
+
+    def __init__(self, rig: Rig, clock: Clock, output: ViewOutput, listeners: Callbacks,
+                 drops: DropCounter, latency: LatencyWindow, counts: dict[str, int]) -> None:
+        self.rig, self.clock, self.output, self.listeners = rig, clock, output, listeners
+        self.drops, self.latency, self.counts = drops, latency, counts
+        self.tracker = Tracker(rig.fusion)
+        smoothing = rig.smoothing
+        if not rig.smoothing_enabled:
+            smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
+        self.smoothing: KalmanSettings = smoothing
+        self.fuser = Fuser(smoothing, rig.fusion)
+        #: bodies predicted ahead of their capture time (docs/anticipation.md): the
+        #: horizons listeners asked for (horizon -> how many asked), and the views'
+        self.forecaster = Forecaster(smoothing, rig.forecast)
+        self.horizons: dict[float, int] = {}
+        self._forecasts: dict[tuple[int, float], Forecast] = {}   # this emission's
+        self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
+        self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
+        self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
+        self._lost: list[int] = []
+
+    @property
+    def persons(self) -> dict[int, Person]:
+        return self.tracker.persons
+
+    # ------------------------------------------------------------ input
+    def frame(self, track: Track, transform: np.ndarray, joints: np.ndarray, conf: np.ndarray,
+              t: float, arrival: float) -> None:
+        """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
+        (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
+        track.joints = apply_transform(transform, joints)
+        track.conf = conf
+        track.t = t
+        seen = conf > 0
+        if not seen.any():
+            return  # nothing tracked in this frame: no position to associate or fuse
+        person = self.tracker.associate(track, t)
+        if not person.known.any():
+            # a person found in this batch: later views of the batch associate against this
+            # view until its filter is folded in at the end of the batch
+            person.joints = np.where(seen[:, None], track.joints, person.joints)
+            person.known = seen.copy()
+            person.t = t
+        # the measurement variances are computed for the whole batch in _fold
+        view = View(track.key, t, track.joints, conf, _NO_R, arrival)
+        self._views.append((person, view, transform[:3, 3]))
+        weighted = self.rig.fusion.hand_vote == "confidence"
+        for hand in (0, 1):
+            weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
+            person.voter.add(track.key, hand, track.hands[hand], weight, t)
+
+    def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
+        """A ``/handState`` of ``track`` captured at ``t``."""
+        track.hands[hand] = state
+        person = self.persons.get(track.person) if track.person is not None else None
+        if person is None:
+            return
+        weighted = self.rig.fusion.hand_vote == "confidence"
+        weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
+        person.voter.add(track.key, hand, state, weight, t)
+        self._hands_dirty.add(person.id)
+
+    def drop_track(self, track: Track, t: float) -> None:
+        pid = self.tracker.unbind(track, t)
+        person = self.persons.get(pid) if pid is not None else None
+        if person is not None:
+            person.voter.forget(track.key)
+            person.recent.pop(track.key, None)
+            self._hands_dirty.add(pid)  # one voter fewer
+
+    # ------------------------------------------------------------ fusion
+    def flush(self) -> None:
+        """Fold the batch's frames into their persons, then send what changed."""
+        if self._views:
+            self._fold()
+        self._emit()
+
+    def _fold(self) -> None:
+        views, self._views = self._views, []
+        live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
+        # each joint's variance from its confidence and its distance from the sensor (whose
+        # position in stage space is the translation of its transform), all views at once
+        joints = np.stack([v.joints for _, v, _ in views])                  # (K, 25, 3)
+        conf = np.stack([v.conf for _, v, _ in views])                      # (K, 25)
+        offset = joints - np.stack([where for _, _, where in views])[:, None]
+        seen = conf > 0
+        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0),
+                                                np.sqrt((offset * offset).sum(axis=2)),
+                                                self.smoothing), np.nan)
+        for k, (_, view, _) in enumerate(views):
+            view.r = r[k]
+        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in live])}
+        touched: dict[int, Person] = {}
+        for person, view in live:
+            if id(view) in late:
+                self.drops.add(view.key[0], "late")
+                continue
+            person.measure_size(view.joints, view.conf)
+            person.recent[view.key] = (view.t, view.conf)
+            touched[person.id] = person
+            self._dirty.setdefault(person.id, []).append(view.arrival)
+        if touched:
+            self._update(list(touched.values()))
+            self.counts["fused_frames"] += len(touched)
+
+    def _update(self, persons: list[Person]) -> None:
+        """Each person's output skeleton from its filter at its newest frame's capture time,
+        for all persons of a batch at once."""
+        stale = self.rig.fusion.stale_s
+        t = np.array([max(p.t, p.filter.output[0]) for p in persons])
+        pos = np.stack([p.filter.output[1] for p in persons])           # (P, 25, 3)
+        vel = np.stack([p.filter.output[2] for p in persons])
+        row_t = np.stack([p.filter.state.t for p in persons])           # (P, 25)
+        conf = np.stack([self._recent_conf(p, tp, stale) for p, tp in zip(persons, t)])
+        # a joint a sensor sees whose filter has had a measurement lately: one whose
+        # latest frames were gated out is sent where the filter predicts it
+        seen = (conf > 0) & (t[:, None] - row_t <= stale) & np.isfinite(pos).all(axis=2)
+        joints = np.where(seen[..., None], pos, np.stack([p.joints for p in persons]))
+        known = np.stack([p.known for p in persons]) | seen
+        conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
+        vel = np.where(np.isfinite(vel), vel, 0.0)
+        # the centre uses every torso joint ever seen, not just this frame's, so it
+        # does not jump when occlusion changes which joints a view reports
+        torso = known[:, _TORSO]
+        n_torso = torso.sum(axis=1)
+        centres = (joints[:, _TORSO] * torso[..., None]).sum(axis=1) / np.maximum(n_torso, 1)[:, None]
+        for k, p in enumerate(persons):
+            p.joints, p.velocity, p.conf, p.known, p.t = joints[k], vel[k], conf[k], known[k], t[k]
+            p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
+
+    @staticmethod
+    def _recent_conf(person: Person, t: float, stale: float) -> np.ndarray:
+        """(25,) the best confidence of each joint among the person's views of the last
+        ``stale`` seconds (views that left the person are forgotten)."""
+        best = None
+        for key, (vt, conf) in list(person.recent.items()):
+            if t - vt > stale:
+                del person.recent[key]
+            else:
+                best = conf if best is None else np.maximum(best, conf)
+        return np.zeros(person.conf.shape) if best is None else best
+
+    # ------------------------------------------------------------ forecasts
+    def want_forecast(self, horizon: float) -> None:
+        """From now on every ``FusedFrame`` carries its bodies predicted ``horizon`` s ahead
+        (``frame.forecasts[horizon]``); engine thread. 0 asks for nothing."""
+        horizon = self.check_horizon(horizon)
+        if horizon > 0:
+            self.horizons[horizon] = self.horizons.get(horizon, 0) + 1
+
+    def drop_forecast(self, horizon: float) -> None:
+        n = self.horizons.get(horizon, 0) - 1
+        if n > 0:
+            self.horizons[horizon] = n
+        else:
+            self.horizons.pop(horizon, None)
+
+    def check_horizon(self, horizon: float) -> float:
+        """``horizon`` as a float, or a ConfigError naming the rig's limit."""
+        h = float(horizon)
+        if not (0.0 <= h <= self.rig.forecast.max_s):
+            raise ConfigError(f"forecast {horizon!r} s: must be between 0 and the rig's "
+                              f"forecast: max_s ({self.rig.forecast.max_s:g} s)")
+        return h
+
+    def forecast(self, person: Person, horizon: float) -> Forecast:
+        """``person`` predicted ``horizon`` s past its capture time (cached per emission)."""
+        key = (person.id, horizon)
+        fc = self._forecasts.get(key)
+        if fc is None:
+            fc = self._forecasts[key] = self.forecaster.predict(
+                person.filter.state, person.t, person.joints, person.conf > 0, horizon)
+        return fc
+
+    def _forecast_bodies(self, horizon: float) -> dict[int, Body]:
+        out = {}
+        for pid, p in self.persons.items():
+            if not p.announced or p.centre is None:
+                continue
+            fc = self.forecast(p, horizon)
+            known = p.known
+            torso = known[_TORSO]
+            centre = (fc.joints[_TORSO] * torso[:, None]).sum(axis=0) / max(int(torso.sum()), 1) \
+                if torso.any() else p.centre.copy()
+            out[pid] = Body(pid, fc.joints, p.conf.copy(), fc.velocity, (p.hands[0], p.hands[1]),
+                            centre, p.sensors(), p.t, horizon, fc.sd)
+        return out
+
+    # ------------------------------------------------------------ output
+    def _emit(self) -> None:
+        if not self._dirty and not self._lost and not self._hands_dirty:
+            return
+        now = self.clock.now()
+        new: list[int] = []
+        updated: list[int] = []
+        for pid in sorted(self._hands_dirty - self._dirty.keys()):
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
+                updated.append(pid)
+        for pid, arrivals in self._dirty.items():
+            person = self.persons.get(pid)
+            if person is None or person.centre is None:
+                continue
+            if not person.announced:
+                person.announced = True
+                new.append(pid)
+                log.info("person %d found (seen by %s)", pid, ", ".join(person.sensors()))
+                self.output.new_user(pid, person.centre)
+            if person.tracks:
+                self.output.joints(pid, person.joints, person.conf)
+                for horizon, targets in self.output.forecast_targets().items():
+                    self.output.joints(pid, self.forecast(person, horizon).joints, person.conf,
+                                       targets)
+            self._send_hands(person, person.voter.update(person.t))
+            updated.append(pid)
+            sent = self.clock.now()
+            for arrival in arrivals:
+                self.latency.add(sent - arrival)
+        lost = self._lost
+        for pid in lost:
+            self.output.lost_user(pid)
+        self._dirty, self._lost = {}, []
+        self._hands_dirty.clear()
+        if self.listeners and (updated or lost):
+            forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
+            self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
+                                           tuple(lost), forecasts))
+        self._forecasts.clear()
+
+    def _send_hands(self, person: Person, changed: list[int]) -> bool:
+        for hand in changed:
+            person.hands[hand] = person.voter.reported[hand]
+        sent = False
+        for hand in (0, 1):
+            if person.hands[hand] != person.sent_hands[hand]:
+                person.sent_hands[hand] = person.hands[hand]
+                self.output.hand(person.id, hand, person.hands[hand])
+                sent = True
+        return sent
+
+    def bodies(self) -> dict[int, Body]:
+        return {pid: Body(pid, p.joints.copy(), p.conf.copy(), p.velocity.copy(),
+                          (p.hands[0], p.hands[1]), p.centre.copy(), p.sensors(), p.t)
+                for pid, p in self.persons.items() if p.announced and p.centre is not None}
+
+    # ------------------------------------------------------------ housekeeping
+    def tick(self, now: float) -> None:
+        """Merging and expiry of persons, then what is due to views."""
+        self.tracker.merge_close(now)
+        self._lost.extend(self.tracker.expire(now))
+        self._emit()
+        self.serve_fixed_rate(now)
+
+    def serve_fixed_rate(self, now: float) -> None:
+        """Views that asked for a fixed rate get every person predicted to ``now`` (plus
+        their forecast, if they asked for one: bounded as every forecast is)."""
+        due = self.output.due(now)
+        if not due:
+            return
+        ahead: dict[float, list[tuple[str, int]]] = {}
+        for view in due:
+            ahead.setdefault(self.output.forecasts.get(view, 0.0), []).append(view)
+        for pid, person in self.persons.items():
+            if not person.announced or person.centre is None or not person.tracks:
+                continue
+            for horizon, views in ahead.items():
+                if horizon > 0:
+                    fc = self.forecaster.predict(person.filter.state, person.t, person.joints,
+                                                 person.conf > 0, max(now - person.t, 0) + horizon)
+                    self.output.joints(pid, fc.joints, person.conf, views)
+                    continue
+                pos, _ = person.filter.estimate(now)
+                joints = np.where((person.conf > 0)[:, None] & np.isfinite(pos), pos,
+                                  person.joints)
+                self.output.joints(pid, joints, person.conf, views)
+
+    def stats(self) -> dict:
+        f = self.fuser.stats
+        return {"views": f.views, "late": f.late, "replays": f.replays,
+                "joints_disagreeing": f.disagreeing, "joints_downweighted": f.downweighted,
+                "joints_rejected": f.rejected, "joints_restarted": f.restarted}
+
+    def forecast_stats(self) -> dict:
+        """What ``/stage/stats`` says of forecasts: who asks for which horizon, how many were
+        made and bounded, and the latest mean s.d. per horizon."""
+        views = {f"{h}:{p}": s for (h, p), s in self.output.forecasts.items()}
+        return {"horizons_s": sorted(self.horizons), "views_s": views,
+                **self.forecaster.stats()}
+
+
+def fused_persons_stats(people: People) -> dict[int, dict]:
+    """Per announced person: sensors, position, trunk length (for ``/stage/stats``)."""
+    return {pid: {"sensors": list(p.sensors()),
+                  "position": None if p.centre is None else [round(float(v), 4) for v in p.centre],
+                  "size_m": None if p.size is None else round(p.size, 3)}
+            for pid, p in people.persons.items() if p.announced}
+
