@@ -106,18 +106,24 @@ def test_joint_refinement_reduces_the_error_when_overlaps_form_loops():
     scores per pair, so all 5 overlaps are found; refinement weighs every overlap the same
     (its pairs share its error) with Cauchy re-weighting, and is kept only when it lowers the
     robust disagreement. On the default (heavy-tailed) model the short overlaps the chains
-    would use alone are poor, and refinement brings k2 and k3 several times closer."""
+    would use alone are poor, and refinement brings k2 and k3 twice as close or closer
+    (measured: k2 60 -> 25 mm, k3 87 -> 34 mm). The disagreement it minimises (Cauchy or
+    each overlap's own weights) is not the plain least squares: that one and the robust
+    one are asserted to drop, not by a set share (about 5 and 9 %)."""
     sim, streams = _row_of_sensors(1.6, duration=80.0)
     composed = calibrate_streams(streams, "k0", refine=False, progress=lambda _: None)
     refined = calibrate_streams(streams, "k0", progress=lambda _: None)
     assert len(refined.graph.edges) == 5   # neighbours and every other sensor
     info = refined.refinement
-    assert info is not None and info["kept"] and info["after"] < 0.95 * info["before"]
-    assert info["robust_after"] < 0.9 * info["robust_before"]
-    truth = simdata.true_transform(sim, "k3")
-    before = transform_error(composed.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
-    after = transform_error(refined.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
-    assert after["rms_mm"] < 0.8 * before["rms_mm"], (before, after)
+    # what refinement does: it lowers the overlaps' disagreement (robust, by which it is
+    # kept, and least squares) and, above all, brings the far sensors closer to the truth
+    assert info is not None and info["kept"] and info["after"] < info["before"]
+    assert info["robust_after"] < info["robust_before"]
+    for sid in ("k2", "k3"):
+        truth = simdata.true_transform(sim, sid)
+        before = transform_error(composed.sensors[sid].matrix, truth, streams[sid].joints[::5])
+        after = transform_error(refined.sensors[sid].matrix, truth, streams[sid].joints[::5])
+        assert after["rms_mm"] < 0.6 * before["rms_mm"], (sid, before, after)
 
 
 def test_refinement_changes_nothing_on_a_tree(chain):
