@@ -90,7 +90,8 @@ SWAY_M, SWAY_S = 0.15, 8.0   # each person walks a small circle: radius, period
 NOISE_M = 0.005              # per-axis joint noise, from a pre-drawn table
 #: the rest observation of each person: no noise or fit error (NOISE_M is added per frame),
 #: range widened so the farthest corner of the grid is still seen from across the ring
-REST_KINECT = KinectModel(noise_m=0.0, noise_per_m=0.0, fit_bias_m=0.0, far=7.0)
+REST_KINECT = KinectModel(noise_m=0.0, noise_per_m=0.0, fit_bias_m=0.0, far=7.0,
+                          surface_bias_m=0.0, swap_per_s=0.0, inferred_off_m=(0.0, 0.0))
 NOISE_FRAMES = 64
 HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
 HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s

@@ -29,7 +29,10 @@ def _record(path, sim: Simulator, duration: float) -> None:
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    sim = Simulator(simdata.two_sensors(offset_s=0.25, phase_s=0.013), seed=2)
+    # CLEAN: the tests below hold the command's fits to the methods' stated precision on the
+    # clean budget (docs/calibration.md); the realistic model is run through it further down
+    sim = Simulator(simdata.two_sensors(offset_s=0.25, phase_s=0.013,
+                                        kinect=simdata.CLEAN_KINECT), seed=2)
     path = tmp_path_factory.mktemp("rec") / "rehearsal.stagerec"
     _record(path, sim, 20.0)
     return str(path), simdata.true_transform(sim, "kinect-b"), simdata.streams(sim, 20.0)
@@ -111,9 +114,19 @@ def test_not_a_recording_is_a_clear_error(tmp_path, capsys):
     assert len(err) == 1 and "not a stage recording" in err[0], err
 
 
-def test_the_simulators_recording_calibrates_to_its_true_poses(tmp_path, capsys):
+#: the default scenario's model: "clean" (the earlier default, number for number, held to the
+#: earlier precision) and "real" (the realistic default: the view-dependent bias puts a few
+#: cm between where two views place a body, which the transforms absorb)
+@pytest.mark.parametrize("preset, rot_deg, trans_mm", [("clean", 0.5, 30), ("real", 1.0, 60)])
+def test_the_simulators_recording_calibrates_to_its_true_poses(tmp_path, capsys, preset,
+                                                                rot_deg, trans_mm):
+    from importlib import resources
+
     from stage.sensors import sim as sim_mod
-    sim = sim_mod.Simulator(sim_mod.load_scenario("default"), seed=3)
+    from stage.yamlio import loads_marked
+    text = (resources.files("stage.sensors.sim") / "scenarios" / "default.yaml").read_text()
+    text += f"\nkinect: {{preset: {preset}}}\n"
+    sim = sim_mod.Simulator(sim_mod.parse_scenario(loads_marked(text), "default.yaml"), seed=3)
     path = tmp_path / "sim.stagerec"
     sim.record(str(path), 25.0)
     assert main(["--quiet", "calibrate", str(path), "--json"]) == 0
@@ -123,7 +136,7 @@ def test_the_simulators_recording_calibrates_to_its_true_poses(tmp_path, capsys)
     for sid, entry in out["sensors"].items():
         truth = np.linalg.inv(poses[ref].to_stage) @ poses[sid].to_stage
         err = transform_error(np.array(entry["matrix"]), truth)
-        assert err["rot_deg"] < 0.5 and err["trans_mm"] < 30, (sid, err)
+        assert err["rot_deg"] < rot_deg and err["trans_mm"] < trans_mm, (sid, err)
 
 
 def _free_port() -> int:
@@ -134,8 +147,9 @@ def _free_port() -> int:
 
 @pytest.mark.integration
 def test_live_calibration_over_udp_writes_the_rig(tmp_path, capsys):
-    """Two simulated Kinects send real OSC at 30 Hz to ``stage calibrate --live``."""
-    sim = Simulator(simdata.two_sensors(), seed=5)
+    """Two simulated Kinects send real OSC at 30 Hz to ``stage calibrate --live``.
+    CLEAN: the live fit (60 pairs) is held to the clean budget's precision (1 degree, 5 cm)."""
+    sim = Simulator(simdata.two_sensors(kinect=simdata.CLEAN_KINECT), seed=5)
     port = _free_port()
     rig_path = tmp_path / "rig.yaml"
     Rig(reference="kinect-a", port=port).save(str(rig_path))

@@ -77,28 +77,53 @@ def test_a_sensor_without_overlap_is_reported():
     streams.update(simdata.streams(Simulator(far, seed=1), 20.0))
     result = calibrate_streams(streams, "k0", progress=lambda _: None)
     assert result.sensors["lonely"].matrix is None
-    assert "no chain of overlaps to the reference k0" in result.sensors["lonely"].error
-    assert any("lonely is not connected to the reference k0" in w for w in result.warnings)
+    # it saw one person while k0 and k1 each saw one (another person, 20 m away): those
+    # frames paired, and the error names why they were not used (issue 11: the real cause,
+    # not "no chain of overlaps", which is for a sensor that never paired a frame)
+    error = result.sensors["lonely"].error
+    assert "reference k0" in error and "with k0: fit too poor" in error, error
+    assert any(w.startswith("lonely is not calibrated: with k0:") for w in result.warnings)
     assert result.graph.unreachable("k0") == ["lonely"]
     assert not result.complete
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "with the simulator's Kinect model (field of view, occlusion, acquisition) the k1-k3 "
-    "overlap at 1.6 m is too short for the lag search (4 edges, not 5), and the neighbour "
-    "pairs share one systematic error, so refinement moves k2 and k3 away from the truth "
-    "instead of closer; see the h1-body-model report"))
+def test_a_sensor_that_never_paired_a_frame_has_no_chain_of_overlaps():
+    _, streams = _row_of_sensors(2.5, duration=20.0, n=2)
+    far = simdata.scenario({"lonely": {"position": [20.0, 1.0, 0.0], "look_at": [20.0, 0.8, 3.0]}},
+                           simdata.walk_line((19.0, 2.5), (21.0, 2.5)))
+    late = {s: st.shifted(100.0) for s, st in simdata.streams(Simulator(far, seed=1), 20.0).items()}
+    streams.update(late)   # its person came 100 s later: nobody else saw anyone then
+    result = calibrate_streams(streams, "k0", progress=lambda _: None)
+    assert "no chain of overlaps to the reference k0" in result.sensors["lonely"].error
+    assert any("lonely is not connected to the reference k0" in w for w in result.warnings)
+
+
 def test_joint_refinement_reduces_the_error_when_overlaps_form_loops():
+    """Was a strict xfail (issue 9): the short k1-k3 overlap failed the fixed 30-pair gate and
+    the lag search (4 edges), and refinement, weighing every joint pair alike, let the long
+    neighbour overlaps (300 pairs each, one shared systematic error) pull k2 and k3 away from
+    the truth. Now the gates follow the data (10 pairs, distinct poses) and the lag search
+    scores per pair, so all 5 overlaps are found; refinement weighs every overlap the same
+    (its pairs share its error) with Cauchy re-weighting, and is kept only when it lowers the
+    robust disagreement. On the default (heavy-tailed) model the short overlaps the chains
+    would use alone are poor, and refinement brings k2 and k3 twice as close or closer
+    (measured: k2 60 -> 25 mm, k3 87 -> 34 mm). The disagreement it minimises (Cauchy or
+    each overlap's own weights) is not the plain least squares: that one and the robust
+    one are asserted to drop, not by a set share (about 5 and 9 %)."""
     sim, streams = _row_of_sensors(1.6, duration=80.0)
     composed = calibrate_streams(streams, "k0", refine=False, progress=lambda _: None)
     refined = calibrate_streams(streams, "k0", progress=lambda _: None)
     assert len(refined.graph.edges) == 5   # neighbours and every other sensor
     info = refined.refinement
-    assert info is not None and info["after"] < 0.95 * info["before"]
-    truth = simdata.true_transform(sim, "k3")
-    before = transform_error(composed.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
-    after = transform_error(refined.sensors["k3"].matrix, truth, streams["k3"].joints[::5])
-    assert after["rms_mm"] < 0.8 * before["rms_mm"], (before, after)
+    # what refinement does: it lowers the overlaps' disagreement (robust, by which it is
+    # kept, and least squares) and, above all, brings the far sensors closer to the truth
+    assert info is not None and info["kept"] and info["after"] < info["before"]
+    assert info["robust_after"] < info["robust_before"]
+    for sid in ("k2", "k3"):
+        truth = simdata.true_transform(sim, sid)
+        before = transform_error(composed.sensors[sid].matrix, truth, streams[sid].joints[::5])
+        after = transform_error(refined.sensors[sid].matrix, truth, streams[sid].joints[::5])
+        assert after["rms_mm"] < 0.6 * before["rms_mm"], (sid, before, after)
 
 
 def test_refinement_changes_nothing_on_a_tree(chain):

@@ -1,8 +1,13 @@
 """Live calibration and self-healing on an in-process engine (ManualClock, no sleeps).
 
-Frames: the simulator's Kinect model (``VirtualKinect``, with the calibration tests' error
-budget: 1 cm noise, hidden joints inferred and pulled 3 cm towards the sensor) on a ring
-around the demo scenario's dancer, 30 Hz, sent as real ``/jointCoordinates`` datagrams.
+Frames: the simulator's Kinect model (``VirtualKinect``, its realistic defaults: heavy-tailed
+joints, view-dependent bias, limb swaps, guessed inferred joints) on a ring around the demo
+scenario's dancer, 30 Hz, sent as real ``/jointCoordinates`` datagrams. A test that checks
+the precision of a re-calibration (rotation within 1 degree, translation within 5 cm, the
+fused error of healthy sensors under 3 cm) asks for ``CLEAN_KINECT``, the error budget that
+precision is stated for (docs/calibration.md), and says so: two sensors facing each other
+see opposite sides of a body, and the realistic model's view-dependent bias alone puts them
+4-6 cm apart, which no calibration removes.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from stage.engine.engine import Engine
 from stage.sensors.protocol import encode_client_joints
 from stage.rig import Rig, load_rig, set_calibration
 from stage.sensors.sim import VirtualKinect, demo_scenario, ring_poses
-from stage.testing.simdata import calibration_kinect
+from stage.testing.simdata import CLEAN_KINECT, kinect_model
 
 FPS = 30.0
 _DANCER = demo_scenario(1).performers[0]
@@ -35,7 +40,7 @@ class Run:
     """An engine with the live calibrator, fed by n ring sensors; sensor s1 may be bumped."""
 
     def __init__(self, tmp_path, n: int = 2, calibrated: bool = True, threaded: bool = False,
-                 seed: int = 1, **settings) -> None:
+                 seed: int = 1, kinect: dict | None = None, **settings) -> None:
         self.poses = ring_poses(n)
         self.ids = [f"s{k}" for k in range(n)]
         self.rig = Rig(reference="s0")
@@ -52,7 +57,8 @@ class Run:
         self.engine.listeners.append(self._listen)
         self.cal = attach_live(self.engine, self.rig_path, threaded=threaded, **settings)
         self.rng = np.random.default_rng(seed)
-        self.kinects = [VirtualKinect(p, calibration_kinect(), self.rng) for p in self.poses]
+        self.kinects = [VirtualKinect(p, kinect_model(**(kinect or {})), self.rng)
+                        for p in self.poses]
         self.t = 0.0
 
     def _listen(self, frame) -> None:
@@ -98,7 +104,10 @@ FUSED_BOUND_M = 0.06
 
 
 def test_a_sensor_rotated_10_degrees_is_caught_left_out_and_recalibrated(tmp_path):
-    run = Run(tmp_path, n=2)
+    # CLEAN: the bounds below (healthy fusion under 3 cm, the new transform within 1 degree
+    # and 5 cm) are the precision stated for the clean budget, for two sensors facing each
+    # other; test_simulated_kinects_bumped_mid_show runs a bump on the realistic model
+    run = Run(tmp_path, n=2, kinect=CLEAN_KINECT)
     run.run_until(5.0)
     assert run.engine.sensor_notes["s1"]["state"] == "ok"
     healthy = max(e for _, e, _ in run.fused)
@@ -133,8 +142,10 @@ def test_without_self_healing_the_bumped_sensors_data_would_break_the_bound(tmp_
     Issue 10: this test used to assert that, without self-healing, the fused output
     itself goes 0.2 m wrong. Fusion now checks the views of one instant against each
     other and the filter's prediction, so the bumped sensor's joints are left out even
-    without the calibrator; what the bound guards against is the sensor's own data."""
-    run = Run(tmp_path, n=2, heal=False)
+    without the calibrator; what the bound guards against is the sensor's own data.
+    CLEAN: FUSED_BOUND_M is a mean over all joints, stated for the clean budget (the
+    realistic model's guessed joints alone exceed it now and then, bump or not)."""
+    run = Run(tmp_path, n=2, heal=False, kinect=CLEAN_KINECT)
     run.run_until(5.0)
     bump_t = run.t
     run.bump("s1", 10.0)
@@ -285,7 +296,8 @@ def test_bit_identical_streams_are_flagged(tmp_path):
 
 
 def test_the_worker_thread_calibrates_without_blocking_the_engine(tmp_path):
-    run = Run(tmp_path, n=2, calibrated=False, threaded=True, pairs=90)
+    # CLEAN: the transform's precision is asserted (1 degree, 5 cm: the clean budget's)
+    run = Run(tmp_path, n=2, calibrated=False, threaded=True, pairs=90, kinect=CLEAN_KINECT)
     worker = [t for t in threading.enumerate() if t.name == "stage-calibration"]
     assert len(worker) == 1
 
@@ -349,7 +361,9 @@ def _sim_run(bump_deg: float | None):
 
 def test_simulated_kinects_bumped_mid_show(tmp_path):
     """Kinect-faithful data (occlusion, correlated noise, latency): no false alarm in 16 s,
-    and a 10 degree bump changes the fused output by no more than leaving the sensor out."""
+    and a 10 degree bump changes the fused output by no more than leaving the sensor out.
+    The scenario's own model: the realistic default (heavy tails), the same bounds as
+    before it was."""
     _, quiet_cal, quiet = _sim_run(None)
     assert quiet_cal.events == []            # no false suspicion on healthy sensors
     sim, cal, bumped = _sim_run(10.0)
@@ -371,8 +385,10 @@ def test_simulated_kinects_bumped_mid_show(tmp_path):
 def test_a_moved_reference_is_recalibrated_and_stage_space_stays_put(tmp_path):
     """The reference turned: the other sensors agree among themselves, so the reference is the
     one left out and re-calibrated; its new placement becomes the rig's stage frame and the
-    other calibrations are re-expressed, so every sensor still maps to the same stage space."""
-    run = Run(tmp_path, n=3)
+    other calibrations are re-expressed, so every sensor still maps to the same stage space.
+    CLEAN: every sensor's transform is held to the clean budget's precision (1 degree, 5 cm)
+    and the fused error to FUSED_BOUND_M as a mean over all joints."""
+    run = Run(tmp_path, n=3, kinect=CLEAN_KINECT)
     run.run_until(3.0)
     run.bump("s0", 10.0)
     run.run_until(9.0)

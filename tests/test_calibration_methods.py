@@ -2,10 +2,16 @@
 
 The data: the simulator (``stage.testing.simdata``): two Kinect v2 sensors 100
 degrees apart around a figure-of-eight walk, the second 0.7 m higher and
-tilted down 8 degrees, with 1 cm noise per axis and occluded joints inferred
-and pulled 3 cm towards each sensor (``simdata.CALIBRATION_NOISE``).
-Tolerances are the stated accuracy of each method on such data
-(docs/calibration.md).
+tilted down 8 degrees.
+
+Most tests ask for ``simdata.CLEAN_KINECT`` (1 cm noise per axis, occluded
+joints inferred and pulled 3 cm towards each sensor, no heavy tails): they
+check each method's maths, and ``TOLERANCE`` is the stated accuracy of each
+method on such data (docs/calibration.md). The simulator's default model is
+realistic (view-dependent bias, limb swaps, inferred joints guessed 10-30 cm
+off, tuned on N-UCLA; docs/sources.md): two views that see different sides
+of a body disagree by a few cm that no method can average away, and
+``REAL_TOLERANCE`` is the stated accuracy there.
 """
 
 from __future__ import annotations
@@ -13,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stage.calibration.fitness import Moments, evaluate_points, fitness_from_mse, per_frame_fitness
+from stage.calibration.fitness import (Moments, evaluate_points, fitness_from_median,
+                                       fitness_from_mse, per_frame_fitness)
 from stage.geometry import (apply, euler_matrices, invert, level_matrix, matrix, rot_x, rot_y,
                             rot_z, transform_error)
 from stage.calibration.methods import METHODS, calibrate
@@ -34,11 +41,25 @@ TOLERANCE = {
     "trajectory": (2.0, 100, 40),
     "regression": (1.5, 300, 110),
 }
+#: the same on the simulator's default (realistic) model, about 1.5 times the worst of seeds
+#: 0-7: the view-dependent bias puts a floor of about 3 cm under every translation, and the
+#: paper's regression (least squares, 10 cm rejection) suffers most from the heavy tails
+REAL_TOLERANCE = {
+    "rigid": (0.6, 55, 55),
+    "ga": (0.5, 45, 50),
+    "ga3d": (0.75, 50, 50),
+    "floor": (0.5, 40, 45),
+    "trajectory": (6.0, 340, 140),
+    "regression": (8.5, 600, 340),
+}
 
 
 def _pairs(tilt: float = 8.0, roll: float = 0.0, seed: int = 3, glitch_p: float = 0.0,
-           duration: float = 20.0):
-    sim = Simulator(simdata.two_sensors(tilt, roll, kinect={"glitch_p": glitch_p}), seed)
+           duration: float = 20.0, realistic: bool = False):
+    """CLEAN unless ``realistic``: see the module's docstring."""
+    kinect = {} if realistic else dict(simdata.CLEAN_KINECT)
+    sim = Simulator(simdata.two_sensors(tilt, roll, kinect={**kinect, "glitch_p": glitch_p}),
+                    seed)
     streams = simdata.streams(sim, duration)
     pairs = pair_streams(streams["kinect-a"], streams["kinect-b"])
     return pairs, simdata.true_transform(sim, "kinect-b")
@@ -62,8 +83,28 @@ def test_every_method_recovers_the_known_transform(tilted, method):
     assert result.matrix.shape == (4, 4)
     assert np.allclose(result.matrix[3], [0, 0, 0, 1])
     assert 0 < result.fitness <= 1 and result.rms_m > 0
-    assert result.fitness == pytest.approx(fitness_from_mse(result.rms_m ** 2))
+    # judged on the robust scale (issue 11: a mean-square fitness called good real fits poor)
+    assert result.fitness == pytest.approx(fitness_from_median(result.median_m))
+    assert 0 < result.median_m <= result.rms_m
     assert result.pairs == len(used)
+
+
+@pytest.fixture(scope="module")
+def realistic():
+    return _pairs(realistic=True)
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_on_the_realistic_model_every_method_stays_within_its_stated_accuracy(realistic,
+                                                                              method):
+    pairs, truth = realistic
+    result = calibrate(pairs.evenly(500 if method == "trajectory" else 300), method)
+    err = transform_error(result.matrix, truth, pairs.other)
+    rot, trans, rms = REAL_TOLERANCE[method]
+    assert err["rot_deg"] <= rot and err["trans_mm"] <= trans and err["rms_mm"] <= rms, err
+    if method != "regression":  # (its affine fit is poor everywhere: no tail to speak of)
+        # heavy tails: the rms of a good fit sits well above the median it is judged by
+        assert result.rms_m > 1.3 * result.median_m, (result.rms_m, result.median_m)
 
 
 @pytest.mark.parametrize("method", ["rigid", "ga3d", "regression", "floor"])

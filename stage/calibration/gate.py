@@ -53,6 +53,14 @@ class JumpGate:
         k = self._sensor(sensor)  # first: it may grow (replace) the _trusted array
         self._trusted[k] = trusted
 
+    def forget(self, sensor: str, user: int) -> None:
+        """Forget what a view agreed with (its user id now belongs to somebody else)."""
+        i = self._index.get((sensor, user))
+        if i is not None:
+            n = len(self._index)
+            self._links[i, :n] = -INF
+            self._links[:n, i] = -INF
+
     def check(self, sensor: str, user: int, t: float, centre: np.ndarray,
               ) -> tuple[list[str], float] | None:
         """Record a view's stage-space torso centre (3,) at time t.

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import apply, invert, matrix, nearest_rotation
+from .fitness import GAUSS_RMS_PER_MEDIAN, weighted_median
 from .methods import CalibrationResult
 from .pairs import PairSet
 
@@ -36,7 +37,11 @@ class Edge:
 
     @property
     def cost(self) -> float:
-        return float(self.result.rms_m) ** 2 + 1e-6  # the epsilon prefers fewer hops on ties
+        """The edge's error variance on the robust scale (m^2): independent errors add their
+        variances along a chain; the epsilon prefers fewer hops on ties."""
+        median = self.result.median_m
+        scale = median if np.isfinite(median) else self.result.rms_m / GAUSS_RMS_PER_MEDIAN
+        return float(GAUSS_RMS_PER_MEDIAN * scale) ** 2 + 1e-6
 
 
 @dataclass
@@ -107,26 +112,70 @@ class SensorGraph:
                 weight += float(w.sum())
         return total / weight if weight else float("nan")
 
+    def robust_disagreement(self, transforms: dict[str, np.ndarray]) -> float:
+        """Mean over the overlaps of each one's median joint distance (m): every overlap
+        counts once, and wild pairs not at all (what refinement must not make worse)."""
+        meds = []
+        for e in self.edges:
+            if e.a in transforms and e.b in transforms:
+                pa, pb, w = _points(e)
+                d = np.linalg.norm(apply(transforms[e.a], pa) - apply(transforms[e.b], pb), axis=1)
+                meds.append(weighted_median(d, w))
+        return float(np.mean(meds)) if meds else float("nan")
+
     def refine(self, transforms: dict[str, np.ndarray], reference: str, iterations: int = 30,
-               tol: float = 1e-10) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+               tol: float = 1e-10, per_edge: bool = True, robust: bool = True,
+               ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
         """Jointly refine every non-reference transform over all overlapping pairs.
 
         Minimises sum over edges (a, b) and their joint pairs of
         w |T_a p_a - T_b p_b|^2 over all rigid T (the reference fixed) by
         Gauss-Newton on small rotations and translations of every sensor at
         once; it converges in a few iterations from the composed chains.
+        ``per_edge``: every overlap weighs the same in total, however many
+        pairs it has (see below); ``robust``: the weights are re-computed each
+        iteration with Cauchy weights (c: the overlap's own fit's scale), so
+        pairs of an overlap that contradicts the others count little -- except
+        for overlaps whose fit ended with concentration steps, whose own final
+        weights are kept (so on a tree, nothing moves).
         Affine inputs (the regression's) are first projected on rotations.
         Returns the refined transforms and {before, after (m^2), iterations}.
         """
         t = {s: matrix(nearest_rotation(m[:3, :3]), m[:3, 3]) for s, m in transforms.items()}
         movable = [s for s in t if s != reference]
         index = {s: 6 * k for k, s in enumerate(movable)}
-        edges = [(e, *_points(e)) for e in self.edges if e.a in t and e.b in t]
+        # an overlap whose fit ended with concentration steps is the least-squares fit of
+        # its own final weights (the better half of its pairs): those are kept as they are;
+        # the others' are re-weighted (Cauchy) from the pairs' confidences
+        placed = [e for e in self.edges if e.a in t and e.b in t]
+        fixed = [bool(e.result.details and e.result.details.get("concentration_steps"))
+                 for e in placed]
+        edges = [(e, *_points(e, robust_weights=not robust or f)) for e, f in zip(placed, fixed)]
+        if per_edge and edges:
+            # each overlap is ONE measurement of a relative pose: its pairs share its
+            # systematic error (the two views see different sides of the body), which no
+            # number of pairs averages out, so every overlap gets the same total weight
+            mean = float(np.mean([w.sum() for *_rest, w in edges]))
+            edges = [(e, pa, pb, w * (mean / w.sum())) for e, pa, pb, w in edges]
+        base = [w for *_rest, w in edges]
+        # Cauchy scale per overlap: the one its own robust fit ended with, so on a tree (where
+        # the composed chains are each overlap's own optimum) refinement changes nothing
+        scales = []
+        for e, pa, pb, _ in edges:
+            c = e.result.details.get("cauchy_c_m") if e.result.details else None
+            if c is None:
+                d = np.linalg.norm(apply(t[e.a], pa) - apply(t[e.b], pb), axis=1)
+                c = max(2.0 * float(np.median(d)), 0.02) if len(d) else 1.0
+            scales.append(float(c))
         before = self.objective(transforms)
         done = 0
         for done in range(1, iterations + 1):
             h = np.zeros((6 * len(movable),) * 2)
             g = np.zeros(6 * len(movable))
+            if robust:  # Cauchy re-weighting, as the rigid fit does: wild pairs count little
+                edges = [(e, pa, pb, w0 if f else w0 / (1.0 + (np.linalg.norm(
+                             apply(t[e.a], pa) - apply(t[e.b], pb), axis=1) / c) ** 2))
+                         for (e, pa, pb, _), w0, c, f in zip(edges, base, scales, fixed)]
             for e, pa, pb, w in edges:
                 va, vb = pa @ t[e.a][:3, :3].T, pb @ t[e.b][:3, :3].T
                 r = (va + t[e.a][:3, 3]) - (vb + t[e.b][:3, 3])
@@ -151,9 +200,10 @@ class SensorGraph:
         return t, {"before": before, "after": self.objective(t), "iterations": done}
 
 
-def _points(e: Edge) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """An edge's joint pairs, flat: p_a (M, 3), p_b (M, 3), weights (M,) (robust ones if any)."""
-    w = e.result.weight if e.result.weight is not None else e.pairs.weight
+def _points(e: Edge, robust_weights: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An edge's joint pairs, flat: p_a (M, 3), p_b (M, 3), weights (M,) (the method's
+    robust ones if any, unless ``robust_weights`` is False: the pairs' confidences)."""
+    w = e.result.weight if robust_weights and e.result.weight is not None else e.pairs.weight
     keep = w.reshape(-1) > 0
     return e.pairs.ref.reshape(-1, 3)[keep], e.pairs.other.reshape(-1, 3)[keep], w.reshape(-1)[keep]
 

@@ -32,20 +32,19 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
 
 from ..engine.engine import Engine
 from ..frames import SensorFrame
-from ..errors import CalibrationError
-from .fitness import fitness_from_mse
+from .collector import Collector
 from .gate import CopyDetector, JumpGate
-from .live import LiveSettings, View, new_pairs, torso_centre
-from .methods import CalibrationResult, calibrate
-from .scoring import grid, score
-from .pairs import PairSet
+from .judge import PairWindow
+from .live import LiveSettings, View, torso_centre
+from .livestate import LiveEvent, SensorState
+from .monitor import Monitor
 from .worker import EngineWorker
 
 log = logging.getLogger("stage.calibration")
@@ -53,43 +52,10 @@ INF = float("inf")
 #: sensors the calibrator keeps state for; beyond, those the engine forgot are dropped
 MAX_SENSORS = 128
 
-
-@dataclass(frozen=True)
-class LiveEvent:
-    """Something the calibrator did, at engine time ``t``."""
-
-    t: float
-    sensor: str
-    kind: str       # suspect | restored | calibrated | rejected | identical | failed
-    detail: str
-    matrix: np.ndarray | None = None   # sensor -> stage, for calibrated
-    fitness: float | None = None
+__all__ = ["LiveCalibrator", "LiveEvent", "attach_live"]
 
 
-@dataclass
-class _State:
-    sensor: str
-    state: str                          # ok | suspect | recalibrating | uncalibrated
-    reason: str = ""
-    transform: np.ndarray | None = None  # what the engine uses now (None: not fused)
-    last_good: np.ndarray | None = None
-    fitness: float | None = None
-    since: float = -INF
-    below_since: float | None = None
-    above_since: float | None = None
-    pairs: PairSet | None = None
-    needed: int = 0
-    collect_from: float = -INF
-    collected_to: float = -INF
-    duplicate_of: str | None = None
-    requested: bool = False
-    busy: bool = False
-    epoch: int = 0                      # bumped on every state change (stale decisions lose)
-    noted: dict | None = None
-    history: deque = field(default_factory=deque)   # (t, sum w d^2, sum w) per poll
-
-
-class LiveCalibrator(EngineWorker):
+class LiveCalibrator(Monitor, Collector, EngineWorker):
     """See the module docstring. Build with ``attach_live``."""
 
     name = "stage-calibration"
@@ -105,12 +71,17 @@ class LiveCalibrator(EngineWorker):
         self._lock = threading.Lock()
         # the engine's reference sensor, as last seen on the engine thread (read under _lock)
         self._reference: str | None = engine.reference
-        self._buffers: dict[tuple[str, int], deque] = {}   # of (frame, person id)
-        self._states: dict[str, _State] = {}
+        self._buffers: dict[tuple[str, int], deque] = {}   # of (frame, person id, run)
+        self._runs: dict[tuple[str, int], int] = {}        # identities a user id has had
+        self._tracks_seen: dict[tuple[str, int], object] = {}  # the engine's track, last frame
+        self._states: dict[str, SensorState] = {}
         self._order: list[str] = []
         s = self.settings
         self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
         self._monitored_to = -INF
+        self._window = PairWindow(s.window_s)   # trusted pairs' joint distances
+        self._held_since: float | None = None   # everything looked wrong at once since then
+        self._jumps: dict[str, tuple[float, set]] = {}   # sensor -> (frame time, users jumped)
         self._copies = CopyDetector(self.settings.identical_frames)
         self._pending: dict[str, int] = {}  # requested before the sensor was seen
         self._request_all: int | None = None
@@ -152,8 +123,10 @@ class LiveCalibrator(EngineWorker):
                     self._pending[sid] = pairs or self.settings.pairs
                     continue
                 seen.append(sid)
-                st.requested, st.pairs, st.epoch = True, None, st.epoch + 1
+                st.requested, st.epoch = True, st.epoch + 1
+                st.reset_pairs()
                 st.needed = pairs or self.settings.pairs
+                st.wanted_poses = self.settings.poses if not pairs else pairs
                 st.collect_from = st.collected_to = self._latest
                 st.reason = "calibration requested: collecting pairs"
                 self._note(st)
@@ -183,9 +156,14 @@ class LiveCalibrator(EngineWorker):
             self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
             self._copies = CopyDetector(s.identical_frames)
             self._buffers.clear()
+            self._runs.clear()
+            self._tracks_seen.clear()
             self._states.clear()
             self._order.clear()
             self._monitored_to = -INF
+            self._window = PairWindow(s.window_s)
+            self._held_since = None
+            self._jumps.clear()
 
     def _forget_gone(self) -> None:
         """Sensors the engine no longer knows are forgotten (caller holds the lock), so
@@ -222,7 +200,13 @@ class LiveCalibrator(EngineWorker):
                 buf = self._buffers[key] = deque(maxlen=int(s.buffer_s * 60))
             client = self.engine.clients.get(frame.sensor)
             track = client.tracks.get(frame.user) if client is not None else None
-            buf.append((frame, None if track is None else track.person))
+            if track is not None and self._tracks_seen.get(key) is not track:
+                # a new user, or one lost and found (the engine has a new track for it):
+                # nothing it agreed with before counts
+                self._tracks_seen[key] = track
+                self._gate.forget(frame.sensor, frame.user)
+                self._runs[key] = self._runs.get(key, 0) + 1
+            buf.append((frame, None if track is None else track.person, self._runs.get(key, 0)))
             self._latest = max(self._latest, frame.t)
             if s.identical_frames > 0:
                 pair = self._copies.check(frame.sensor, frame.t, frame.joints, frame.conf)
@@ -239,21 +223,22 @@ class LiveCalibrator(EngineWorker):
             else:
                 self._poll()
 
-    def _new_state(self, frame: SensorFrame) -> _State:
+    def _new_state(self, frame: SensorFrame) -> SensorState:
         sid = frame.sensor
         if sid == self._reference:
-            st = _State(sid, "ok", "reference: its space is stage space")
+            st = SensorState(sid, "ok", "reference: its space is stage space")
         elif frame.transform is None:
-            st = _State(sid, "uncalibrated", "no calibration yet" + (
+            st = SensorState(sid, "uncalibrated", "no calibration yet" + (
                 ": waiting for exactly one person seen by it and a calibrated sensor"
                 if self.settings.auto_calibrate else ""))
         else:
-            st = _State(sid, "ok", "calibrated")
+            st = SensorState(sid, "ok", "calibrated")
         st.transform = st.last_good = frame.transform
         pending = self._pending.pop(sid, None)
         if pending is None and self._request_all and sid != self._reference:
             pending = self._request_all
         st.needed = pending or self.settings.pairs
+        st.wanted_poses = self.settings.poses if pending in (None, self.settings.pairs) else pending
         st.requested = pending is not None
         self._gate.trust(sid, st.state == "ok")
         self._states[sid] = st
@@ -261,7 +246,7 @@ class LiveCalibrator(EngineWorker):
         self._note(st)
         return st
 
-    def _follow_reference(self, st: _State, frame: SensorFrame) -> None:
+    def _follow_reference(self, st: SensorState, frame: SensorFrame) -> None:
         """The engine may choose a new reference (the old one went silent before anything
         was calibrated against it): the new one is fine as it is, the old one needs a
         calibration like any other sensor."""
@@ -280,17 +265,39 @@ class LiveCalibrator(EngineWorker):
             self._gate.trust(sid, False)
             self._note(st)
 
-    def _check_jump(self, frame: SensorFrame, st: _State) -> None:
-        """Quarantine at once a sensor whose torso jumped away from sensors it agreed with."""
+    def _check_jump(self, frame: SensorFrame, st: SensorState) -> None:
+        """Quarantine at once a sensor whose views jumped away from sensors they agreed with.
+
+        One view jumping is a bump only when it is all the sensor sees; with
+        several people, a bump moves every view of the sensor in the same
+        frame, while one view alone jumping is the sensor giving a freed user
+        id to another person (a Kinect reuses its body indices): that view's
+        old agreements are forgotten instead.
+        """
         m = frame.transform
-        c = torso_centre(frame.joints, frame.conf)
+        # tracked torso joints only: a torso the sensor only infers (a person hidden in a
+        # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved
+        c = torso_centre(frame.joints, np.where(frame.conf >= 1.0, frame.conf, 0.0))
         if c is None or m is None:
             return
-        jumped = self._gate.check(frame.sensor, frame.user, frame.t, m[:3, :3] @ c + m[:3, 3])
-        if jumped is not None:
-            sensors, distance = jumped
-            self._quarantine(st, frame.t, f"its view jumped {distance:.2f} m away from "
-                                          f"{', '.join(sensors)} (moved or bumped?)")
+        sid, user, t = frame.sensor, frame.user, frame.t - st.lag_s  # on stage time
+        jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
+        if jumped is None:
+            return
+        others = [u for (s2, u), buf in self._buffers.items()
+                  if s2 == sid and u != user and buf and t - buf[-1][0].t <= 0.1]
+        first, users = self._jumps.get(sid, (t, set()))
+        if abs(t - first) > 0.02:        # a jump of an earlier frame: start counting again
+            first, users = t, set()
+        users.add(user)
+        self._jumps[sid] = (first, users)
+        if others and len(users) < 2:
+            self._gate.forget(sid, user)  # one view of several: another person took its id
+            return
+        sensors, distance = jumped
+        self._quarantine(st, t, f"{'its view' if not others else f'{len(users)} of its views'} "
+                                f"jumped {distance:.2f} m away from {', '.join(sensors)} "
+                                "(moved or bumped?)")
 
     def _flag_identical(self, pair: tuple[str, str], t: float) -> None:
         a, b = pair
@@ -306,24 +313,34 @@ class LiveCalibrator(EngineWorker):
         log.warning("sensor %s %s", copy, reason)
         self._event(LiveEvent(t, copy, "identical", reason))
         if st.state == "ok":
-            self._quarantine(st, t, reason)
+            self._quarantine(st, t, reason, force=True)
         else:
             st.reason = reason
             st.epoch += 1
-            st.pairs = None
+            st.reset_pairs()
             self._note(st)
 
-    def _quarantine(self, st: _State, t: float, reason: str) -> None:
-        """Leave a sensor out of fusion (caller holds the lock)."""
+    def _quarantine(self, st: SensorState, t: float, reason: str, force: bool = False) -> bool:
+        """Leave a sensor out of fusion (caller holds the lock); False when held back.
+
+        Never more than half of the calibrated sensors at once (``force``: a
+        copy, which is not a sensor): when more would be suspect, everything
+        looks wrong at once (a crowd hiding everybody, or the reference moved)
+        and the last good calibrations stay in use, which the note says.
+        """
+        if not force and not self._room_for_suspect():
+            self._hold(t, [st], reason)
+            return False
         if st.transform is not None:
             st.last_good = st.transform
         st.state, st.reason, st.since = "suspect", reason, t
-        st.transform, st.pairs, st.busy = None, None, False
-        st.needed = self.settings.heal_pairs
+        st.transform, st.busy = None, False
+        st.reset_pairs()
+        st.needed, st.wanted_poses = self.settings.heal_pairs, self.settings.heal_poses
         st.collect_from = st.collected_to = t
         st.below_since = st.above_since = None
         st.epoch += 1
-        st.history.clear()
+        st.window = PairWindow(self.settings.window_s)
         sid = st.sensor
         self._gate.trust(sid, False)
         self._act(lambda e: e.set_calibration(sid, None))
@@ -331,16 +348,27 @@ class LiveCalibrator(EngineWorker):
                     sid, reason)
         self._event(LiveEvent(t, sid, "suspect", reason, fitness=st.fitness))
         self._note(st)
+        return True
 
     # ------------------------------------------------------------ helpers
-    def _note_of(self, st: _State) -> dict:
+    def _note_of(self, st: SensorState) -> dict:
+        """What ``stage stats`` and the monitor show: state, fitness, the reason in words,
+        progress while collecting, the last attempt's outcome and the lag found."""
         note = {"state": st.state, "fitness": None if st.fitness is None else round(st.fitness, 3),
                 "reason": st.reason}
+        if st.residual is not None and np.isfinite(st.residual):
+            note["median_m"] = round(st.residual, 4)
         if st.pairs is not None or st.state in ("uncalibrated", "suspect") or st.requested:
-            note["progress"] = f"{0 if st.pairs is None else len(st.pairs)}/{st.needed} pairs"
+            n = 0 if st.pairs is None else len(st.pairs)
+            note["progress"] = (f"{n}/{st.needed} pairs, {len(st.poses)}/{st.wanted_poses} "
+                                "distinct poses")
+        if st.last_attempt is not None and st.state != "ok":
+            note["last_attempt"] = st.last_attempt
+        if st.lag_confidence is not None:
+            note["lag_s"] = round(st.lag_s, 4)
         return note
 
-    def _note(self, st: _State) -> None:
+    def _note(self, st: SensorState) -> None:
         note = self._note_of(st)
         if note == st.noted:
             return
@@ -366,6 +394,8 @@ class LiveCalibrator(EngineWorker):
             oldest = min([t0] + [max(st.collected_to, st.collect_from)
                                  for st in self._states.values() if st.pairs is not None
                                  or st.state != "ok" or st.requested])
+            if any(self._lag_due(st, now) for st in self._states.values()):
+                oldest = -INF  # a lag search wants everything buffered
             since = max(oldest, now - s.buffer_s) - 0.25  # room to interpolate at the edges
             for key in [k for k, b in self._buffers.items() if b and b[-1][0].t < now - s.buffer_s]:
                 del self._buffers[key]
@@ -382,19 +412,23 @@ class LiveCalibrator(EngineWorker):
             epochs = {sid: st.epoch for sid, st in self._states.items()}
             states = {sid: (st.state, st.transform, st.last_good, st.duplicate_of)
                       for sid, st in self._states.items()}
+            lags = {sid: st.lag_s for sid, st in self._states.items() if st.lag_s}
             self._expire_duplicates(now)
         views: dict[str, list[View]] = {}
         for entries in snapshot:
             view = View.of(entries)
+            if view.sensor in lags:  # onto stage time: its clock runs lag_s from it
+                view.t = view.t - lags[view.sensor]
             views.setdefault(view.sensor, []).append(view)
         self._yield()
         if s.heal and t1 > t0:
             self._monitor(now, t0, t1, views, states, epochs)
             self._monitored_to = t1
+        self._track_lags(now, views, states, epochs)
         self._collect(now, views, states, epochs)
         with self._lock:
             jobs = [(st, st.epoch) for st in self._states.values()
-                    if st.pairs is not None and len(st.pairs) >= st.needed and not st.busy]
+                    if st.pairs is not None and self._ready(st, now) and not st.busy]
             for st, _ in jobs:
                 st.busy = True
                 if st.state == "suspect":
@@ -411,156 +445,10 @@ class LiveCalibrator(EngineWorker):
                     st.duplicate_of = None
                     st.collect_from = st.collected_to = now
                     st.reason = "no longer a copy: checking and re-calibrating"
+                    st.reset_pairs()
                     st.epoch += 1
                     self._note(st)
 
-    def _monitor(self, now: float, t0: float, t1: float, views: dict[str, list[View]],
-                 states: dict, epochs: dict) -> None:
-        """Score every sensor on the frames of (t0, t1]; decide who is suspect or restored."""
-        s = self.settings
-        at = grid(t0, t1)
-        if not len(at):
-            return
-        sums = score(views, states, at, s.match_m)
-        with self._lock:
-            candidates = []
-            for sid, st in self._states.items():
-                if st.epoch != epochs.get(sid):
-                    continue
-                sse, w = sums.get(sid, (0.0, 0.0))
-                if w > 0:
-                    st.history.append((t1, sse, w))
-                while st.history and st.history[0][0] <= t1 - s.window_s:
-                    st.history.popleft()
-                total_w = sum(h[2] for h in st.history)
-                if total_w <= 0:
-                    continue  # nobody to compare with: no verdict
-                st.fitness = float(fitness_from_mse(sum(h[1] for h in st.history) / total_w))
-                if st.state == "ok":
-                    if st.fitness < s.suspect_below:
-                        st.below_since = now if st.below_since is None else st.below_since
-                        if now - st.below_since >= s.hold_s:
-                            candidates.append(st)
-                    else:
-                        st.below_since = None
-                elif (st.state == "suspect" and st.last_good is not None and not st.busy
-                      and st.duplicate_of is None):
-                    if st.fitness >= s.restore_above:
-                        st.above_since = now if st.above_since is None else st.above_since
-                        if now - st.above_since >= s.restore_s:
-                            self._restore(st, now)
-                    else:
-                        st.above_since = None
-                self._note(st)
-            if candidates:
-                # with two sensors both look wrong to each other: blame the lowest, and on a
-                # near tie not the reference (stage space is its space)
-                worst = min(candidates, key=lambda c: (round(c.fitness / 0.05),
-                                                       c.sensor == self._reference))
-                self._quarantine(worst, now, f"fitness {worst.fitness:.2f} stayed below "
-                                             f"{s.suspect_below} for {s.hold_s:g} s")
-
-    def _restore(self, st: _State, now: float) -> None:
-        m = st.last_good
-        st.state, st.transform, st.pairs, st.since = "ok", m, None, now
-        st.reason = f"its old transform fits again (fitness {st.fitness:.2f}): restored"
-        st.above_since = st.below_since = None
-        st.epoch += 1
-        st.history.clear()
-        sid = st.sensor
-        self._gate.trust(sid, True)
-        self._act(lambda e: e.set_calibration(sid, m))
-        log.info("sensor %s: %s", sid, st.reason)
-        self._event(LiveEvent(now, sid, "restored", st.reason, m, st.fitness))
-
-    def _collect(self, now: float, views: dict[str, list[View]], states: dict, epochs: dict,
-                 ) -> None:
-        s = self.settings
-        t1 = now - s.delay_s
-        trusted = [sid for sid, (state, *_rest) in states.items() if state == "ok"]
-        for sid, (state, *_rest) in states.items():
-            with self._lock:
-                st = self._states.get(sid)  # the engine thread may have forgotten it
-                if st is None:
-                    continue
-                wanted = st.duplicate_of is None and not st.busy and (
-                    st.requested or (state == "uncalibrated" and s.auto_calibrate)
-                    or (state == "suspect" and s.heal))
-                start = max(st.collected_to, st.collect_from)
-            if not wanted:
-                continue
-            new, waiting = new_pairs(sid, views, trusted, start, t1, now, s.min_joints)
-            self._yield()
-            with self._lock:
-                st = self._states.get(sid)
-                if st is None or st.epoch != epochs.get(sid):
-                    continue
-                if waiting is not None:
-                    st.reason = waiting
-                elif new is not None:
-                    st.collected_to = t1
-                    before = 0 if st.pairs is None else len(st.pairs)
-                    st.pairs = new if st.pairs is None else st.pairs.concat(new)
-                    st.reason = f"collecting pairs with {', '.join(new.partners)}"  # type: ignore[attr-defined]
-                    quarter = max(st.needed // 4, 1)
-                    if len(st.pairs) // quarter > before // quarter:
-                        log.info("calibrating %s: %d/%d pairs", sid, min(len(st.pairs), st.needed),
-                                 st.needed)
-                self._note(st)
-
-    def _job(self, st: _State, epoch: int, now: float) -> None:
-        """Fit, check, and accept or reject (worker thread, or inline)."""
-        s = self.settings
-        pairs = st.pairs
-        sid = st.sensor
-        assert pairs is not None
-        try:
-            result: CalibrationResult | None = calibrate(pairs, s.method)
-            error = None
-        except CalibrationError as exc:
-            result, error = None, str(exc)
-        with self._lock:
-            st.busy = False
-            if st.epoch != epoch:
-                return  # something happened meanwhile (quarantined again, a request)
-            if st.state == "recalibrating":
-                st.state = "suspect"
-            was = st.state
-            if result is not None and result.fitness >= s.accept_above:
-                m = result.matrix
-                st.state, st.transform, st.last_good, st.pairs = "ok", m, m, None
-                st.requested, st.fitness, st.since = False, result.fitness, now
-                st.below_since = st.above_since = None
-                verb = "re-calibrated" if was == "suspect" else "calibrated"
-                st.reason = (f"{verb} by {result.method}: fitness {result.fitness:.2f}, rms "
-                             f"{result.rms_m * 1000:.0f} mm, {result.pairs} pairs")
-                st.epoch += 1
-                st.history.clear()
-                self._gate.trust(sid, True)
-                self._act(lambda e: e.set_calibration(sid, m))
-                log.info("sensor %s %s", sid, st.reason)
-                self._event(LiveEvent(now, sid, "calibrated", st.reason, m, result.fitness))
-            else:
-                why = error or (f"fit too poor (fitness {result.fitness:.2f} < "  # type: ignore[union-attr]
-                                f"{s.accept_above})")
-                st.pairs = pairs.subset(slice(len(pairs) // 2, None))  # keep the newer half
-                st.reason = f"calibration rejected: {why}; collecting more pairs"
-                log.warning("sensor %s: %s", sid, st.reason)
-                self._event(LiveEvent(now, sid, "rejected", st.reason,
-                                      fitness=None if result is None else result.fitness))
-            self._note(st)
-            accepted = st.state == "ok"
-        if accepted and result is not None:
-            self._save(sid, result)
-
-    def _save(self, sid: str, result: CalibrationResult) -> None:
-        """Hand an accepted calibration to the engine thread, which owns the rig and saves it."""
-        path = self.rig_path if self.settings.save else None
-        if self.settings.save and not self.rig_path:
-            log.info("%s's calibration is in use but not saved: no rig file (--rig)", sid)
-        matrix, method = result.matrix, f"{result.method} (live)"
-        fitness, rms, wait = result.fitness, result.rms_m, not self.threaded
-        self._act(lambda e: e.record_calibration(sid, matrix, method, fitness, rms, path, wait))
 
 
 def attach_live(engine: Engine, rig_path: str | None = None,

@@ -10,12 +10,13 @@ confidences as weights.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..frames import SensorFrame
 from ..joints import N_JOINTS, TORSO
+from .coverage import Gates
 from .pairs import resample
 
 _TORSO = np.array(TORSO)
@@ -25,25 +26,53 @@ _TORSO = np.array(TORSO)
 class LiveSettings:
     """Knobs of live calibration and self-healing (defaults suit 30 Hz Kinects).
 
-    Fitness (see ``fitness``) is computed per sensor over ``window_s`` of its
-    frames against the other trusted sensors. A sensor is suspect when it
-    stays below ``suspect_below`` for ``hold_s`` (or at once, when its torso
-    jumps ``gate_m`` away from sensors it agreed with a moment ago); a
-    suspect sensor is left out of fusion, and comes back either with its old
-    transform (fitness back above ``restore_above`` for ``restore_s``: it
-    was a glitch) or with a new one fitted on ``heal_pairs`` fresh pairs,
-    accepted only when its fitness is at least ``accept_above``.
+    Every two trusted sensors that see one person are compared over
+    ``window_s``; a sensor is suspect when its fitness (from the median joint
+    distance) stays below ``suspect_below`` AND it is ``suspect_ratio`` times
+    further from the others than they are from each other, for ``hold_s``
+    (or at once, when every view of it jumps ``gate_m`` away from sensors it
+    agreed with a moment ago); never more than half of the calibrated sensors
+    at once. A suspect sensor is left out of fusion, and comes back either
+    with its old transform (fitness back above ``restore_above``, or within
+    ``restore_ratio`` of how close the others agree or of how close it agreed
+    itself while healthy, for ``restore_s``: it was a glitch) or
+    with a new one. Pairs for a calibration are enough at ``pairs``
+    (``heal_pairs``) or sooner at ``poses`` (``heal_poses``) distinct poses;
+    a fit is accepted when it passes the gates (``min_pairs``, ``min_poses``,
+    ``min_fitness``, as offline) and is good (``accept_above``) or within
+    ``accept_ratio`` of how close the trusted sensors agree (a first
+    calibration with nobody to compare with: the gates alone). Each sensor's
+    lag is searched within ``max_lag_s`` before it is calibrated and every
+    ``lag_every_s`` after (``lag_search``).
     """
 
     method: str = "rigid"
-    pairs: int = 300              # pairs for a first calibration (~10 s at 30 Hz)
-    heal_pairs: int = 90          # pairs for a re-calibration (~3 s)
+    pairs: int = 300              # pairs that are enough for a first calibration (~10 s)
+    poses: int = 40               # ... or this many distinct poses, sooner
+    heal_pairs: int = 90          # pairs that are enough for a re-calibration (~3 s)
+    heal_poses: int = 20
+    poses_stall_s: float = 3.0    # ... or sooner still when no new pose came for this long
     window_s: float = 0.5
-    suspect_below: float = 0.5    # fitness 0.5 = joints 10 cm apart on average
+    suspect_below: float = 0.35   # fitness 0.35 = core joints 12.6 cm apart (median)
+    suspect_ratio: float = 2.0    # ... and twice as far as the others agree among themselves
     hold_s: float = 0.3
-    restore_above: float = 0.7    # hysteresis: 0.7 = 6.5 cm
+    restore_above: float = 0.7    # hysteresis: 0.7 = 5.8 cm (median)
+    restore_ratio: float = 1.25   # ... or as close as the others agree, or as it agreed
+                                  # itself while healthy (x 1.25)
     restore_s: float = 1.0
     accept_above: float = 0.7
+    accept_ratio: float = 1.5
+    min_pairs: int = Gates.min_pairs
+    min_poses: int = Gates.min_poses
+    min_fitness: float = Gates.min_fitness
+    poor_fitness: float = Gates.poor_fitness
+    min_lag_confidence: float = Gates.min_lag_confidence
+    lag_search: bool = True
+    max_lag_s: float = 1.0
+    lag_every_s: float = 10.0     # re-search a calibrated sensor's lag this often (0: never)
+    lag_min_confidence: float = 0.05
+    lag_hysteresis: float = 0.1   # a new lag must fit 10 % better than the one in use
+    lag_min_s: float = 0.8        # both views need this much buffered before a lag search
     gate_m: float = 0.30
     agree_m: float = 0.15
     link_s: float = 0.5
@@ -51,7 +80,7 @@ class LiveSettings:
     identical_frames: int = 5
     poll_s: float = 0.1
     delay_s: float = 0.1          # frames are judged once the partners' later frames are in
-    buffer_s: float = 2.0
+    buffer_s: float = 4.0
     auto_calibrate: bool = True   # calibrate sensors the rig has no calibration for
     heal: bool = True
     save: bool = True
@@ -77,13 +106,28 @@ class View:
     person: int | None = None              # the fused person the engine bound it to, if any
 
     @classmethod
-    def of(cls, entries: list[tuple[SensorFrame, int | None]]) -> "View":
-        """From (frame, person id) entries, as the observer buffers them."""
+    def of(cls, entries: list[tuple]) -> "View":
+        """From (frame, person id, run) entries, as the observer buffers them.
+
+        Only the newest run of one identity is kept: a sensor gives a freed
+        user id to the next body it acquires (a Kinect's body index 0-5 does
+        the same), so one (sensor, user) buffer can hold two people one after
+        the other. A run ends where the frames are more than ``IDENTITY_GAP_S``
+        apart, where the torso moves ``IDENTITY_JUMP_M`` between two frames
+        (nobody moves 30 cm in a frame), or where the engine bound the view to
+        another person. Mixing two people in one view made every sensor that
+        saw either of them look wrong to the monitor.
+        """
         entries = sorted(entries, key=lambda e: e[0].t)  # batches may interleave slightly
-        frames = [f for f, _ in entries]
+        frames = [e[0] for e in entries]
         t = np.array([f.t for f in frames])
         raw = np.stack([f.joints for f in frames])
         conf = np.stack([f.conf for f in frames])
+        first = _identity_start(t, raw, conf, [e[1] for e in entries],
+                                [e[2] if len(e) > 2 else 0 for e in entries])
+        if first:
+            entries, frames = entries[first:], frames[first:]
+            t, raw, conf = t[first:], raw[first:], conf[first:]
         stage = np.full_like(raw, np.nan)
         # frames share transform objects; place each run of one transform at once
         start = 0
@@ -96,9 +140,50 @@ class View:
         return cls(frames[0].sensor, frames[0].user, t, raw, conf, stage,
                    frames[-1].floor, frames[-1].transform, entries[-1][1])
 
+    def after(self, t0: float) -> "View | None":
+        """The frames after ``t0`` only (None if there are none)."""
+        keep = self.t > t0
+        if keep.all():
+            return self
+        if not keep.any():
+            return None
+        return replace(self, t=self.t[keep], raw=self.raw[keep], conf=self.conf[keep],
+                       stage=self.stage[keep])
+
     def between(self, t0: float, t1: float) -> np.ndarray:
         """Indices of frames with t0 < t <= t1."""
         return np.flatnonzero((self.t > t0) & (self.t <= t1))
+
+
+#: a (sensor, user) view is a new identity after a gap this long (s) ...
+IDENTITY_GAP_S = 0.25
+#: ... or a torso jump this large between consecutive frames (m), see View.of
+IDENTITY_JUMP_M = 0.30
+
+
+def _identity_start(t: np.ndarray, raw: np.ndarray, conf: np.ndarray,
+                    persons: list[int | None], runs: list[int]) -> int:
+    """Index of the first frame of the newest run of one identity (frames in time order).
+
+    runs: the observer's count of times the engine had no track for this user
+    (it was lost, or is new): a change is a new identity whatever the gap.
+    """
+    n = len(t)
+    if n < 2:
+        return 0
+    brk = np.diff(t) > IDENTITY_GAP_S                      # brk[k]: between frame k and k + 1
+    brk |= np.diff(np.asarray(runs)) != 0
+    c = torso_centre(raw, conf)                            # (n, 3), NaN where no torso
+    seen = np.flatnonzero(np.isfinite(c[:, 0]))
+    if len(seen) > 1:  # consecutive frames with a torso, however many torso-less ones between
+        jump = np.linalg.norm(np.diff(c[seen], axis=0), axis=1) > IDENTITY_JUMP_M
+        brk[seen[1:][jump] - 1] = True
+    known = [(k, p) for k, p in enumerate(persons) if p is not None]
+    for (k0, p0), (k1, p1) in zip(known, known[1:]):
+        if p0 != p1:
+            brk[k1 - 1] = True
+    cut = np.flatnonzero(brk)
+    return int(cut[-1]) + 1 if len(cut) else 0
 
 
 @dataclass
@@ -131,15 +216,31 @@ def consensus(partners: list[View], at: np.ndarray) -> Consensus:
 
 
 def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
-    """(..., 25, 3) -> (..., 3) mean of the tracked torso joints (None if none, for one frame)."""
+    """(..., 25, 3) -> (..., 3) mean of the torso joints (None if none, for one frame).
+
+    Tracked joints (confidence 1) only, when a frame has any: an inferred torso joint can
+    be guessed 10-30 cm off, which moved the centre more than the jump gate's agreement.
+    """
     c = conf[..., _TORSO]
-    w = (c > 0).astype(float)
+    tracked = c >= 1.0
+    w = np.where(tracked.any(axis=-1, keepdims=True), tracked, c > 0).astype(float)
     n = w.sum(axis=-1)
     if joints.ndim == 2:  # the engine-thread path: as few numpy calls as possible
         return None if n == 0 else (w @ joints[_TORSO]) / n
     out = (joints[..., _TORSO, :] * w[..., None]).sum(axis=-2) / np.maximum(n, 1)[..., None]
     out[n == 0] = np.nan
     return out
+
+
+def _current(views: list[View], now: float) -> list[View]:
+    """A sensor's views of people it sees now: seen within the last second (its clock may
+    run up to ``LiveSettings.max_lag_s`` from stage time, hence the 2 s), and within half a
+    second of its newest view (an older one is a person it lost, not a second person)."""
+    recent = [v for v in views if v.t[-1] > now - 2.0]
+    if not recent:
+        return []
+    newest = max(v.t[-1] for v in recent)
+    return [v for v in recent if v.t[-1] > newest - 0.5]
 
 
 def new_pairs(sensor: str, views: dict[str, list[View]], trusted: list[str], start: float,
@@ -153,13 +254,13 @@ def new_pairs(sensor: str, views: dict[str, list[View]], trusted: list[str], sta
     """
     from ..geometry import transform_plane
     from .pairs import PairSet
-    seen = [v for v in views.get(sensor, []) if v.t[-1] > now - 1.0]
+    seen = _current(views.get(sensor, []), now)
     if len(seen) != 1:
         return None, ("waiting: nobody in its view" if not seen else
                       f"waiting: {len(seen)} people in its view; calibration needs one")
     partners = []
     for r in trusted:
-        rv = [v for v in views.get(r, []) if v.t[-1] > now - 1.0] if r != sensor else []
+        rv = _current(views.get(r, []), now) if r != sensor else []
         if len(rv) == 1:
             partners.append(rv[0])
     if not partners:

@@ -9,14 +9,16 @@ composed), and a joint refinement over all overlaps finishes the job.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any, Callable
 
 import numpy as np
 
 from ..errors import CalibrationError
-from .fitness import fitness_from_mse
+from ..geometry import transform_error
+from .coverage import Gates, count_poses
+from .fitness import fitness_from_median, weighted_median
 from .graph import Edge, SensorGraph
 from .methods import DEFAULT_PAIRS, calibrate
 from .pairs import LagSearch, PairSet, find_lag, pair_streams
@@ -27,7 +29,14 @@ log = logging.getLogger("stage.calibration")
 
 @dataclass
 class SensorCalibration:
-    """The outcome for one sensor (``matrix``: its space -> the reference's)."""
+    """The outcome for one sensor (``matrix``: its space -> the reference's).
+
+    ``median_m`` (the judged, robust figure) and ``rms_m`` (plain, tails
+    included) are the joint distances between this sensor and every placed
+    sensor it overlaps, with the final transforms; ``lag_s`` is the lag the
+    search found, summed along ``path``; ``method`` names what produced the
+    matrix, with ", refined" when the joint refinement changed it.
+    """
 
     sensor: str
     matrix: np.ndarray | None
@@ -39,14 +48,47 @@ class SensorCalibration:
     path: list[str] = field(default_factory=list)
     error: str | None = None
     identical_to: str | None = None
+    median_m: float | None = None
+    refined: dict[str, float] | None = None   # what refinement changed: rot_deg, trans_mm
 
     def as_json(self) -> dict[str, Any]:
         return {"matrix": None if self.matrix is None else
                 [[round(float(v), 6) for v in row] for row in self.matrix],
+                "median_m": None if self.median_m is None else round(self.median_m, 5),
                 "rms_m": None if self.rms_m is None else round(self.rms_m, 5),
                 "fitness": None if self.fitness is None else round(self.fitness, 4),
                 "pairs": self.pairs, "method": self.method, "lag_s": round(self.lag_s, 4),
-                "path": self.path, "error": self.error, "identical_to": self.identical_to}
+                "path": self.path, "refined": self.refined, "error": self.error,
+                "identical_to": self.identical_to}
+
+
+@dataclass
+class Overlap:
+    """What happened to one pair of sensors (used as an edge, or why not)."""
+
+    a: str
+    b: str
+    paired: int = 0                 # paired frames at the lag used
+    poses: int = 0                  # distinct poses among them
+    spread_m: float = 0.0           # rms spread of the torso over those poses
+    lag_s: float | None = None      # b's clock minus a's
+    lag_confidence: float | None = None
+    median_m: float | None = None
+    rms_m: float | None = None
+    fitness: float | None = None
+    used: bool = False
+    reason: str | None = None       # why not used
+    matrix: np.ndarray | None = None  # the pairwise fit, b's space -> a's
+
+    def as_json(self) -> dict[str, Any]:
+        def r(v, n=5):
+            return None if v is None else round(float(v), n)
+        return {"a": self.a, "b": self.b, "paired": self.paired, "poses": self.poses,
+                "spread_m": r(self.spread_m, 3), "lag_s": r(self.lag_s, 4),
+                "lag_confidence": r(self.lag_confidence, 3), "median_m": r(self.median_m),
+                "rms_m": r(self.rms_m), "fitness": r(self.fitness, 4), "used": self.used,
+                "reason": self.reason, "matrix": None if self.matrix is None else
+                [[round(float(v), 6) for v in row] for row in self.matrix]}
 
 
 @dataclass
@@ -58,6 +100,7 @@ class RigCalibration:
     warnings: list[str]
     pair_sets: dict[tuple[str, str], PairSet] = field(default_factory=dict)
     lags: dict[tuple[str, str], LagSearch] = field(default_factory=dict)
+    overlaps: list[Overlap] = field(default_factory=list)
 
     @property
     def complete(self) -> bool:
@@ -66,21 +109,30 @@ class RigCalibration:
 
 def calibrate_streams(streams: dict[str, Stream], reference: str | None = None,
                       method: str = "rigid", pairs: int | None = None,
-                      lag: str | float = "auto", max_lag_s: float = 1.0, min_pairs: int = 30,
-                      min_fitness: float = 0.5, refine: bool = True, options: dict[str, Any] | None = None,
-                      progress: Callable[[str], None] | None = None) -> RigCalibration:
+                      lag: str | float = "auto", max_lag_s: float = 1.0,
+                      min_pairs: int | None = None, min_fitness: float | None = None,
+                      refine: bool = True, options: dict[str, Any] | None = None,
+                      progress: Callable[[str], None] | None = None,
+                      gates: Gates | None = None) -> RigCalibration:
     """Calibrate every sensor of ``streams`` into ``reference``'s space.
 
     pairs: paired frames per sensor pair, spread over the recording
     (default 300, 500 for ``trajectory``; 0 = all). lag: "auto" (search
     within ±max_lag_s per pair), or a number of seconds applied to every
-    non-reference stream. An overlap whose fit stays below ``min_fitness``
-    (joints more than 10 cm apart on average) is not used: the two sensors
-    were watching different people, or the method failed on that pair.
-    Raises CalibrationError when nothing can be done.
+    non-reference stream. An overlap is used only when it passes ``gates``
+    (``coverage.Gates``; ``min_pairs``/``min_fitness`` override its fields):
+    enough paired frames and distinct poses, and a fit whose fitness
+    (from the median joint distance) is at least ``min_fitness``, since two
+    sensors watching different people at the same time would otherwise be
+    "calibrated" to nonsense. Raises CalibrationError when nothing can be done.
     """
     say = progress or (lambda text: log.info("%s", text))
     options = options or {}
+    gates = gates or Gates()
+    if min_pairs is not None:
+        gates = replace(gates, min_pairs=min_pairs)
+    if min_fitness is not None:
+        gates = replace(gates, min_fitness=min_fitness)
     if not streams:
         raise CalibrationError("the recording holds no skeletons")
     ids = sorted(streams)
@@ -99,79 +151,128 @@ def calibrate_streams(streams: dict[str, Stream], reference: str | None = None,
     graph = SensorGraph([s for s in ids if s not in copies])
     rig = RigCalibration(reference, {}, graph, None, warnings)
     for a, b in combinations(graph.sensors, 2):
-        edge = _edge(streams[a], streams[b], method, n_pairs, lag, max_lag_s, min_pairs,
-                     min_fitness, options, rig, say)
+        edge = _edge(streams[a], streams[b], method, n_pairs, lag, max_lag_s, gates, options,
+                     rig, say)
         if edge is not None:
             graph.add(edge)
-    transforms = graph.compose(reference)
+    composed = graph.compose(reference)
+    transforms = composed
     paths = graph.best_paths(reference)
     if refine and method != "regression" and len(transforms) > 2:
         refined, info = graph.refine(transforms, reference)
+        # kept only when it brings the overlaps closer together on the robust scale: where
+        # the overlaps contradict each other (real takes whose views disagree), spreading the
+        # contradiction moves every sensor away from what its own overlaps say
+        info["robust_before"] = graph.robust_disagreement(transforms)
+        info["robust_after"] = graph.robust_disagreement(refined)
+        info["kept"] = bool(info["robust_after"] <= info["robust_before"])
         rig.refinement = info
-        transforms = refined
-        say(f"joint refinement over {len(graph.edges)} overlaps: mean squared disagreement "
-            f"{info['before'] * 1e6:.0f} -> {info['after'] * 1e6:.0f} mm^2 ({info['iterations']} iterations)")
+        if info["kept"]:
+            transforms = refined
+        say(f"joint refinement over {len(graph.edges)} overlaps: rms disagreement of every "
+            f"joint pair of every overlap {np.sqrt(info['before']) * 1000:.1f} -> "
+            f"{np.sqrt(info['after']) * 1000:.1f} mm, mean median per overlap "
+            f"{info['robust_before'] * 1000:.1f} -> {info['robust_after'] * 1000:.1f} mm "
+            f"({info['iterations']} iterations): {'kept' if info['kept'] else 'not kept'}")
     for s in ids:
         if s in copies:
-            rig.sensors[s] = SensorCalibration(s, None, error=f"bit-identical to {copies[s]}",
-                                               identical_to=copies[s])
+            rig.sensors[s] = SensorCalibration(s, None, error=f"bit-identical to {copies[s]}: "
+                                               "a copied stream", identical_to=copies[s])
         elif s == reference:
-            rig.sensors[s] = SensorCalibration(s, np.eye(4), 0.0, 1.0, 0, "reference", 0.0, [s])
+            rig.sensors[s] = SensorCalibration(s, np.eye(4), 0.0, 1.0, 0, "reference", 0.0, [s],
+                                               median_m=0.0)
         elif s not in transforms:
-            rig.sensors[s] = SensorCalibration(
-                s, None, error=f"no chain of overlaps to the reference {reference}: it never "
-                               f"saw one person at the same time as a connected sensor")
-            warnings.append(f"{s} is not connected to the reference {reference} through any "
-                            "overlap; walk where it and a calibrated sensor both see you")
+            why = _why_unconnected(s, rig, set(transforms))
+            if why is None:  # it truly never overlapped a placed sensor
+                rig.sensors[s] = SensorCalibration(
+                    s, None, error=f"no chain of overlaps to the reference {reference}: it never "
+                                   "saw one person at the same time as a connected sensor")
+                warnings.append(f"{s} is not connected to the reference {reference} through any "
+                                "overlap; walk where it and a calibrated sensor both see you")
+            else:
+                rig.sensors[s] = SensorCalibration(
+                    s, None, error=f"no usable overlap links it to the reference {reference}: "
+                                   f"{why}")
+                warnings.append(f"{s} is not calibrated: {why}")
         else:
-            rig.sensors[s] = _summary(s, transforms, paths[s], graph, method)
+            rig.sensors[s] = _summary(s, transforms, composed[s], paths[s], graph, method)
     return rig
 
 
+def _why_unconnected(s: str, rig: RigCalibration, placed: set[str]) -> str | None:
+    """The real causes: each of ``s``'s overlaps with a placed sensor that paired frames,
+    and why it was not used; None when it never paired a frame with one (no overlap)."""
+    reasons = [f"with {o.b if o.a == s else o.a}: {o.reason}" for o in rig.overlaps
+               if s in (o.a, o.b) and not o.used and o.paired
+               and (o.b if o.a == s else o.a) in placed]
+    return "; ".join(reasons) if reasons else None
+
+
 def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max_lag_s: float,
-          min_pairs: int, min_fitness: float, options: dict[str, Any], rig: RigCalibration,
+          gates: Gates, options: dict[str, Any], rig: RigCalibration,
           say: Callable[[str], None]) -> Edge | None:
+    o = Overlap(a.sensor, b.sensor)
+    rig.overlaps.append(o)
     try:
         if lag == "auto":
-            search = find_lag(a, b, max_lag_s, min_pairs=min_pairs)
+            search = find_lag(a, b, max_lag_s, min_pairs=gates.min_pairs)
             rig.lags[(a.sensor, b.sensor)] = search
-            lag_s = search.lag_s
+            lag_s, o.lag_confidence = search.lag_s, search.confidence
         else:
             lag_s = float(lag)
+        o.lag_s = lag_s
         ps = pair_streams(a, b, lag_s)
-    except CalibrationError:
-        return None  # these two never saw one person together: no edge
-    if len(ps) < min_pairs:
-        if len(ps):
-            say(f"{b.sensor} and {a.sensor}: only {len(ps)} paired frames (need {min_pairs}); "
-                "not used")
+    except CalibrationError as exc:
+        o.reason = str(exc)  # these two never saw one person together: no edge
+        return None
+    o.paired = len(ps)
+    o.poses, o.spread_m = count_poses(ps.other, ps.weight)
+    o.reason = gates.too_little(o.paired, o.poses)
+    if o.reason is not None:
+        if o.paired:
+            say(f"{b.sensor} and {a.sensor}: {o.reason}; not used")
         return None
     used = ps.evenly(n_pairs)
     rig.pair_sets[(a.sensor, b.sensor)] = used
     try:
         result = calibrate(used, method, **options)
     except CalibrationError as exc:
+        o.reason = str(exc)
         rig.warnings.append(f"{b.sensor} -> {a.sensor}: {exc}")
         return None
-    text = (f"{b.sensor} -> {a.sensor}: {method}, {len(used)} of {len(ps)} paired frames, lag "
-            f"{lag_s:+.3f} s, rms {result.rms_m * 1000:.0f} mm, fitness {result.fitness:.3f}")
-    if result.fitness < min_fitness:
-        rig.warnings.append(f"{text}: below {min_fitness}, not used (were they watching "
-                            "different people at the same time?)")
+    o.median_m, o.rms_m, o.fitness = result.median_m, result.rms_m, result.fitness
+    o.matrix = result.matrix
+    text = (f"{b.sensor} -> {a.sensor}: {method}, {len(used)} of {len(ps)} paired frames "
+            f"({o.poses} distinct poses), lag {lag_s:+.3f} s, median joint distance "
+            f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm), fitness "
+            f"{result.fitness:.3f}")
+    o.reason = gates.too_poor(result.fitness, result.median_m, o.lag_confidence)
+    if o.reason is not None:
+        rig.warnings.append(f"{text}: {o.reason}; not used (were they watching different "
+                            "people at the same time?)")
         return None
+    o.used = True
     say(text)
+    if gates.is_poor(result.fitness):
+        rig.warnings.append(f"{b.sensor} -> {a.sensor}: a poor fit (median joint distance "
+                            f"{result.median_m * 100:.1f} cm), used because the lag search "
+                            f"found its timing clear (confidence {o.lag_confidence:.2f}); a "
+                            "longer take with more movement would calibrate better")
     return Edge(a.sensor, b.sensor, result, used)
 
 
-def _summary(s: str, transforms: dict[str, np.ndarray], path: list[str], graph: SensorGraph,
-             method: str) -> SensorCalibration:
+def _summary(s: str, transforms: dict[str, np.ndarray], composed: np.ndarray, path: list[str],
+             graph: SensorGraph, method: str) -> SensorCalibration:
     """Score a sensor's final transform over every overlap it has with placed sensors."""
-    sse = weight = 0.0
+    ds, ws = [], []
     for e in graph.edges:
         if s in (e.a, e.b) and e.a in transforms and e.b in transforms:
-            sse += _affine_sse(e, transforms)
-            weight += float(e.pairs.weight.sum())
-    mse = sse / weight if weight else float("nan")
+            d, w = _distances(e, transforms)
+            ds.append(d)
+            ws.append(w)
+    d, w = (np.concatenate(ds), np.concatenate(ws)) if ds else (np.zeros(0), np.zeros(0))
+    median = weighted_median(d, w)
+    rms = float(np.sqrt((w * d * d).sum() / w.sum())) if w.sum() > 0 else float("nan")
     lag = 0.0
     pairs = 0
     for near, far in zip(path, path[1:]):
@@ -181,16 +282,22 @@ def _summary(s: str, transforms: dict[str, np.ndarray], path: list[str], graph: 
         edge, reversed_ = found
         lag += -edge.pairs.lag_s if reversed_ else edge.pairs.lag_s
         pairs = len(edge.pairs)
-    return SensorCalibration(s, transforms[s], float(np.sqrt(mse)), float(fitness_from_mse(mse)),
-                             pairs, method, lag, path)
+    change = transform_error(transforms[s], composed)
+    refined = None
+    if change["rot_deg"] > 0.01 or change["trans_mm"] > 0.1:
+        refined = {"rot_deg": round(change["rot_deg"], 3),
+                   "trans_mm": round(change["trans_mm"], 1)}
+    name = method if refined is None else f"{method}, refined"
+    return SensorCalibration(s, transforms[s], rms, float(fitness_from_median(median)), pairs,
+                             name, lag, path, median_m=median, refined=refined)
 
 
-def _affine_sse(e: Edge, transforms: dict[str, np.ndarray]) -> float:
-    """sum w |Ta p_a - Tb p_b|^2 with the edge's pair weights (works for affine T too)."""
+def _distances(e: Edge, transforms: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """|Ta p_a - Tb p_b| (flat) and the edge's pair weights (works for affine T too)."""
     ta, tb = transforms[e.a], transforms[e.b]
-    w = e.pairs.weight
+    w = e.pairs.weight.reshape(-1)
     d = (e.pairs.ref @ ta[:3, :3].T + ta[:3, 3]) - (e.pairs.other @ tb[:3, :3].T + tb[:3, 3])
-    return float((w * (d * d).sum(axis=-1)).sum())
+    return np.sqrt((d * d).sum(axis=-1)).reshape(-1), w
 
 
-__all__ = ["calibrate_streams", "RigCalibration", "SensorCalibration"]
+__all__ = ["calibrate_streams", "RigCalibration", "SensorCalibration", "Overlap"]

@@ -1,10 +1,18 @@
-"""Fitness of live sensors: each against what the other trusted sensors say.
+"""How live sensors agree: joint distances between every two sensors that see one person.
 
 Per person (as the engine associated the views), every trusted view is
-resampled on a common 30 Hz grid of new instants; each sensor is compared,
-joint by joint, with the confidence-weighted average of the *other* views
-(leave one out), so one pass per person scores every sensor that sees them.
-Sums of weighted squared distances per sensor feed the windowed fitness.
+resampled on a common 30 Hz grid of new instants, and every PAIR of sensors
+that see that person is compared joint by joint on the body's core (``CORE``;
+both joints seen; weight: the product of the confidences). The distances, not a mean square, are
+kept: the monitor judges them by their weighted median (see ``fitness``), and
+pairs rather than "one sensor against the average of the others" keep one
+moved sensor from dragging everybody's score down with it (the average it is
+compared against would contain the moved sensor's joints), which is what
+lets the monitor tell WHICH sensor disagrees with the rest.
+
+A suspect sensor is placed with its last good transform and compared with
+the trusted views of the person its view matches (nearest torso within
+``match_m``): that is how a glitch (it fits again) is told from a move.
 """
 
 from __future__ import annotations
@@ -13,9 +21,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..joints import N_JOINTS
+from ..joints import JOINT_INDEX, N_JOINTS
 from .live import View, torso_centre
 from .pairs import resample
+
+#: (sensor a, sensor b) -> (distances (n,) m, weights (n,)); a < b for trusted pairs
+Distances = dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
+
+#: the joints the monitor judges by: the body's rigid core (spine, neck, head, shoulders,
+#: hips). A moved sensor moves them all; a view that turns side-on or has a person turn
+#: away swaps and guesses LIMBS (real Kinects do, and so does the simulator's model), which
+#: made healthy sensors look wrong for a second at a time when every joint was judged
+CORE = np.zeros(N_JOINTS, dtype=bool)
+CORE[[JOINT_INDEX[n] for n in ("SpineBase", "SpineMid", "Neck", "Head", "SpineShoulder",
+                               "ShoulderLeft", "ShoulderRight", "HipLeft", "HipRight")]] = True
 
 
 def grid(t0: float, t1: float, fps: float = 30.0) -> np.ndarray:
@@ -50,53 +69,48 @@ class Sampled:
             return cls([], np.zeros((0, len(at), N_JOINTS, 3)), np.zeros((0, len(at), N_JOINTS)))
         return cls(names, np.stack(js), np.stack(cs))
 
-    def consensus(self) -> tuple[np.ndarray, np.ndarray]:
-        """Everybody's weighted average (G, 25, 3) and its confidence (G, 25), capped at 1."""
-        w = self.conf.sum(axis=0)
-        tot = (self.conf[..., None] * self.joints).sum(axis=0)
-        return tot / np.where(w > 0, w, 1.0)[..., None], np.minimum(w, 1.0)
+    def pairs(self) -> Distances:
+        """Joint distances of every two of these views (both seen), keyed (a, b), a < b."""
+        out: Distances = {}
+        for i in range(len(self.sensors)):
+            for k in range(i + 1, len(self.sensors)):
+                w = self.conf[i] * self.conf[k] * CORE
+                keep = w > 0
+                if not keep.any():
+                    continue
+                d = np.linalg.norm(self.joints[i][keep] - self.joints[k][keep], axis=-1)
+                a, b = sorted((self.sensors[i], self.sensors[k]))
+                _add(out, (a, b), d, w[keep])
+        return out
 
-    def leave_one_out(self) -> dict[str, tuple[float, float]]:
-        """sensor -> (sum of w d^2, sum of w) against the other views' average."""
-        out: dict[str, tuple[float, float]] = {}
-        if len(self.sensors) < 2:
-            return out
-        w_all = self.conf.sum(axis=0)
-        tot = (self.conf[..., None] * self.joints).sum(axis=0)
-        for k, sid in enumerate(self.sensors):
-            ow = w_all - self.conf[k]
-            others = (tot - self.conf[k][..., None] * self.joints[k]) / \
-                np.where(ow > 0, ow, 1.0)[..., None]
-            pw = np.where(ow > 0, self.conf[k] * np.minimum(ow, 1.0), 0.0)
-            d2 = ((self.joints[k] - others) ** 2).sum(axis=-1)
-            sse, w = float((pw * d2).sum()), float(pw.sum())
-            prev = out.get(sid, (0.0, 0.0))
-            out[sid] = (prev[0] + sse, prev[1] + w)
+    def centre(self) -> np.ndarray:
+        """(G, 3) the person's torso centre on the grid, averaged over the views (NaN: none)."""
+        c = torso_centre(self.joints, self.conf)       # (S, G, 3)
+        seen = np.isfinite(c[..., 0])
+        n = seen.sum(axis=0)
+        total = np.where(seen[..., None], c, 0.0).sum(axis=0)
+        out = total / np.maximum(n, 1)[:, None]
+        out[n == 0] = np.nan
         return out
 
 
-def errors_against(sampled: Sampled, consensus: tuple[np.ndarray, np.ndarray],
-                   ) -> tuple[float, float, float]:
-    """(sum w d^2, sum w, median torso distance m) of ONE sampled view against a consensus."""
-    joints, conf = sampled.joints[0], sampled.conf[0]
-    cj, cc = consensus
-    w = conf * cc
-    d2 = ((joints - cj) ** 2).sum(axis=-1)
-    a, b = torso_centre(joints, conf), torso_centre(cj, cc)
-    dist = np.linalg.norm(a - b, axis=-1)
-    dist = dist[np.isfinite(dist)]
-    return float((w * d2).sum()), float(w.sum()), float(np.median(dist)) if len(dist) else np.inf
+def _add(out: Distances, key: tuple[str, str], d: np.ndarray, w: np.ndarray) -> None:
+    if key in out:
+        d0, w0 = out[key]
+        d, w = np.concatenate([d0, d]), np.concatenate([w0, w])
+    out[key] = (d, w)
 
 
-def score(views: dict[str, list[View]], states: dict, at: np.ndarray, match_m: float,
-          ) -> dict[str, tuple[float, float]]:
-    """Per sensor (sum of w d^2, sum of w) on the grid instants ``at``.
+def distances(views: dict[str, list[View]], states: dict, at: np.ndarray, match_m: float,
+              ) -> tuple[Distances, Distances]:
+    """Joint distances on the grid instants ``at``: (trusted pairs, suspects).
 
     states: sensor -> (state, transform, last good transform, duplicate_of).
-    Trusted ("ok") sensors are grouped by the person the engine bound their
-    views to and scored leave-one-out; a suspect sensor is scored with its
-    last good transform against the person its view matches (nearest torso
-    within ``match_m``), which is how a glitch is told from a move.
+    Trusted ("ok") views are grouped by the person the engine bound them to;
+    every two trusted sensors that see one person give distances, keyed
+    (a, b) with a < b. A suspect sensor (not a copy) is placed with its last
+    good transform; each of its views is compared with every trusted view of
+    the person it matches, keyed (suspect, trusted partner).
     """
     ok = {sid for sid, (state, *_rest) in states.items() if state == "ok"}
     persons: dict[int, list[View]] = {}
@@ -104,28 +118,38 @@ def score(views: dict[str, list[View]], states: dict, at: np.ndarray, match_m: f
         for v in views.get(sid, []):
             if v.person is not None and v.t[-1] > at[0] - 0.1:
                 persons.setdefault(v.person, []).append(v)
-    sums: dict[str, tuple[float, float]] = {}
-
-    def add(sid: str, sse: float, w: float) -> None:
-        a, b = sums.get(sid, (0.0, 0.0))
-        sums[sid] = (a + sse, b + w)
-
-    consensus_of = []
-    for pviews in persons.values():
-        sampled = Sampled.of(pviews, at)
-        for sid, (sse, w) in sampled.leave_one_out().items():
-            add(sid, sse, w)
+    trusted: Distances = {}
+    sampled_persons = []
+    for pid in sorted(persons):
+        sampled = Sampled.of(sorted(persons[pid], key=lambda v: v.sensor), at)
+        for key, (d, w) in sampled.pairs().items():
+            _add(trusted, key, d, w)
         if sampled.sensors:
-            consensus_of.append(sampled.consensus())
+            sampled_persons.append((sampled, sampled.centre()))
+    suspects: Distances = {}
     for sid, (state, _t, last_good, dup) in states.items():
         if state != "suspect" or last_good is None or dup is not None:
             continue
         for v in views.get(sid, []):
+            if v.t[-1] <= at[0] - 0.1:
+                continue
             placed = v.raw @ last_good[:3, :3].T + last_good[:3, 3]
             mine = Sampled.of([v], at, [placed])
-            if not mine.sensors or not consensus_of:
+            if not mine.sensors or not sampled_persons:
                 continue
-            sse, w, dist = min((errors_against(mine, c) for c in consensus_of), key=lambda e: e[2])
-            if dist <= match_m:
-                add(sid, sse, w)
-    return sums
+            centre = mine.centre()
+            best, best_d = None, np.inf
+            for sampled, c in sampled_persons:
+                gap = np.linalg.norm(centre - c, axis=-1)
+                gap = gap[np.isfinite(gap)]
+                if len(gap) and float(np.median(gap)) < best_d:
+                    best, best_d = sampled, float(np.median(gap))
+            if best is None or best_d > match_m:
+                continue
+            for k, partner in enumerate(best.sensors):
+                w = mine.conf[0] * best.conf[k] * CORE
+                keep = w > 0
+                if keep.any():
+                    d = np.linalg.norm(mine.joints[0][keep] - best.joints[k][keep], axis=-1)
+                    _add(suspects, (sid, partner), d, w[keep])
+    return trusted, suspects

@@ -28,6 +28,7 @@ from ..errors import ConfigError, StageError, TransportError
 from ..rig import Rig, SensorConfig, load_rig
 from ..geometry import invert
 from ..calibration.methods import DEFAULT_PAIRS, METHODS
+from ..calibration.coverage import Gates
 from ..calibration.offline import RigCalibration, calibrate_streams
 from ..rig import store_reference_transform
 from .common import Exit, port as _port, positive as _positive
@@ -60,9 +61,19 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
                    help="search the lag within +-S seconds (default 1)")
     p.add_argument("--robust", choices=("irls", "ransac", "none"), default="irls",
                    help="rigid: outlier handling (default irls)")
-    p.add_argument("--min-fitness", type=float, default=0.5, metavar="F",
-                   help="ignore an overlap whose fit is below F (default 0.5: joints 10 cm apart "
-                        "on average; they were watching different people)")
+    p.add_argument("--min-fitness", type=float, default=Gates.min_fitness, metavar="F",
+                   help="ignore an overlap whose fit is below F (default 0.5: a median joint "
+                        "distance of 8.9 cm; they were watching different people)")
+    p.add_argument("--poor-fitness", type=float, default=Gates.poor_fitness, metavar="F",
+                   help="... but use a poorer fit, down to F (default 0.1: 26.6 cm), when the "
+                        "lag search found its timing clear (confidence >= --min-lag-confidence)")
+    p.add_argument("--min-lag-confidence", type=float, default=Gates.min_lag_confidence,
+                   metavar="C", help=f"default {Gates.min_lag_confidence:g}")
+    p.add_argument("--min-pairs", type=int, default=Gates.min_pairs, metavar="N",
+                   help=f"an overlap needs N paired frames (default {Gates.min_pairs})")
+    p.add_argument("--min-poses", type=int, default=Gates.min_poses, metavar="N",
+                   help=f"... showing N distinct poses, 5 cm apart (default {Gates.min_poses}: a "
+                        "person standing still says little however long the take)")
     p.add_argument("--no-refine", action="store_true",
                    help="keep the composed chains (no joint refinement over all overlaps)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GA and RANSAC (default 0)")
@@ -91,6 +102,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError("--pairs must be 0 (all) or more")
     if not 0 <= args.min_fitness < 1:
         raise ConfigError("--min-fitness must be from 0 to below 1")
+    if args.min_pairs < 3 or args.min_poses < 1:
+        raise ConfigError("--min-pairs must be 3 or more and --min-poses 1 or more")
     lag: str | float = args.lag
     if lag != "auto":
         try:
@@ -112,10 +125,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.method == "rigid":
         options.update(robust=args.robust, seed=args.seed)
     # a CalibrationError (the data give no transform) leaves as a run-time failure, exit 1
+    if not 0 <= args.poor_fitness <= args.min_fitness:
+        raise ConfigError("--poor-fitness must be from 0 to --min-fitness")
+    gates = Gates(args.min_pairs, args.min_poses, args.min_fitness, args.poor_fitness,
+                  args.min_lag_confidence)
     result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
-                               args.max_lag, min_fitness=args.min_fitness,
-                               refine=not args.no_refine, options=options,
-                               progress=lambda text: log.info("%s", text))
+                               args.max_lag, refine=not args.no_refine, options=options,
+                               progress=lambda text: log.info("%s", text), gates=gates)
     for warning in result.warnings:
         log.warning("%s", warning)
     if args.rig:
@@ -170,33 +186,53 @@ def _write_rig(rig: Rig, path: str, result: RigCalibration) -> None:
              sum(1 for s, c in result.sensors.items() if c.matrix is not None and s != ref), path)
 
 
+#: what the JSON's figures are (printed with them, so nobody has to guess)
+ABOUT = {
+    "median_m": "median joint distance (m) between this sensor and the sensors it overlaps, "
+                "final transforms: the robust figure fitness is computed from",
+    "rms_m": "rms of the same joint distances (m), every joint pair, tails included",
+    "fitness": "1 / (1 + (1.1265 median_m / 0.1 m)^2): 1 perfect, 0.5 = 8.9 cm median",
+    "lag_s": "this sensor's clock minus the reference's, as the lag search found it, summed "
+             "along path",
+    "method": "what produced the matrix; ', refined' when the joint refinement over every "
+              "overlap changed it (by 'refined': rot_deg, trans_mm)",
+    "refinement": "disagreement over every used overlap, all sensors together, before and "
+                  "after the joint refinement: rms (m) over every joint pair, and the mean "
+                  "over overlaps of each one's median (m); kept only when the latter drops",
+    "overlaps": "every pair of sensors: paired frames, distinct poses, lag and its confidence, "
+                "the pairwise fit, and why it was not used",
+}
+
+
 def _as_json(result: RigCalibration, method: str, drops: dict[str, int]) -> dict[str, Any]:
     return {"reference": result.reference, "method": method,
             "sensors": {sid: c.as_json() for sid, c in result.sensors.items()},
             "refinement": None if result.refinement is None else
             {"before_rms_m": round(float(np.sqrt(result.refinement["before"])), 5),
              "after_rms_m": round(float(np.sqrt(result.refinement["after"])), 5),
+             "before_median_m": round(float(result.refinement["robust_before"]), 5),
+             "after_median_m": round(float(result.refinement["robust_after"]), 5),
+             "kept": result.refinement["kept"],
              "iterations": result.refinement["iterations"]},
-            "overlaps": [{"a": e.a, "b": e.b, "pairs": len(e.pairs),
-                          "rms_m": round(e.result.rms_m, 5), "lag_s": round(e.pairs.lag_s, 4)}
-                         for e in result.graph.edges],
-            "warnings": result.warnings, "drops": drops}
+            "overlaps": [o.as_json() for o in result.overlaps],
+            "warnings": result.warnings, "drops": drops, "about": ABOUT}
 
 
 def _print_table(result: RigCalibration) -> None:
     print(f"reference: {result.reference}")
-    print(f"{'sensor':<16} {'method':<11} {'rms mm':>7} {'fitness':>7} {'pairs':>6} "
-          f"{'lag s':>7}  path")
+    print(f"{'sensor':<16} {'method':<16} {'median mm':>9} {'rms mm':>7} {'fitness':>7} "
+          f"{'pairs':>6} {'lag s':>7}  path")
     for sid, c in result.sensors.items():
         if c.matrix is None:
-            print(f"{sid:<16} {'-':<11} {'':>7} {'':>7} {'':>6} {'':>7}  {c.error}")
+            print(f"{sid:<16} {'-':<16} {'':>9} {'':>7} {'':>7} {'':>6} {'':>7}  {c.error}")
             continue
-        print(f"{sid:<16} {c.method:<11} {c.rms_m * 1000:7.1f} {c.fitness:7.3f} {c.pairs:6d} "
-              f"{c.lag_s:+7.3f}  {' -> '.join(c.path[::-1])}")
+        print(f"{sid:<16} {c.method:<16} {(c.median_m or 0) * 1000:9.1f} {c.rms_m * 1000:7.1f} "
+              f"{c.fitness:7.3f} {c.pairs:6d} {c.lag_s:+7.3f}  {' -> '.join(c.path[::-1])}")
+    print("median/rms: joint distances to the overlapping sensors with the final transforms")
     if result.refinement:
         r = result.refinement
-        print(f"joint refinement: rms disagreement {np.sqrt(r['before']) * 1000:.1f} -> "
-              f"{np.sqrt(r['after']) * 1000:.1f} mm")
+        print(f"joint refinement: rms disagreement over every overlap {np.sqrt(r['before']) * 1000:.1f}"
+              f" -> {np.sqrt(r['after']) * 1000:.1f} mm")
 
 
 def _live(args: argparse.Namespace) -> int:

@@ -1,8 +1,9 @@
 """Calibration methods: each turns a ``PairSet`` into a 4x4 transform.
 
-Every method maps the ``other`` side onto the ``ref`` side and is scored the
+Every method maps the ``other`` side onto the ``ref`` side and is judged the
 same way (``fitness.evaluate_points`` over all joint pairs, confidence
-weighted), so their figures compare directly:
+weighted: fitness from the median joint distance), so their figures compare
+directly:
 
 - ``rigid``      closed-form least squares (Kabsch/Umeyama, SVD), weighted,
                  robust re-weighting (default) or RANSAC; the optimum.
@@ -36,14 +37,16 @@ class CalibrationResult:
     """A transform from the sensor's space to the reference's, and how good it is."""
 
     matrix: np.ndarray        # (4, 4) other -> ref
-    rms_m: float              # RMS joint distance after the transform, m (all pairs, weighted)
-    fitness: float            # 1 / (1 + mse / 0.1^2), in (0, 1]
+    rms_m: float              # RMS joint distance after the transform, m (all pairs, weighted,
+                              # tails included: what a least-squares method minimises)
+    fitness: float            # from median_m (fitness.fitness_from_median), in (0, 1]
     method: str
     pairs: int                # paired frames used
     seconds: float = 0.0      # time the method took
     lag_s: float = 0.0
     details: dict[str, Any] = field(default_factory=dict)
     weight: np.ndarray | None = None  # (N, 25) weights the method ended with (robust ones)
+    median_m: float = float("nan")    # weighted median joint distance, m: the robust residual
 
 
 Method = Callable[..., tuple[np.ndarray, dict[str, Any], "np.ndarray | None"]]
@@ -76,7 +79,7 @@ def calibrate(pairs: PairSet, method: str = "rigid", **options: Any) -> Calibrat
         raise CalibrationError(f"{method} produced no finite transform")
     ev = evaluate_points(m, pairs.other, pairs.ref, pairs.weight)
     return CalibrationResult(m, ev.rms_m, ev.fitness, method, len(pairs), seconds, pairs.lag_s,
-                             details, weight)
+                             details, weight, ev.median_m)
 
 
 __all__ = ["CalibrationResult", "METHODS", "DEFAULT_PAIRS", "calibrate"]

@@ -5,7 +5,12 @@ error over all rotations and translations, the objective the GA searches
 by evolution; so it is the default method and the GA's yardstick.
 Outlier joints (a Kinect glitch, a limb snapping to the wrong place) are
 handled by iteratively re-weighted least squares with Cauchy weights, or
-by RANSAC on minimal triples followed by the same re-weighting.
+by RANSAC on minimal triples followed by the same re-weighting; then
+concentration steps (as FAST-LTS's C-steps, Rousseeuw and Van Driessen
+2006) refit on the better half of the joint pairs as long as that lowers
+their weighted median distance, the figure a fit is judged by (``fitness``):
+on real N-UCLA pairs they bring the fit from 84 % to 90 % of pairs within
+10 % of a brute-force least-median optimum (docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import CalibrationError
-from ..fitness import kabsch
+from ..fitness import kabsch, weighted_median
 from ...geometry import yaw_matrices
 from ..pairs import PairSet
 
@@ -34,14 +39,15 @@ def _batched_kabsch(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def fit_rigid(pairs: PairSet, robust: str = "irls", planar: bool = False, iterations: int = 20,
               ransac_iterations: int = 256, inlier_m: float = 0.10, seed: int = 0,
-              ) -> tuple[np.ndarray, dict[str, Any], np.ndarray]:
+              concentrate: bool = True) -> tuple[np.ndarray, dict[str, Any], np.ndarray]:
     """Weighted rigid fit of ``pairs.other`` onto ``pairs.ref``.
 
     robust: "none" (plain weighted least squares), "irls" (Cauchy weights
     1 / (1 + (r/c)^2), c = max(2 x median residual, 2 cm), until the
     transform stops moving) or "ransac" (best of ``ransac_iterations``
     random triples by inlier weight within ``inlier_m``, then IRLS on the
-    inliers). Returns (matrix, details, final weights (N, 25)).
+    inliers). ``concentrate`` (robust fits): then concentration steps
+    (``_concentrate``). Returns (matrix, details, final weights (N, 25)).
     """
     if robust not in ("none", "irls", "ransac"):
         raise CalibrationError(f"robust must be none, irls or ransac, not '{robust}'")
@@ -67,7 +73,41 @@ def fit_rigid(pairs: PairSet, robust: str = "irls", planar: bool = False, iterat
             break
     details["iterations"] = iterations_done
     details["cauchy_c_m"] = c
+    if concentrate:
+        m, steps, half = _concentrate(pairs, m, planar)
+        details["concentration_steps"] = steps
+        if steps:  # the weights the final transform is the least-squares fit of
+            robust_w = half
     return m, details, robust_w
+
+
+def _concentrate(pairs: PairSet, m: np.ndarray, planar: bool, steps: int = 20,
+                 ) -> tuple[np.ndarray, int, np.ndarray]:
+    """Refit on the joint pairs at or below the weighted median distance, while that median
+    drops (each step is a weighted least-squares fit of the better half): (matrix, steps
+    taken, the weights (N, 25) the matrix is the weighted least-squares fit of). Cauchy
+    weights leave every far pair some pull; this ends on the criterion the fit is judged
+    by, from a start near its optimum."""
+    w0, p, q = pairs.weight, pairs.other, pairs.ref
+
+    def median(mm: np.ndarray) -> tuple[float, np.ndarray]:
+        r = np.linalg.norm(p @ mm[:3, :3].T + mm[:3, 3] - q, axis=-1)
+        return weighted_median(r, w0), r
+
+    best, r = median(m)
+    done, used = 0, w0
+    for done in range(steps):
+        half = w0 * (r <= best)
+        if (half > 0).sum() < 3:
+            break
+        new = kabsch(pairs.moments(half), planar)
+        med, r_new = median(new)
+        if not med < best - 1e-9:
+            break
+        m, best, r, used = new, med, r_new, half
+    else:
+        done = steps
+    return m, done, used
 
 
 def _ransac_inliers(p: np.ndarray, q: np.ndarray, w: np.ndarray, iterations: int,

@@ -19,7 +19,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...joints import HandState, parse_hand_state
 from ...yamlio import MarkedDict, Where, load_marked
-from .kinect import KinectModel, VirtualPose, ring_poses
+from .kinect import PRESETS, KinectModel, VirtualPose, ring_poses
 from .performer import Clip, Performer, Step, describe_step
 
 BUILTIN = "stage.sensors.sim.scenarios"
@@ -211,11 +211,23 @@ def _numbers(where: Where, mapping: dict, key: str, value: Any, sizes: tuple[int
 
 def _model(where: Where, section: Any, base: KinectModel, what: str) -> KinectModel:
     section = where.mapping(section, what)
-    where.check_keys(section, KinectModel.keys(), what)
+    where.check_keys(section, (*KinectModel.keys(), "preset"), what)
     values: dict[str, Any] = {}
+    if "preset" in section:  # a named model first, then this section's keys over it
+        name = section["preset"]
+        if name not in PRESETS:
+            raise where.at_key(section, "preset", f"'preset' must be one of "
+                               f"{', '.join(PRESETS)}, got {name!r}")
+        base = replace(base, **PRESETS[name])
     for key in section:
+        if key == "preset":
+            continue
         default = getattr(base, key)
-        if isinstance(default, bool):
+        if isinstance(default, tuple):
+            values[key] = tuple(_numbers(where, section, key, section[key], (2,), minimum=0.0))
+            if values[key][0] > values[key][1]:
+                raise where.at_key(section, key, f"'{key}' must be [low, high] with low <= high")
+        elif isinstance(default, bool):
             if not isinstance(section[key], bool):
                 raise where.at_key(section, key, f"'{key}' must be true or false")
             values[key] = section[key]

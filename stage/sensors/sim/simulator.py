@@ -94,6 +94,10 @@ class _SensorRun:
                                                                      event.roll, event.move)))
             elif event.kind in ("unplug", "replug"):
                 self.plugged.append((event.at, event.kind == "replug"))
+        # takes (KinectModel.take_s): where this sensor's cut starts, drawn only when asked for
+        period = self.model.take_s + self.model.take_gap_s
+        self.take_start = 0.0 if self.model.take_s <= 0 else float(
+            np.random.default_rng(np.random.SeedSequence([seed, 3, index])).uniform(0, period))
         self.encoder = ClientEncoder(spec.id, spec.type)
         self.encoder.slots = UserSlots(self.model.max_users)
         self.tracks: dict[str, UserTrack] = {}
@@ -114,6 +118,11 @@ class _SensorRun:
             if when <= t:
                 state = s
         return state
+
+    def in_take(self, t: float) -> bool:
+        """Whether the sensor is recording at ``t`` (always, unless the model cuts takes)."""
+        m = self.model
+        return m.take_s <= 0 or (t + self.take_start) % (m.take_s + m.take_gap_s) < m.take_s
 
     def frame_time(self, k: int) -> float:
         return self.phase + k / self.model.fps
@@ -230,7 +239,7 @@ class Simulator:
             capture = t + float(np.clip(run.rng.normal(0.0, sd), -3 * sd, 3 * sd)) if sd > 0 else t
             heapq.heappush(heap, (run.frame_time(run.k), index, 1, "frame"))
             dropped = run.rng.random() < run.model.drop_p
-            if not run.is_plugged(t) or dropped:
+            if not run.is_plugged(t) or dropped or not run.in_take(t):
                 continue
             capture = max(capture, 0.0)
             data = self._frame(run, capture, cache, epoch, time_scale)

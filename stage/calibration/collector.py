@@ -1,0 +1,373 @@
+"""The live calibrator's collecting side: lags, pairs, fits, acceptance (a ``healing`` part).
+
+- LAG: before collecting pairs for a sensor, and every ``lag_every_s`` for
+  every calibrated one, its clock is searched against a trusted sensor that
+  sees the same person (``pairs.find_lag`` on the buffered frames: the one
+  person both see alone, or, for a calibrated sensor, the person the engine
+  bound both views to). ``SensorState.lag_s`` shifts that sensor's frames for
+  the monitor and for pairing; the engine's fusion is not changed by it.
+- PAIRS: collected while exactly one person is seen by the sensor and a
+  trusted one; enough when they reach ``pairs`` (``heal_pairs``), or sooner
+  when they hold ``poses`` (``heal_poses``) distinct poses (coverage.py).
+- ACCEPTANCE: the fit passes the gates (``min_pairs``, ``min_poses``,
+  ``min_fitness``, as offline), and is good (fitness ``accept_above``), or
+  as close as the trusted sensors agree among themselves (``accept_ratio``
+  times their median distance), or, for a first calibration with nobody to
+  compare with, merely passes the gates. A rejection keeps the newer half of
+  the pairs and says why in the sensor's note, where ``stage stats`` shows it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..errors import CalibrationError
+from .coverage import Gates
+from .live import View, new_pairs
+from .livestate import LiveEvent, SensorState
+from .methods import CalibrationResult, calibrate
+from .pairs import LagSearch, find_lag
+from .streams import Stream
+
+log = logging.getLogger("stage.calibration")
+
+
+class Collector:
+    """Mixin of ``LiveCalibrator`` (its state lives there)."""
+
+    def _gates(self) -> Gates:
+        s = self.settings
+        return Gates(s.min_pairs, s.min_poses, s.min_fitness, s.poor_fitness,
+                     s.min_lag_confidence)
+
+    # ------------------------------------------------------------ lags
+    def _lag_due(self, st: SensorState, now: float) -> bool:
+        s = self.settings
+        if not s.lag_search or st.sensor == self._reference or st.duplicate_of is not None:
+            return False
+        if st.state == "ok":  # tracking: only while self-healing watches the sensors
+            return s.heal and s.lag_every_s > 0 and now - st.lag_searched >= s.lag_every_s
+        # a sensor to calibrate: every second until two searches agree, then as when tracking
+        every = 1.0 if not st.lag_settled else (s.lag_every_s or 2.0)
+        return now - st.lag_searched >= every
+
+    def _search_lag(self, sid: str, views: dict[str, list[View]], trusted: list[str],
+                    now: float, since: float) -> LagSearch | None:
+        """The sensor's remaining lag against a trusted sensor seeing the same person, on
+        its frames after ``since`` (a suspect's frames from before it moved would mix two
+        placements)."""
+        s = self.settings
+        mine = [v.after(since) for v in views.get(sid, []) if v.t[-1] > now - 1.0]
+        mine = [v for v in mine if v is not None and len(v.t) >= 3]
+        pairs: list[tuple[View, View]] = []
+        for r in trusted:
+            if r == sid:
+                continue
+            theirs = [v for v in views.get(r, []) if v.t[-1] > now - 1.0 and len(v.t) >= 3]
+            if len(mine) == 1 and len(theirs) == 1:
+                pairs.append((mine[0], theirs[0]))
+            else:  # the same person, as the engine bound the views (calibrated sensors only)
+                pairs += [(a, b) for a in mine for b in theirs
+                          if a.person is not None and a.person == b.person]
+        if not pairs:
+            return None
+        # the longest common stretch, the reference first
+        def common(p: tuple[View, View]) -> float:
+            return min(p[0].t[-1], p[1].t[-1]) - max(p[0].t[0], p[1].t[0])
+        a, b = max(pairs, key=lambda p: (common(p), p[1].sensor == self._reference))
+        known = self._states.get(sid)  # the engine thread may have forgotten it
+        if known is None:
+            return None
+        tracking = known.state == "ok"
+        if min(a.t[-1] - a.t[0], b.t[-1] - b.t[0]) < (4 * s.lag_min_s if tracking else s.lag_min_s):
+            return None  # too little to say yet: try again at the next poll
+        ok = np.isfinite(b.stage).all(axis=(1, 2))
+        ref = Stream(b.sensor, b.t[ok], np.zeros(int(ok.sum()), int), b.stage[ok], b.conf[ok])
+        other = Stream(sid, a.t, np.zeros(len(a.t), int), a.raw, a.conf)
+        try:
+            return find_lag(ref, other, s.max_lag_s, min_pairs=s.min_pairs)
+        except CalibrationError:
+            return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
+
+    def _update_lag(self, st: SensorState, search: LagSearch | None, now: float) -> None:
+        """Apply a search's result (caller holds the lock)."""
+        if search is None:
+            return
+        st.lag_searched = now
+        if search.confidence < self.settings.lag_min_confidence:
+            return  # nothing moved enough to say: keep the lag we have
+        st.lag_confidence = search.confidence
+        if abs(search.lag_s) < 1.0 / 30:
+            st.lag_settled = True  # this search agrees with the lag in use
+        # a calibrated sensor's lag moves only by two frames or more (a tracked lag is a
+        # correction, and noise in it would shake every judgement); a new sensor's by half
+        if abs(search.lag_s) < (2.0 if st.state == "ok" else 0.5) / 30:
+            return
+        # hysteresis: short or periodic takes have near-equal minima; move only to a lag that
+        # fits clearly better than the one in use, on the same frames -- unless this search
+        # saw much more than the one that set it (a first search sees little)
+        here = np.flatnonzero(np.abs(search.lags) <= 1e-6)
+        more = search.overlap > 1.5 * st.lag_overlap
+        if st.lag_overlap:
+            st.lag_overlap = max(st.lag_overlap, search.overlap) if not more else st.lag_overlap
+        if not more and len(here) and np.isfinite(search.residual[here[0]]):
+            best = float(np.nanmin(search.residual))
+            if best > (1.0 - self.settings.lag_hysteresis) * float(search.residual[here[0]]):
+                st.lag_settled = True  # the lag in use fits about as well: keep it
+                return
+        before = st.lag_s
+        lag = float(np.clip(st.lag_s + search.lag_s, -self.settings.max_lag_s,
+                            self.settings.max_lag_s))
+        if abs(lag - before) < 0.5 / 30:
+            return
+        st.lag_s = round(lag, 4)
+        st.lag_settled = False
+        st.lag_overlap = search.overlap
+        if st.pairs is not None:      # pairs taken at the old lag mean nothing now
+            st.reset_pairs()
+        self._window.forget(st.sensor)
+        text = (f"its clock runs {st.lag_s:+.3f} s from stage time (was {before:+.3f} s; "
+                f"lag search confidence {search.confidence:.2f})")
+        log.info("sensor %s: %s", st.sensor, text)
+        self._event(LiveEvent(now, st.sensor, "lag", text))
+
+    def _buffered(self, sid: str, since: float, lag: float, placed: bool) -> Stream | None:
+        """All of a sensor's buffered frames after ``since`` as one stream (caller holds the
+        lock): every user, uncut, on stage time (its lag taken off); ``placed``: in stage
+        space with the transform each frame had (frames without one left out)."""
+        entries = [e for key, buf in self._buffers.items() if key[0] == sid for e in buf
+                   if e[0].t > since and (not placed or e[0].transform is not None)]
+        if len(entries) < 3:
+            return None
+        entries.sort(key=lambda e: e[0].t)
+        rows = [e[0] for e in entries]
+        joints = np.stack([f.joints for f in rows])
+        if placed:
+            joints = np.stack([f.joints @ f.transform[:3, :3].T + f.transform[:3, 3]
+                               for f in rows])
+        # one "user" per identity run, so nothing is interpolated across a lost-and-found
+        users = np.array([f.user * 100003 + e[2] for f, e in zip(rows, entries)])
+        return Stream(sid, np.array([f.t for f in rows]) - lag, users, joints,
+                      np.stack([f.conf for f in rows]))
+
+    def _search_buffers(self, sid: str, trusted: list[str], since: float,
+                        ) -> LagSearch | None:
+        """A new sensor's remaining lag: its buffered frames (one person in view) against a
+        trusted sensor's, the reference first. Long, uncut streams: a lag searched on a
+        short stretch of a short take finds one of its near-equal minima."""
+        s = self.settings
+        with self._lock:
+            if sid not in self._states:   # the engine thread may have forgotten it
+                return None
+            mine = self._buffered(sid, since, self._states[sid].lag_s, placed=False)
+            partners = [(self._buffered(r, -np.inf, self._states[r].lag_s, placed=True), r)
+                        for r in sorted(trusted, key=lambda r: r != self._reference)
+                        if r != sid and r in self._states]
+        if mine is None or mine.t[-1] - mine.t[0] < s.lag_min_s:
+            return None
+        for theirs, _ in partners:
+            if theirs is None or theirs.t[-1] - theirs.t[0] < s.lag_min_s:
+                continue
+            try:
+                return find_lag(theirs, mine, s.max_lag_s, min_pairs=s.min_pairs)
+            except CalibrationError:
+                continue
+        return None
+
+    def _track_lags(self, now: float, views: dict[str, list[View]], states: dict,
+                    epochs: dict) -> None:
+        """Search the lag of every sensor it is due for (worker thread)."""
+        trusted = [sid for sid, (state, *_rest) in states.items() if state == "ok"]
+        with self._lock:
+            due = [(sid, st.state == "ok", st.collect_from)
+                   for sid, st in self._states.items() if self._lag_due(st, now)
+                   and (st.state == "ok" or self._wants_pairs(st))]
+        for sid, tracking, since in due:
+            if tracking:
+                search = self._search_lag(sid, views, trusted, now, -np.inf)
+            else:
+                search = self._search_buffers(sid, trusted, since)
+            self._yield()
+            with self._lock:
+                st = self._states.get(sid)  # the engine thread may have forgotten it
+                if st is not None and st.epoch == epochs.get(sid):
+                    self._update_lag(st, search, now)
+
+    # ------------------------------------------------------------ pairs
+    def _wants_pairs(self, st: SensorState) -> bool:
+        s = self.settings
+        return st.duplicate_of is None and not st.busy and (
+            st.requested or (st.state == "uncalibrated" and s.auto_calibrate)
+            or (st.state == "suspect" and s.heal))
+
+    def _ready(self, st: SensorState, now: float) -> bool:
+        """Enough pairs: ``needed`` of them, or ``wanted_poses`` distinct poses, or no new
+        pose for ``poses_stall_s`` (a looped take, a repeated gesture: more of the same
+        adds nothing; the gates then judge what there is)."""
+        s = self.settings
+        if (s.lag_search and not st.lag_settled and st.state != "ok"
+                and st.sensor != self._reference):  # stage time is the reference's clock
+            return False  # two lag searches must agree first (short takes fool one)
+        n = 0 if st.pairs is None else len(st.pairs)
+        if n >= st.needed:
+            return True
+        if n < s.min_pairs:
+            return False
+        return (len(st.poses) >= st.wanted_poses
+                or now - st.poses_grew >= s.poses_stall_s > 0)
+
+    def _collect(self, now: float, views: dict[str, list[View]], states: dict, epochs: dict,
+                 ) -> None:
+        s = self.settings
+        t1 = now - s.delay_s
+        trusted = [sid for sid, (state, *_rest) in states.items() if state == "ok"]
+        for sid in states:
+            with self._lock:
+                st = self._states.get(sid)  # the engine thread may have forgotten it
+                if st is None:
+                    continue
+                wanted = self._wants_pairs(st)
+                start = max(st.collected_to, st.collect_from)
+            if not wanted:
+                continue
+            # with lags, sensors' frames reach the same stage time at different moments:
+            # pair only up to where the sensor and its partners all have frames
+            latest = [max(v.t[-1] for v in views[r]) for r in [sid, *trusted]
+                      if views.get(r) and max(v.t[-1] for v in views[r]) > now - 1.0]
+            until = min([t1, *latest])
+            new, waiting = new_pairs(sid, views, trusted, start, until, now, s.min_joints)
+            self._yield()
+            with self._lock:
+                st = self._states.get(sid)
+                if st is None or st.epoch != epochs.get(sid):
+                    continue
+                if waiting is not None:
+                    st.reason = waiting
+                elif new is not None:
+                    st.collected_to = max(st.collected_to, until)
+                    before = 0 if st.pairs is None else len(st.pairs)
+                    st.pairs = new if st.pairs is None else st.pairs.concat(new)
+                    count = st.poses.add(new.other, new.weight)
+                    if count > st.poses_count:
+                        st.poses_count, st.poses_grew = count, now
+                    st.reason = (f"collecting pairs with {', '.join(new.partners)}"  # type: ignore[attr-defined]
+                                 + (f" at lag {st.lag_s:+.3f} s" if st.lag_s else ""))
+                    quarter = max(st.needed // 4, 1)
+                    if len(st.pairs) // quarter > before // quarter:
+                        log.info("calibrating %s: %d/%d pairs, %d distinct poses", sid,
+                                 min(len(st.pairs), st.needed), st.needed, len(st.poses))
+                self._note(st)
+
+    # ------------------------------------------------------------ fit and accept
+    def _level(self, sid: str) -> float:
+        """How far apart the trusted sensors other than ``sid`` see people (median, m)."""
+        ok = {k for k, st in self._states.items() if st.state == "ok" and k != sid}
+        keys = [k for k in self._window.keys() if k[0] in ok and k[1] in ok]
+        return self._window.median(keys) if keys else float("nan")
+
+    def _judge_fit(self, st: SensorState, result: CalibrationResult) -> str | None:
+        """Why a fit is not accepted, or None (caller holds the lock)."""
+        s = self.settings
+        gates = self._gates()
+        why = gates.too_little(result.pairs, len(st.poses)) or gates.too_poor(
+            result.fitness, result.median_m, st.lag_confidence if s.lag_search else None)
+        if why is not None:
+            return why
+        if result.fitness >= s.accept_above:
+            return None
+        level = self._level(st.sensor)
+        if np.isfinite(level):
+            if result.median_m <= s.accept_ratio * level:
+                return None
+            return (f"fit too poor: median joint distance {result.median_m * 100:.1f} cm, more "
+                    f"than {s.accept_ratio:g} x the {level * 100:.1f} cm the trusted sensors "
+                    f"agree within (fitness {result.fitness:.2f} < {s.accept_above:g})")
+        if st.state == "uncalibrated" or st.last_good is None:
+            return None  # a first calibration with nobody to compare with: the gates decide
+        return (f"fit too poor: median joint distance {result.median_m * 100:.1f} cm (fitness "
+                f"{result.fitness:.2f} < {s.accept_above:g})")
+
+    def _job(self, st: SensorState, epoch: int, now: float) -> None:
+        """Fit, check, and accept or reject (worker thread, or inline)."""
+        s = self.settings
+        pairs = st.pairs
+        sid = st.sensor
+        assert pairs is not None
+        try:
+            result: CalibrationResult | None = calibrate(pairs, s.method)
+            error = None
+        except CalibrationError as exc:
+            result, error = None, str(exc)
+        with self._lock:
+            st.busy = False
+            if st.epoch != epoch:
+                return  # something happened meanwhile (quarantined again, a request)
+            if st.state == "recalibrating":
+                st.state = "suspect"
+            was = st.state
+            why = error if result is None else self._judge_fit(st, result)
+            if result is not None and why is None:
+                m = result.matrix
+                st.state, st.transform, st.last_good = "ok", m, m
+                st.reset_pairs()
+                st.requested, st.fitness, st.since = False, result.fitness, now
+                st.residual = result.median_m
+                st.baseline = _worst_window(pairs, result.matrix, s.window_s)
+                st.healthy = None  # a new transform: how close it agrees is learnt anew
+                st.below_since = st.above_since = None
+                verb = "re-calibrated" if was == "suspect" else "calibrated"
+                st.reason = (f"{verb} by {result.method}: median joint distance "
+                             f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm),"
+                             f" fitness {result.fitness:.2f}, {result.pairs} pairs")
+                if st.lag_s:
+                    st.reason += f", lag {st.lag_s:+.3f} s"
+                st.last_attempt = st.reason
+                st.epoch += 1
+                st.window = None
+                self._window.forget(sid)
+                self._gate.trust(sid, True)
+                self._act(lambda e: e.set_calibration(sid, m))
+                log.info("sensor %s %s", sid, st.reason)
+                self._event(LiveEvent(now, sid, "calibrated", st.reason, m, result.fitness))
+            else:
+                kept = pairs.subset(slice(len(pairs) // 2, None))  # keep the newer half
+                st.reset_pairs()
+                st.pairs = kept
+                st.poses_count, st.poses_grew = st.poses.add(kept.other, kept.weight), now
+                st.last_attempt = f"rejected: {why}"
+                st.reason = f"calibration rejected: {why}; collecting more pairs"
+                log.warning("sensor %s: %s", sid, st.reason)
+                self._event(LiveEvent(now, sid, "rejected", st.reason,
+                                      fitness=None if result is None else result.fitness))
+            self._note(st)
+            accepted = st.state == "ok"
+        if accepted and result is not None:
+            self._save(sid, result)
+
+    def _save(self, sid: str, result: CalibrationResult) -> None:
+        """Hand an accepted calibration to the engine thread, which owns the rig and saves it."""
+        path = self.rig_path if self.settings.save else None
+        if self.settings.save and not self.rig_path:
+            log.info("%s's calibration is in use but not saved: no rig file (--rig)", sid)
+        matrix, method = result.matrix, f"{result.method} (live)"
+        fitness, rms, wait = result.fitness, result.rms_m, not self.threaded
+        self._act(lambda e: e.record_calibration(sid, matrix, method, fitness, rms, path, wait))
+
+
+def _worst_window(pairs, m: np.ndarray, window_s: float) -> float:
+    """The largest median joint distance of ``m`` over any ``window_s`` stretch of the
+    pairs (m): how far a healthy sensor's residual wanders with this kind of data."""
+    from .fitness import residuals, weighted_median
+    if not len(pairs):
+        return float("nan")
+    r = residuals(m, pairs.other, pairs.ref)
+    chunk = np.floor((pairs.t - pairs.t[0]) / window_s).astype(int)
+    worst = float("nan")
+    for k in np.unique(chunk):
+        rows = chunk == k
+        if rows.sum() >= 3:
+            med = weighted_median(r[rows], pairs.weight[rows])
+            worst = med if not np.isfinite(worst) else max(worst, med)
+    return worst
