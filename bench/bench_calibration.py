@@ -148,23 +148,19 @@ def lag_search() -> dict:
 def live_costs() -> dict:
     """The live calibrator's cost: its observer on the engine thread (per frame) and its
     polls (worker thread), for 3 sensors x 1 dancer with a bump, and 6 sensors x 6 people."""
-    from stage.geometry import invert
+    from benchlib import exact_ring_rig
     from stage.calibration.healing import attach_live
     from stage.clock import ManualClock
     from stage.engine.engine import Engine
     from stage.sensors.protocol import encode_client_joints
     from stage.sensors.sim import VirtualKinect, demo_scenario, ring_poses, standing_pose
-    from stage.rig import Rig, set_calibration
 
     dancer = demo_scenario(1).performers[0]
 
     def episode(n_sensors: int, n_people: int, seconds: float, bump: bool) -> dict:
         poses = ring_poses(n_sensors, radius=2.5 if n_people == 1 else 4.0)
         ids = [f"s{k}" for k in range(n_sensors)]
-        rig = Rig(reference="s0")
-        rig.stage_frame = poses[0].to_stage
-        for sid, p in zip(ids, poses):
-            set_calibration(rig, sid, invert(poses[0].to_stage) @ p.to_stage, "bench")
+        rig = exact_ring_rig(poses)
         clock = ManualClock(0.0)
         engine = Engine(rig, clock)
         cal = attach_live(engine, None, threaded=False)

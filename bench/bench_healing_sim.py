@@ -35,12 +35,11 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from benchlib import exact_ring_rig  # noqa: E402
 from stage.app.offline import feed  # noqa: E402
 from stage.calibration.healing import attach_live  # noqa: E402
 from stage.clock import ManualClock  # noqa: E402
 from stage.engine.engine import Engine  # noqa: E402
-from stage.geometry import invert  # noqa: E402
-from stage.rig import Rig, set_calibration  # noqa: E402
 from stage.sensors import sim as sim_mod  # noqa: E402
 from stage.sensors.protocol import encode_client_joints  # noqa: E402
 from stage.testing import simdata  # noqa: E402
@@ -80,10 +79,7 @@ def ring_show(preset: str, seed: int, bump: bool):
     dancer = sim_mod.demo_scenario(1).performers[0]
     poses = sim_mod.ring_poses(3)
     ids = ["s0", "s1", "s2"]
-    rig = Rig(reference="s0")
-    rig.stage_frame = poses[0].to_stage
-    for sid, p in zip(ids, poses):
-        set_calibration(rig, sid, invert(poses[0].to_stage) @ p.to_stage, "bench")
+    rig = exact_ring_rig(poses)
     clock = ManualClock(0.0)
     engine = Engine(rig, clock)
     fused: list = []

@@ -38,3 +38,15 @@ def wait_idle(max_wait: float, threshold: float, sample: float = 2.0) -> float:
         busy = (machine_busy_s() - a) / sample
         if busy < threshold or time.monotonic() >= deadline:
             return busy
+
+
+def exact_ring_rig(poses):
+    """A rig that knows every virtual sensor's true pose: ids s0, s1, ... for ``poses``
+    (``VirtualPose``s, e.g. ``ring_poses``), s0 the reference and stage space."""
+    from stage.geometry import invert
+    from stage.rig import Rig, set_calibration
+    rig = Rig(reference="s0")
+    rig.stage_frame = poses[0].to_stage
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", invert(poses[0].to_stage) @ p.to_stage, "bench")
+    return rig

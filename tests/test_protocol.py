@@ -224,8 +224,6 @@ def test_floor_plane_extension_is_normalised_and_validated():
 
 def test_fast_path_agrees_with_the_general_decoder():
     """The hot-path decoder accepts exactly what the general one accepts, with equal values."""
-    from stage.sensors.protocol import (Decoded, _decode_message, _fast_joint_coordinates,
-                                        _parse_message)
     rng = np.random.default_rng(11)
     fast_hits = 0
     for k in range(600):
@@ -245,27 +243,17 @@ def test_fast_path_agrees_with_the_general_decoder():
         data = build("/jointCoordinates", *args)
         if k % 19 == 0:
             data = data[:-4]
-        general = Decoded()
-        try:
-            _decode_message(_parse_message(data), None, general, "x:1")
-        except Exception:
-            general.drops.append(("x:1", "malformed"))
-        fast = _fast_joint_coordinates(data)
+        general, fast = _decode_both_ways(data)
         if fast is None:
             continue
         fast_hits += 1
-        assert general.drops == [] and len(general.messages) == 1
-        slow = general.messages[0][0]
-        assert (fast.client, fast.user) == (slow.client, slow.user)
-        assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
+        _assert_same_skeleton(general, fast)
     assert fast_hits > 100
 
 
 def test_fast_path_in_kinect_order_agrees_with_the_general_decoder():
     """All 25 joints in JOINTS order (what Kinect clients send) take a shortcut in the fast
     path; it accepts exactly what the general decoder accepts, with equal values."""
-    from stage.sensors.protocol import (Decoded, _decode_message, _fast_joint_coordinates,
-                                        _parse_message)
     rng = np.random.default_rng(12)
     fast_hits = 0
     for k in range(300):
@@ -284,20 +272,12 @@ def test_fast_path_in_kinect_order_agrees_with_the_general_decoder():
         data = build("/jointCoordinates", *args)
         if k % 19 == 0:
             data = data[:-4]
-        general = Decoded()
-        try:
-            _decode_message(_parse_message(data), None, general, "x:1")
-        except Exception:
-            general.drops.append(("x:1", "malformed"))
-        fast = _fast_joint_coordinates(data)
+        general, fast = _decode_both_ways(data)
         if fast is None:
             assert general.drops or k % 11 == 0
             continue
         fast_hits += 1
-        assert general.drops == [] and len(general.messages) == 1
-        slow = general.messages[0][0]
-        assert (fast.client, fast.user) == (slow.client, slow.user)
-        assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
+        _assert_same_skeleton(general, fast)
     assert fast_hits > 100
 
 
@@ -316,3 +296,24 @@ def test_hand_state_fast_path_agrees_with_the_general_decoder():
                         hits += 1
                         assert general.messages[0][0] == fast
     assert hits == 2 * 2 * 2 * 5
+
+
+def _decode_both_ways(data: bytes):
+    """``data`` through the general decoder (a parse failure counted as one malformed drop)
+    and through the joint-coordinates fast path (None: the fast path declined)."""
+    from stage.sensors.protocol import (Decoded, _decode_message, _fast_joint_coordinates,
+                                        _parse_message)
+    general = Decoded()
+    try:
+        _decode_message(_parse_message(data), None, general, "x:1")
+    except Exception:
+        general.drops.append(("x:1", "malformed"))
+    return general, _fast_joint_coordinates(data)
+
+
+def _assert_same_skeleton(general, fast) -> None:
+    """The fast path's skeleton is the one message the general decoder produced, value for value."""
+    assert general.drops == [] and len(general.messages) == 1
+    slow = general.messages[0][0]
+    assert (fast.client, fast.user) == (slow.client, slow.user)
+    assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
