@@ -17,7 +17,9 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from ..engine.forecast import speed_limits
 from ..events import TriggerContradicted
+from ..settings import ForecastSettings
 from .model import BODY, Anticipation, Trigger, Zone, joint_label
 from .triggers import Firing, Person
 
@@ -33,10 +35,17 @@ SQRT2 = math.sqrt(2.0)
 #: predicted across it by its jitter, so hands need a measured approach of 1 m/s; the
 #: torso (zones) moves smoothly and fires on the bare prediction.
 GROUP_DEFAULTS: dict[str, tuple[float, float | None, int]] = {
-    "legs": (0.94, None, 1), "arms": (0.0, 1.0, 1), "torso": (0.0, None, 2)}
+    "legs": (0.94, None, 1), "arms": (0.0, 1.0, 1), "torso": (0.0, None, 1)}
 _LEGS = {"KneeLeft", "KneeRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
 _ARMS = {"ElbowLeft", "ElbowRight", "WristLeft", "WristRight", "HandLeft", "HandRight",
          "HandTipLeft", "HandTipRight", "ThumbLeft", "ThumbRight"}
+
+
+#: how far (m) a measured joint may move between two frames beyond its speed limit (the
+#: forecast's defaults) times the time between them; further is a jump -- one sensor's limb
+#: swap, the tracker re-finding a person elsewhere -- and no prediction is trusted from it
+JUMP_M = 0.25
+_LIMITS = speed_limits(ForecastSettings()).tolist()
 
 
 def group(j: int) -> str:
@@ -135,6 +144,19 @@ def sure(a: Anticipation, trig: Trigger, ahead: Person, now: Person | None, j: i
     return True
 
 
+def jumped(now: Person | None, before: Person | None, j: int) -> bool:
+    """Whether measured joint ``j`` jumped between the frame before (``before``) and this
+    one (``now``): moved more than its speed limit allows, plus ``JUMP_M``."""
+    if now is None or before is None:
+        return False
+    a, b = now.xyz(j), before.xyz(j)
+    dt = now.body.t - before.body.t
+    if a is None or b is None or not dt >= 0.0:
+        return False
+    d = math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+    return d > _LIMITS[1 if j == BODY else j] * dt + JUMP_M
+
+
 def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person]) -> None:
     """Fire ``run`` on crossings predicted ahead once they are sure enough (``sure``): a
     predicted crossing waits, re-checked each frame, until it is, until the prediction
@@ -160,7 +182,7 @@ def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person
             # the prediction went back, or the measurements have had the time to catch up
             del run.waiting[key]
             continue
-        if not sure(a, trig, p, now.get(pid), j):
+        if not sure(a, trig, p, now.get(pid), j) or jumped(now.get(pid), rt.before.get(pid), j):
             if wait[0] == t:
                 rt.counts["unsure"] += 1     # counted once per predicted crossing
             wait[1] = 0

@@ -93,6 +93,7 @@ class PieceRuntime:
         self.section_start = 0.0
         self.arrivals: dict[int, float] = {}
         self.persons: dict[int, Person] = {}
+        self.before: dict[int, Person] = {}     # the frame before's
         self._chosen: dict = {}                 # performer selector -> persons, this frame
         self.empty_since: float | None = None
         self.zone_members: dict[str, set[int]] = {name: set() for name in piece.zones}
@@ -241,7 +242,7 @@ class PieceRuntime:
             if since is None:
                 since = arrivals[pid] = t
             persons[pid] = Person(body, min_conf, since)
-        self.persons = persons
+        self.before, self.persons = self.persons, persons   # anticipation looks for jumps
         self._chosen = {}
         if frame.lost:
             for pid in frame.lost:
