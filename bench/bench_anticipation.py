@@ -16,8 +16,9 @@ horizon asked for), so every setting sees the same frames:
 - ``anticipate 50 ms {...}``: the same with these keys (``--variant``; by default the
   bare s.d. bound ``min_p: 0, trend: -10``, how it fired before the groups' defaults).
 
-Seeds 1-3 tuned the groups' defaults; seeds 4-5 only check them: the tables are printed
-for each and for all.
+Seeds 1-3 tuned the groups' defaults; seeds 4-5 were held back and check them; seeds
+6-10 were never tuned on; any seeds past 10 (``--seeds 20``) were never looked at while
+tuning: the tables are printed for each group and for all, with the goal per kind.
 
 Triggers: a hand rising above the head (``rises_above: Head``), a foot lifting
 (``rises_above: 0.25``), and the torso centre entering one of three bands
@@ -29,7 +30,7 @@ a firing with none is a *false trigger* (the truth never crossed within 100
 ms of what the firing claims). For matched firings the delay is the firing's
 engine time minus the true crossing's time (engine clock = simulation clock).
 
-    python bench/bench_anticipation.py            # 3 takes x 5 seeds, plot in docs/
+    python bench/bench_anticipation.py            # 3 takes x 10 seeds, plot in docs/
     python bench/bench_anticipation.py --quick    # one take, one seed, no plot
 """
 
