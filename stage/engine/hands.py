@@ -74,11 +74,13 @@ class HandVoter:
     sensor however often they report.
     """
 
-    __slots__ = ("memory_s", "hold_s", "reports", "reported", "_candidate", "_last_t",
-                 "_pending", "_counted", "_lead", "_margin", "_since")
+    __slots__ = ("memory_s", "hold_s", "evidence", "reports", "reported", "_candidate",
+                 "_last_t", "_pending", "_counted", "_lead", "_margin", "_since")
 
-    def __init__(self, memory_s: float, hold_s: float) -> None:
+    def __init__(self, memory_s: float, hold_s: float, evidence: bool = True) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
+        #: False: the hold alone reports changes (issue 10's rule; a benchmark's reference)
+        self.evidence = evidence
         #: per hand: sensor key -> [newest report time, shares per state code (5), weight,
         #: state of the newest report]
         self.reports: tuple[dict, dict] = ({}, {})
@@ -187,7 +189,7 @@ class HandVoter:
             self._candidate[hand] = cand
             if cand is not None and cand[1] >= self.hold_s - 1e-9:
                 self._report(hand, cand[0], changed)
-            elif case is not None:
+            elif case is not None and self.evidence:
                 self._report(hand, case, changed)
         return changed
 
