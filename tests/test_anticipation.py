@@ -131,6 +131,32 @@ def test_a_forecast_keeps_bone_lengths_within_the_tolerance():
         1.1 * np.linalg.norm(body[hand] - body[wrist]))
 
 
+def test_a_stretched_bone_is_mended_by_moving_its_less_certain_end():
+    # a knee predicted 0.3 m too high and four times as uncertain as its ankle: the knee
+    # comes down to the ankle, the ankle and foot keep their own predictions (before, the
+    # ankle and then the foot were dragged up after the knee)
+    body = standing()
+    knee, ankle, foot = J["KneeRight"], J["AnkleRight"], J["FootRight"]
+    st = FilterState.empty(25)
+    st.x = np.zeros_like(st.x)
+    st.x[0] = body[None]
+    st.x[1, :, knee] = [0.0, 6.0, 0.0]                   # 0.3 m up in 0.05 s
+    st.P = np.full_like(st.P, 1e-4)
+    st.P[0, :, knee] = 16e-4                             # s.d. 4 cm against 1 cm
+    st.mu = np.zeros_like(st.mu)
+    st.mu[0] = 1.0
+    st.t = np.zeros(25)
+    fc = Forecaster(S, ForecastSettings(bone_tolerance=0.1)).predict(
+        st, 0.0, body, np.ones(25, bool), 0.05)
+    assert fc.joints[ankle] == pytest.approx(body[ankle])
+    assert fc.joints[foot] == pytest.approx(body[foot])
+    assert fc.joints[knee, 1] > body[knee, 1]             # still up, within its bones
+    for parent, child in BONES:
+        before = np.linalg.norm(body[child] - body[parent])
+        after = np.linalg.norm(fc.joints[child] - fc.joints[parent])
+        assert after == pytest.approx(before, rel=0.1 + 1e-9), (parent, child)
+
+
 def test_the_engine_sends_listeners_bodies_forecast_from_their_filter_on_a_manual_clock():
     from stage.app.offline import feed
     from stage.clock import ManualClock
@@ -243,6 +269,44 @@ def test_a_contradicted_prediction_is_counted_and_its_notes_cut_short():
     assert cuts and all(e.why == "contradicted" and e.t == 0.2 for e in cuts)
 
 
+def test_a_persistent_crossing_fires_only_once_sure_on_that_many_frames_in_a_row():
+    rt, sink = runtime("anticipate: {ahead: 0.05, max_sd: 0.05, persist: 2}")
+    # sure at 0.033, not sure at 0.05 (s.d. too large): the count starts again; sure at
+    # 0.067 and 0.083: fires on the second of them, before the measurement (1.95 at 0.1)
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01), (0.05, 1.6, 1.96, 0.2),
+                     (0.067, 1.7, 2.0, 0.01), (0.083, 1.8, 2.05, 0.01), (0.1, 1.95, 2.1, 0.01)])
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.083, 0.05)]
+    assert rt.counts["confirmed"] == 1
+
+
+def test_a_confirmed_crossing_restarts_the_cooldown_as_the_measured_firing_would():
+    # cooldown 0.3 s: fired on the prediction at 0.033, measured at 0.1; the hand drops
+    # below the hysteresis and a glitch crosses again at 0.36: without anticipation the
+    # measured firing at 0.1 would still be cooling down (0.36 - 0.1 < 0.3), so no firing
+    text = "anticipate: {ahead: 0.05, max_sd: 0.05}\n        cooldown: 0.3"
+    rt, sink = runtime(text)
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01), (0.1, 1.95, 2.0, 0.01),
+                     (0.2, 1.7, 1.7, 0.01), (0.36, 1.95, 1.95, 0.01)])
+    assert [e.t for e in fired(sink)] == [0.033]
+    # and it fires again once the cooldown from the confirmation is over
+    feed_frames(rt, [(0.38, 1.7, 1.7, 0.01), (0.45, 1.95, 1.95, 0.01)])
+    assert [e.t for e in fired(sink)] == [0.033, 0.45]
+
+
+def test_no_prediction_fires_from_a_frame_where_the_measured_joint_jumped():
+    # 0.8 m in 33 ms: more than a hand's 12 m/s plus 0.25 m (a sensor's limb swap, the
+    # tracker re-finding a person elsewhere): that frame's predicted crossing waits; the
+    # next frame, a steady one, fires it
+    rt, sink = runtime()
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.8, 1.95, 0.01), (0.05, 1.85, 2.0, 0.01)])
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.05, 0.05)]
+    from stage.piece.anticipation import JUMP_M, jumped
+    from stage.piece.triggers import Person
+    a, b = (Person(body(y, t), 0.5, 0.0) for y, t in ((1.0, 0.0), (1.0 + JUMP_M + 0.1, 0.0)))
+    assert jumped(b, a, J["HandLeft"]) and not jumped(a, a, J["HandLeft"])
+    assert not jumped(b, None, J["HandLeft"])
+
+
 def test_an_unsure_prediction_waits_for_the_measurements():
     rt, sink = runtime()
     feed_frames(rt, [(0.0, 1.0, 1.0, 0.2), (0.033, 1.5, 1.95, 0.2),
@@ -268,6 +332,8 @@ def test_a_piece_forecast_triggers_on_the_predicted_bodies():
     ("anticipate: {ahead: 0.05, sure: 1}", "unknown key 'sure'"),
     ("anticipate: {ahead: 0.05, min_p: 1.5}", "min_p"),
     ("anticipate: {ahead: 0.05, trend: fast}", "trend"),
+    ("anticipate: {ahead: 0.05, persist: 0}", "persist"),
+    ("anticipate: {ahead: 0.05, persist: 1.5}", "persist"),
 ])
 def test_bad_anticipation_is_a_clear_error(text, message):
     with pytest.raises(ConfigError, match=message):
@@ -354,10 +420,12 @@ def test_group_defaults_and_what_a_trigger_says():
     assert group(J["FootLeft"]) == group(J["KneeRight"]) == "legs"
     assert group(J["HandRight"]) == group(J["ElbowLeft"]) == "arms"
     assert group(J["Head"]) == group(BODY) == "torso"
-    assert rule(bare, J["FootLeft"]) == (0.94, None)
-    assert rule(bare, J["HandLeft"]) == (0.0, 1.0)
-    assert rule(bare, BODY) == (0.0, None)
-    assert rule(Anticipation(0.05, min_p=0.5, trend=0.2), J["FootLeft"]) == (0.5, 0.2)
+    # (min_p, trend, persist)
+    assert rule(bare, J["FootLeft"]) == (0.94, None, 1)
+    assert rule(bare, J["HandLeft"]) == (0.0, 1.0, 1)
+    assert rule(bare, BODY) == (0.0, None, 1)
+    assert rule(Anticipation(0.05, min_p=0.5, trend=0.2, persist=3), J["FootLeft"]) == (
+        0.5, 0.2, 3)
     # backwards compatible: 'anticipate: 0.05' leaves both to the groups
     piece = loads_piece(PIECE.format(top="", anticipate="anticipate: 0.05"))
     assert piece.sections[0].triggers[0].anticipate == bare

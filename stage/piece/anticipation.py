@@ -17,7 +17,9 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from ..engine.forecast import speed_limits
 from ..events import TriggerContradicted
+from ..settings import ForecastSettings
 from .model import BODY, Anticipation, Trigger, Zone, joint_label
 from .triggers import Firing, Person
 
@@ -32,11 +34,18 @@ SQRT2 = math.sqrt(2.0)
 #: rising, so feet wait for a near-certain prediction; a hand hovering near a border is
 #: predicted across it by its jitter, so hands need a measured approach of 1 m/s; the
 #: torso (zones) moves smoothly and fires on the bare prediction.
-GROUP_DEFAULTS: dict[str, tuple[float, float | None]] = {
-    "legs": (0.94, None), "arms": (0.0, 1.0), "torso": (0.0, None)}
+GROUP_DEFAULTS: dict[str, tuple[float, float | None, int]] = {
+    "legs": (0.94, None, 1), "arms": (0.0, 1.0, 1), "torso": (0.0, None, 1)}
 _LEGS = {"KneeLeft", "KneeRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
 _ARMS = {"ElbowLeft", "ElbowRight", "WristLeft", "WristRight", "HandLeft", "HandRight",
          "HandTipLeft", "HandTipRight", "ThumbLeft", "ThumbRight"}
+
+
+#: how far (m) a measured joint may move between two frames beyond its speed limit (the
+#: forecast's defaults) times the time between them; further is a jump -- one sensor's limb
+#: swap, the tracker re-finding a person elsewhere -- and no prediction is trusted from it
+JUMP_M = 0.25
+_LIMITS = speed_limits(ForecastSettings()).tolist()
 
 
 def group(j: int) -> str:
@@ -45,10 +54,11 @@ def group(j: int) -> str:
     return "legs" if name in _LEGS else "arms" if name in _ARMS else "torso"
 
 
-def rule(a: Anticipation, j: int) -> tuple[float, float | None]:
-    """(min_p, trend) for joint ``j``: the trigger's, else its group's defaults."""
-    min_p, trend = GROUP_DEFAULTS[group(j)]
-    return (min_p if a.min_p is None else a.min_p, trend if a.trend is None else a.trend)
+def rule(a: Anticipation, j: int) -> tuple[float, float | None, int]:
+    """(min_p, trend, persist) for joint ``j``: the trigger's, else its group's defaults."""
+    min_p, trend, persist = GROUP_DEFAULTS[group(j)]
+    return (min_p if a.min_p is None else a.min_p, trend if a.trend is None else a.trend,
+            persist if a.persist is None else a.persist)
 
 
 def persons_ahead(rt: PieceRuntime, horizon: float) -> dict[int, Person]:
@@ -122,7 +132,7 @@ def sure(a: Anticipation, trig: Trigger, ahead: Person, now: Person | None, j: i
     s = _sd(ahead, trig, j)
     if not s <= a.max_sd:
         return False
-    min_p, trend = rule(a, j)
+    min_p, trend, _ = rule(a, j)
     if min_p > 0.0:
         m = margin(trig, ahead, j)
         if m is None or 0.5 * (1.0 + math.erf(m[0] / (s * SQRT2))) < min_p:
@@ -132,6 +142,19 @@ def sure(a: Anticipation, trig: Trigger, ahead: Person, now: Person | None, j: i
         if m is None or m[1] < trend:
             return False
     return True
+
+
+def jumped(now: Person | None, before: Person | None, j: int) -> bool:
+    """Whether measured joint ``j`` jumped between the frame before (``before``) and this
+    one (``now``): moved more than its speed limit allows, plus ``JUMP_M``."""
+    if now is None or before is None:
+        return False
+    a, b = now.xyz(j), before.xyz(j)
+    dt = now.body.t - before.body.t
+    if a is None or b is None or not dt >= 0.0:
+        return False
+    d = math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+    return d > _LIMITS[1 if j == BODY else j] * dt + JUMP_M
 
 
 def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person]) -> None:
@@ -145,24 +168,28 @@ def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person
     for f in predicted:
         key = (f.person, f.joint)
         if key not in run.pending:
-            run.waiting.setdefault(key, t)
+            run.waiting.setdefault(key, [t, 0])   # first predicted at, sure on n frames in a row
     if not run.waiting:
         return
     now = {p.id: p for p in chosen}
-    for key in list(run.waiting):
+    for key, wait in list(run.waiting.items()):
         pid, j = key
         p = ahead.get(pid)
         m = margin(trig, p, j) if p is not None else None
         if m is None:
             continue                     # not seen this frame: wait on
-        if m[0] < -trig.hysteresis or t - run.waiting[key] > a.ahead:
+        if m[0] < -trig.hysteresis or t - wait[0] > a.ahead:
             # the prediction went back, or the measurements have had the time to catch up
             del run.waiting[key]
             continue
-        if not sure(a, trig, p, now.get(pid), j):
-            if run.waiting[key] == t:
+        if not sure(a, trig, p, now.get(pid), j) or jumped(now.get(pid), rt.before.get(pid), j):
+            if wait[0] == t:
                 rt.counts["unsure"] += 1     # counted once per predicted crossing
+            wait[1] = 0
             continue
+        wait[1] += 1
+        if wait[1] < rule(a, j)[2]:
+            continue                     # sure, but not yet on enough frames in a row
         del run.waiting[key]
         f = Firing(pid, j, p.xyz(j)[1] if j != BODY and trig.kind in ("rises_above",
                                                                      "falls_below") else None,
@@ -170,6 +197,16 @@ def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person
         if rt._consider(run, f, t, a.ahead):
             rt.counts["anticipated"] += 1
             run.pending[key] = (t, t + a.ahead + a.within, rt._firings)
+
+
+def confirmed(rt: PieceRuntime, run: _TriggerRun, f: Firing, t: float) -> None:
+    """The measurements made the crossing ``run`` fired on a prediction: no second firing,
+    and the trigger's cooldown runs from now, as it would have without anticipation (a
+    glitch just after the measured crossing must not fire where the measured trigger would
+    have been cooling down)."""
+    rt.counts["confirmed"] += 1
+    key = run.cooldown_key(f)
+    run.last[key] = max(run.last.get(key, t), t)
 
 
 def contradicted(rt: PieceRuntime, t: float) -> None:

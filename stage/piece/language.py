@@ -108,8 +108,11 @@ ANTICIPATE = AnyOf((AHEAD, Obj("Anticipate", {
     "trend": Field(Number(unit="m/s"),
                    doc="A predicted crossing fires only while the measured joint moves towards "
                        "the border at least this fast (default: none)."),
+    "persist": Field(Integer(1, 10),
+                     doc="A predicted crossing fires only once it has been sure enough on this "
+                         "many frames in a row (default: docs/anticipation.md)."),
 }, doc="How boldly a trigger fires on what the filter predicts.")),
-    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut, min_p, trend}",
+    says="seconds ahead (0 to 0.2), or {ahead, max_sd, within, cut, min_p, trend, persist}",
     doc="Fire on a crossing predicted this far ahead (enters, leaves, rises_above, "
         "falls_below; docs/anticipation.md). 0: off.")
 

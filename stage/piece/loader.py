@@ -131,12 +131,13 @@ class _Compiler(ActionCompiler):
     def _anticipation(self, value) -> Anticipation | None:
         """``anticipate:`` as written (seconds, or a mapping), None for 0."""
         if isinstance(value, dict):
-            min_p, trend = value.get("min_p"), value.get("trend")
+            min_p, trend, persist = value.get("min_p"), value.get("trend"), value.get("persist")
             a = Anticipation(float(value["ahead"]), float(value.get("max_sd", Anticipation.max_sd)),
                              float(value.get("within", Anticipation.within)),
                              bool(value.get("cut", False)),
                              None if min_p is None else float(min_p),
-                             None if trend is None else float(trend))
+                             None if trend is None else float(trend),
+                             None if persist is None else int(persist))
         else:
             a = Anticipation(float(value))
         return a if a.ahead > 0 else None

@@ -37,6 +37,9 @@ class Anticipation:
     min_p: float | None = None
     #: m/s the measured joint must move towards the border (None: its group's default)
     trend: float | None = None
+    #: on how many frames in a row the predicted crossing must be sure enough before it
+    #: fires (None: its group's default)
+    persist: int | None = None
 
 
 #: trigger kinds that can anticipate (a crossing of a position: zones and heights)

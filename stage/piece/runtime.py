@@ -23,7 +23,7 @@ import numpy as np
 from ..frames import FusedFrame
 from ..events import ControlChange, Event, EventSink, SectionChange, TriggerFired, ZoneState
 from .actions import Actions, FireContext, holds
-from .anticipation import anticipate, contradicted
+from .anticipation import anticipate, confirmed, contradicted
 from .mappings import MappingRun
 from .model import Piece, Section, Trigger, joint_label
 from .music import meter_beats
@@ -55,7 +55,12 @@ class _TriggerRun:
         self.ahead: Detector | None = detector_for(trigger) if trigger.anticipate else None
         self.pending: dict[tuple, tuple[float, float, int]] = {}
         #: predicted crossings not yet sure enough to fire: (person, joint) -> first seen at
-        self.waiting: dict[tuple, float] = {}
+        self.waiting: dict[tuple, list] = {}
+
+    def cooldown_key(self, f: Firing):
+        scope = self.trigger.cooldown_per
+        return None if scope == "trigger" else f.person if scope == "performer" else (f.person,
+                                                                                     f.joint)
 
     def reset(self) -> None:
         self.detector.reset()
@@ -88,6 +93,7 @@ class PieceRuntime:
         self.section_start = 0.0
         self.arrivals: dict[int, float] = {}
         self.persons: dict[int, Person] = {}
+        self.before: dict[int, Person] = {}     # the frame before's
         self._chosen: dict = {}                 # performer selector -> persons, this frame
         self.empty_since: float | None = None
         self.zone_members: dict[str, set[int]] = {name: set() for name in piece.zones}
@@ -236,7 +242,7 @@ class PieceRuntime:
             if since is None:
                 since = arrivals[pid] = t
             persons[pid] = Person(body, min_conf, since)
-        self.persons = persons
+        self.before, self.persons = self.persons, persons   # anticipation looks for jumps
         self._chosen = {}
         if frame.lost:
             for pid in frame.lost:
@@ -276,7 +282,7 @@ class PieceRuntime:
                     if run.waiting:
                         run.waiting.pop((f.person, f.joint), None)   # measured: no more waiting
                     if run.pending and run.pending.pop((f.person, f.joint), None) is not None:
-                        self.counts["confirmed"] += 1   # measured as predicted: fired already
+                        confirmed(self, run, f, t)   # measured as predicted: fired already
                         continue
                     self._consider(run, f, t)
                 firings.clear()
@@ -348,8 +354,7 @@ class PieceRuntime:
         person = self.persons.get(f.person) if f.person is not None else None
         if trig.condition is not None and not holds(trig.condition, person, f.joint):
             return False
-        scope = trig.cooldown_per
-        key = None if scope == "trigger" else f.person if scope == "performer" else (f.person, f.joint)
+        key = run.cooldown_key(f)
         last = run.last.get(key)
         if last is not None and t - last < trig.cooldown:
             return False
