@@ -42,7 +42,7 @@ from ..frames import SensorFrame
 from .collector import Collector
 from .gate import CopyDetector, JumpGate
 from .judge import PairWindow
-from .live import LiveSettings, View, torso_centre
+from .live import _TORSO, LiveSettings, View
 from .livestate import LiveEvent, SensorState
 from .monitor import Monitor
 from .worker import EngineWorker
@@ -87,6 +87,7 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         self._request_all: int | None = None
         self._latest = -INF
         self._next_poll = -INF
+        self._idle = False   # every sensor calibrated and trusted, nothing collected (lock)
         #: times the calibrator failed and was restarted, and the last failure (health)
         self.crashes = 0
         self.last_crash = ""
@@ -277,9 +278,12 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         m = frame.transform
         # tracked torso joints only: a torso the sensor only infers (a person hidden in a
         # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved
-        c = torso_centre(frame.joints, np.where(frame.conf >= 1.0, frame.conf, 0.0))
-        if c is None or m is None:
+        # (torso_centre with the untracked joints' confidence zeroed, in three numpy calls)
+        w = (frame.conf[_TORSO] >= 1.0).astype(float)
+        n = w.sum()
+        if n == 0 or m is None:
             return
+        c = (w @ frame.joints[_TORSO]) / n
         sid, user, t = frame.sensor, frame.user, frame.t - st.lag_s  # on stage time
         jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
         if jumped is None:
@@ -369,6 +373,8 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         return note
 
     def _note(self, st: SensorState) -> None:
+        if st.state != "ok" or st.requested:  # something to do: every poll works again
+            self._idle = False
         note = self._note_of(st)
         if note == st.noted:
             return
@@ -390,6 +396,9 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         with self._lock:
             now = self._latest
             t1 = now - s.delay_s
+            if (self._idle and t1 - self._monitored_to < s.idle_poll_s
+                    and not any(self._lag_due(st, now) for st in self._states.values())):
+                return  # all calibrated and trusted: the monitor judges larger chunks
             t0 = max(self._monitored_to, t1 - s.window_s)
             oldest = min([t0] + [max(st.collected_to, st.collect_from)
                                  for st in self._states.values() if st.pairs is not None
@@ -436,6 +445,10 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
                 self._note(st)
         for st, epoch in jobs:
             self._job(st, epoch, now)
+        with self._lock:
+            self._idle = bool(self._states) and all(
+                st.state == "ok" and st.pairs is None and not st.requested and not st.busy
+                and st.duplicate_of is None for st in self._states.values())
 
     def _expire_duplicates(self, now: float) -> None:
         for pair in self._copies.expired(now):
