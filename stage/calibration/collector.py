@@ -96,9 +96,12 @@ class Collector:
         other = Stream(sid, a.t, np.zeros(len(a.t), int), a.raw, a.conf)
         try:
             # tracking: the lag in use is known; a small correction is all a search can
-            # find that the monitor would not already see as a misfit (a third of the lags)
-            window = min(s.max_lag_s, s.track_lag_s) if tracking else s.max_lag_s
-            return find_lag(ref, other, window, min_pairs=s.min_pairs)
+            # find that the monitor would not already see as a misfit (a quarter of the lags)
+            if tracking:  # and it moves only by two frames or more (_update_lag): a finer
+                # grid than half a frame around the best one decides nothing
+                return find_lag(ref, other, min(s.max_lag_s, s.track_lag_s), fine_steps=2,
+                                min_pairs=s.min_pairs)
+            return find_lag(ref, other, s.max_lag_s, min_pairs=s.min_pairs)
         except CalibrationError:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
 
