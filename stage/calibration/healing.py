@@ -486,9 +486,12 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         for st, epoch in jobs:
             self._job(st, epoch, now)
         with self._lock:
-            self._idle = bool(self._states) and all(
+            # (a sensor the monitor found off, holding, is judged every poll again, so that
+            # the hold ends on time)
+            self._idle = bool(self._states) and self._held_since is None and all(
                 st.state == "ok" and st.pairs is None and not st.requested and not st.busy
-                and st.duplicate_of is None for st in self._states.values())
+                and st.duplicate_of is None and st.below_since is None
+                for st in self._states.values())
 
     def _expire_duplicates(self, now: float) -> None:
         for pair in self._copies.expired(now):
