@@ -282,10 +282,12 @@ def thread_cpu_s(pid: int) -> dict[int, float]:
 
 
 def source_fingerprint(root: Path) -> str:
-    """Short hash of root/stage/*.py."""
+    """Short hash of every root/stage/**/*.py (the subpackages too: the engine, the
+    calibrator and the receiver live there)."""
     h = hashlib.sha1()
-    for path in sorted((root / "stage").glob("*.py")):
-        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    base = root / "stage"
+    for path in sorted(base.rglob("*.py")):
+        h.update(str(path.relative_to(base)).encode() + b"\0" + path.read_bytes())
     return h.hexdigest()[:10]
 
 
@@ -304,6 +306,14 @@ def free_udp_port() -> int:
 
 
 def query_stats(sock: socket.socket, target: tuple[str, int], timeout: float = 2.0) -> dict | None:
+    # a late reply to an earlier query (a start-up probe that timed out under load) must not
+    # be taken for this one's: it would end the window early (seen once: a row with n = 0)
+    sock.setblocking(False)
+    try:
+        while True:
+            sock.recvfrom(1 << 20)
+    except (BlockingIOError, OSError):
+        pass
     sock.settimeout(timeout)
     sock.sendto(encode_message("/stage/stats"), target)
     deadline = time.monotonic() + timeout
@@ -800,10 +810,10 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
             print(f"server log ({r['mode']} {r['config']} {r['server']}):\n{r['server_log_tail']}")
     sources = sorted({r["stage_source"] for r in results})
     if len(sources) > 1:
-        print(f"WARNING: stage/*.py changed during the run (source hashes {', '.join(sources)}): "
+        print(f"WARNING: stage/**/*.py changed during the run (source hashes {', '.join(sources)}): "
               "rows measured different code.")
     elif sources:
-        print(f"stage/*.py source hash: {sources[0]}"
+        print(f"stage/**/*.py source hash: {sources[0]}"
               f" ({'working tree' if opt.src == REPO else 'snapshot taken at the start'})")
     if offline:
         print("\nthe same load on the injected clock (engine offline, datagrams fed on a manual "
