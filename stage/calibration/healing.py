@@ -211,8 +211,11 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
             self._next_poll = frame.t + self.settings.poll_s
         if self.threaded:
             if len(self._inbox) >= self._inbox_max:  # the worker is stuck: keep the newest
-                self._inbox.popleft()
-                self.inbox_dropped += 1
+                try:
+                    self._inbox.popleft()
+                    self.inbox_dropped += 1
+                except IndexError:  # the worker emptied it meanwhile
+                    pass
             self._inbox.append(entry)
             if due:
                 self._wake.set()
