@@ -264,6 +264,12 @@ def _padded_len_at(message: bytes, at: int) -> int:
 
 
 # ------------------------------------------------------------------ measurement helpers
+def _thread_label(name: str) -> str:
+    """The columns of the per-thread CPU split: receiver, engine, calibration, the rest."""
+    return {"stage-receiver": "receiver", "stage-engine": "engine",
+            "stage-calibration": "calibrator"}.get(name, name)
+
+
 def thread_cpu_s(pid: int) -> dict[int, float]:
     """utime + stime of each thread of a process, seconds, by thread id."""
     out = {}
@@ -276,10 +282,12 @@ def thread_cpu_s(pid: int) -> dict[int, float]:
 
 
 def source_fingerprint(root: Path) -> str:
-    """Short hash of root/stage/*.py."""
+    """Short hash of every root/stage/**/*.py (the subpackages too: the engine, the
+    calibrator and the receiver live there)."""
     h = hashlib.sha1()
-    for path in sorted((root / "stage").glob("*.py")):
-        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    base = root / "stage"
+    for path in sorted(base.rglob("*.py")):
+        h.update(str(path.relative_to(base)).encode() + b"\0" + path.read_bytes())
     return h.hexdigest()[:10]
 
 
@@ -298,6 +306,14 @@ def free_udp_port() -> int:
 
 
 def query_stats(sock: socket.socket, target: tuple[str, int], timeout: float = 2.0) -> dict | None:
+    # a late reply to an earlier query (a start-up probe that timed out under load) must not
+    # be taken for this one's: it would end the window early (seen once: a row with n = 0)
+    sock.setblocking(False)
+    try:
+        while True:
+            sock.recvfrom(1 << 20)
+    except (BlockingIOError, OSError):
+        pass
     sock.settimeout(timeout)
     sock.sendto(encode_message("/stage/stats"), target)
     deadline = time.monotonic() + timeout
@@ -505,13 +521,13 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     c0, c1 = stats0["counts"], stats1["counts"]
     lat = stats1.get("latency_since_last_query_ms") or {"n": 0}
     cpu = (cpu1 - cpu0) / span
-    # stage serve starts its receiver and engine threads last (after numpy's BLAS threads and
-    # the live calibrator's worker); thread ids grow in creation order
+    # the server names its threads in /stage/stats (name -> kernel thread id); the others
+    # (numpy's BLAS threads, a relay's) keep their ids
+    named = {tid: name for name, tid in (stats1.get("threads") or {}).items()}
     tids = sorted(set(threads0) & set(threads1))
-    names = [str(t) for t in tids]
-    if len(tids) >= 3 and not (opt.server_cmd or opt.relay):
-        names[-2:] = ["receiver", "engine"]
-    threads = {name: (threads1[t] - threads0[t]) / span for name, t in zip(names, tids)}
+    threads = {_thread_label(named.get(t, str(t))): 0.0 for t in tids}
+    for t in tids:
+        threads[_thread_label(named.get(t, str(t)))] += (threads1[t] - threads0[t]) / span
     result = {
         "server": "relay" if opt.relay else "engine",
         "mode": "aligned" if opt.aligned else "spread",
@@ -742,7 +758,7 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
           f"of a core at {CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
     head = (f"{'mode':>7} {'config':>6} {'server':>6} | {'in dg/s':>7} {'skel/s':>6} | "
             f"{'out dg/s':>8} | {'drops':>5} | {'latency p50/p99/max ms':>22} {'(n)':>7} | "
-            f"{'minus relay p50/p99':>19} | {'ext p50/p99':>11} | {'CPU %core (rx+eng+rest)':>23} | "
+            f"{'minus relay p50/p99':>19} | {'ext p50/p99':>11} | {'CPU %core (rx+eng+cal+rest)':>27} | "
             f"{'gen late p99':>12} | {'other %':>7} | verdict")
     print(head)
     print("-" * len(head))
@@ -756,9 +772,10 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
         ext_s = f"{fmt(ext['p50'])}/{fmt(ext['p99'])}" if ext else "-"
         cpu = f"{100 * r['server_cpu_core_fraction']:.1f}" + ("*" if r.get("cpu_pass") is not None else "")
         th = r["server_thread_cpu_core_fraction"]
-        if "receiver" in th:
-            rest = sum(v for k, v in th.items() if k not in ("receiver", "engine"))
-            cpu += f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f}+{100 * rest:.0f})"
+        if "receiver" in th and "engine" in th:
+            rest = sum(v for k, v in th.items() if k not in ("receiver", "engine", "calibrator"))
+            cpu += (f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f}+"
+                    f"{100 * th.get('calibrator', 0.0):.0f}+{100 * rest:.0f})")
         notes = []
         if r["server"] == "engine" and not r.get("latency_pass", True):
             notes.append("latency")
@@ -772,7 +789,7 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
         print(f"{r['mode']:>7} {r['config']:>6} {r['server']:>6} | {r['in_bundles_per_s']:7.1f} "
               f"{r['in_skeletons_per_s']:6.0f} | {r['out_datagrams_per_s']:8.1f} | "
               f"{r['drops_window']:5d} | {lat_s:>22} {'(' + str(lat.get('n', 0)) + ')':>7} | "
-              f"{diff_s:>19} | {ext_s:>11} | {cpu:>23} | "
+              f"{diff_s:>19} | {ext_s:>11} | {cpu:>27} | "
               f"{fmt(r['send_late_ms']['p99'], '.3f'):>9} ms | "
               f"{100 * r['other_cpu_core_fraction']:7.1f} | {verdict}")
     print("latency: per input datagram (for the engine: per skeleton in it), its arrival at the "
@@ -780,7 +797,8 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
           "minus relay: the engine's p50/p99 minus the relay's in the same mode and config; ext: "
           "send -> received by the bench's view, one-sensor configs only;\n"
           "CPU: server process utime+stime over the window (* = the config the CPU target applies "
-          "to; rx+eng+rest: its receiver, engine and other threads);\n"
+          "to; rx+eng+cal+rest: its receiver, engine, live calibrator and other threads, as the "
+          "server names them in /stage/stats);\n"
           "gen late: p99 of send time - deadline; other %: CPU other processes used meanwhile, in % "
           "of a core (> 10: the figures are skewed by other load).")
     gen = max((r["generator_cpu_core_fraction"] for r in results), default=0.0)
@@ -792,10 +810,10 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
             print(f"server log ({r['mode']} {r['config']} {r['server']}):\n{r['server_log_tail']}")
     sources = sorted({r["stage_source"] for r in results})
     if len(sources) > 1:
-        print(f"WARNING: stage/*.py changed during the run (source hashes {', '.join(sources)}): "
+        print(f"WARNING: stage/**/*.py changed during the run (source hashes {', '.join(sources)}): "
               "rows measured different code.")
     elif sources:
-        print(f"stage/*.py source hash: {sources[0]}"
+        print(f"stage/**/*.py source hash: {sources[0]}"
               f" ({'working tree' if opt.src == REPO else 'snapshot taken at the start'})")
     if offline:
         print("\nthe same load on the injected clock (engine offline, datagrams fed on a manual "

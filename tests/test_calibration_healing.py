@@ -400,3 +400,30 @@ def test_a_moved_reference_is_recalibrated_and_stage_space_stays_put(tmp_path):
     for sid in ("s0", "s1", "s2"):
         err = transform_error(rig.transform_for(sid), run.truth_to_stage(sid))
         assert err["rot_deg"] < 1.0 and err["trans_mm"] < 50, (sid, err)
+
+
+def test_threaded_the_observer_only_queues_and_the_worker_still_catches_a_bump(tmp_path):
+    """Live, the engine thread only queues frames; the worker ingests them (buffers, jump
+    gate) at its poll. Polled here after every frame (flush: deterministic), a bump is
+    caught at its first frames and healed, as inline."""
+    run = Run(tmp_path, n=3, threaded=True)
+    queued = []
+
+    def poll(r):
+        queued.append(len(r.cal._inbox))
+        r.cal.flush()          # the worker's poll, as it runs every poll_s live
+        r.engine.drain()       # its changes, through call_soon
+    try:
+        run.run_until(4.0, poll)
+        bump_t = run.t
+        run.bump("s1", 10.0)
+        run.run_until(9.0, poll)
+    finally:
+        run.cal.stop()
+    assert max(queued) == 3 and not run.cal._inbox   # one frame per sensor, all ingested
+    suspect = run.events("suspect")
+    assert len(suspect) == 1 and "jumped" in suspect[0].detail
+    assert suspect[0].t - bump_t <= 0.1
+    calibrated = run.events("calibrated")
+    assert calibrated and calibrated[0].t - bump_t <= 5.0
+    assert run.cal.inbox_dropped == 0 and run.cal.crashes == 0

@@ -564,3 +564,37 @@ def test_with_smoothing_off_each_joint_is_its_latest_measurement():
         last = out.of("/jointCoordinates")[-1]
         xyz = np.array([last[2 + 5 * j: 5 + 5 * j] for j in range(25)])
         np.testing.assert_allclose(xyz, body, atol=1e-5)
+
+
+def test_a_receiver_hands_over_a_datagram_as_one_queue_entry_and_the_engine_takes_it_whole():
+    import queue
+    import socket
+    from stage.sensors.protocol import Inbound
+    from stage.sensors.receiver import Receiver
+    engine, clock, out = make_engine()
+    receiver = Receiver(socket.socket(socket.AF_INET, socket.SOCK_DGRAM), engine.submit,
+                        engine.drops, clock, 1e9, submit_batch=engine.submit_batch)
+    receiver.sock.close()
+    data = frame("kin", 0, standing_pose((0.0, 2.5), 0.0), hands=("open", "closed"))
+    receiver.handle(data, ("10.0.0.1", 5000), clock.now())
+    receiver.handle(data.replace(b"kin", b"kon"), ("10.0.0.2", 5000), clock.now())
+    assert engine.queue.qsize() == 2          # two datagrams, three messages each
+    engine.drain()
+    assert engine.counts["messages"] == 6 and engine.counts["frames"] == 2
+    assert set(engine.clients) == {"kin", "kon"} and engine.queue.qsize() == 0
+    # a full queue drops the datagram and counts each of its messages
+    full = Engine(Rig(), clock)
+    full.queue = queue.Queue(maxsize=1)
+    items = [Inbound(None, 0.0, ("10.0.0.1", 5000)) for _ in range(3)]
+    assert full.submit_batch(items) and not full.submit_batch(items)
+    assert full.drops.snapshot() == {"10.0.0.1:5000": {"queue_full": 3}}
+
+
+def test_stats_name_the_threads_with_their_kernel_ids():
+    import json
+    import threading
+    engine, clock, out = make_engine()
+    send(engine, encode_message("/stage/stats"), source=("127.0.0.1", 4444))
+    (msg,), = out.of("/stage/stats")
+    threads = json.loads(msg)["threads"]
+    assert threads[threading.current_thread().name] == threading.get_native_id()

@@ -31,7 +31,7 @@ class Server:
         self.receiver = Receiver(self.sock, self.engine.submit, self.engine.drops, self.clock,
                                  self.rig.clients.max_messages_per_s, self.rig.allow_sensors,
                                  self.rig.clients.max_messages_per_s_per_host,
-                                 self.rig.limits.max_sources)
+                                 self.rig.limits.max_sources, self.engine.submit_batch)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
 

@@ -48,7 +48,8 @@ class Collector:
         if not s.lag_search or st.sensor == self._reference or st.duplicate_of is not None:
             return False
         if st.state == "ok":  # tracking: only while self-healing watches the sensors
-            return s.heal and s.lag_every_s > 0 and now - st.lag_searched >= s.lag_every_s
+            return (s.heal and s.lag_every_s > 0 and now - st.lag_searched >= s.lag_every_s
+                    and now >= self._lag_retry.get(st.sensor, -np.inf))
         # a sensor to calibrate: every second until two searches agree, then as when tracking
         every = 1.0 if not st.lag_settled else (s.lag_every_s or 2.0)
         return now - st.lag_searched >= every
@@ -71,22 +72,35 @@ class Collector:
             else:  # the same person, as the engine bound the views (calibrated sensors only)
                 pairs += [(a, b) for a in mine for b in theirs
                           if a.person is not None and a.person == b.person]
+        known = self._states.get(sid)  # the engine thread may have forgotten it
+        if known is None:
+            return None
+        tracking = known.state == "ok"
         if not pairs:
+            if tracking:  # nobody to compare with: a due search made every poll snapshot and
+                # rebuild every buffered frame (a third of a core at 6 x 6); look again in 1 s
+                self._lag_retry[sid] = now + 1.0
             return None
         # the longest common stretch, the reference first
         def common(p: tuple[View, View]) -> float:
             return min(p[0].t[-1], p[1].t[-1]) - max(p[0].t[0], p[1].t[0])
         a, b = max(pairs, key=lambda p: (common(p), p[1].sensor == self._reference))
-        known = self._states.get(sid)  # the engine thread may have forgotten it
-        if known is None:
-            return None
-        tracking = known.state == "ok"
-        if min(a.t[-1] - a.t[0], b.t[-1] - b.t[0]) < (4 * s.lag_min_s if tracking else s.lag_min_s):
+        span = min(a.t[-1] - a.t[0], b.t[-1] - b.t[0])
+        need = 4 * s.lag_min_s if tracking else s.lag_min_s
+        if span < need:
+            if tracking:  # not before both views can have grown long enough
+                self._lag_retry[sid] = now + (need - span)
             return None  # too little to say yet: try again at the next poll
         ok = np.isfinite(b.stage).all(axis=(1, 2))
         ref = Stream(b.sensor, b.t[ok], np.zeros(int(ok.sum()), int), b.stage[ok], b.conf[ok])
         other = Stream(sid, a.t, np.zeros(len(a.t), int), a.raw, a.conf)
         try:
+            # tracking: the lag in use is known; a small correction is all a search can
+            # find that the monitor would not already see as a misfit (a quarter of the lags)
+            if tracking:  # and it moves only by two frames or more (_update_lag): a finer
+                # grid than half a frame around the best one decides nothing
+                return find_lag(ref, other, min(s.max_lag_s, s.track_lag_s), fine_steps=2,
+                                min_pairs=s.min_pairs)
             return find_lag(ref, other, s.max_lag_s, min_pairs=s.min_pairs)
         except CalibrationError:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap

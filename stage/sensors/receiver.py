@@ -97,12 +97,16 @@ class Receiver:
     """Reads ``sock`` on its own thread and hands every decoded message to ``submit``.
 
     allow: the addresses datagrams are read from (None: everyone, as in-process).
+    submit_batch: when given, each datagram's messages are handed over in one call (one
+    queue entry: ``Engine.submit_batch``) instead of one ``submit`` each.
     """
 
     def __init__(self, sock: socket.socket, submit: Callable[[Inbound], bool], drops: DropCounter,
                  clock: Clock, max_messages_per_s: float, allow: Networks | None = None,
-                 max_per_host_s: float | None = None, max_sources: int = 4096) -> None:
+                 max_per_host_s: float | None = None, max_sources: int = 4096,
+                 submit_batch: Callable[[list[Inbound]], bool] | None = None) -> None:
         self.sock, self.submit, self.drops, self.clock = sock, submit, drops, clock
+        self.submit_batch = submit_batch
         self.rate = max_messages_per_s
         self.host_rate = max_per_host_s if max_per_host_s is not None else 8 * max_messages_per_s
         self.allow = allow
@@ -243,11 +247,17 @@ class Receiver:
         decoded = decode_datagram(data, f"{source[0]}:{source[1]}")
         for client, reason in decoded.drops:
             self.drops.add(client, reason)
+        items = []
         for message, timetag in decoded.messages:
             client = getattr(message, "client", None)
             if client is not None:
                 entry[1] = client
-            self.submit(Inbound(message, arrival, source, timetag))
+            items.append(Inbound(message, arrival, source, timetag))
+        if self.submit_batch is not None:
+            self.submit_batch(items)
+        else:
+            for item in items:
+                self.submit(item)
 
     @property
     def sources(self) -> int:
