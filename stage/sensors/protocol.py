@@ -21,143 +21,23 @@ only (``/floorPlane clientID a b c d``, ``/unregisterView ip port``,
 
 from __future__ import annotations
 
-import functools
 import math
 import struct
-from dataclasses import dataclass, field
-from typing import Union
 
 import numpy as np
 from pythonosc import osc_message
 from pythonosc.parsing import ntp
 
-from ..joints import HANDS, JOINT_INDEX, JOINTS, N_JOINTS, HandState, parse_hand, parse_hand_state
-
-#: Coordinates beyond this many metres from the sensor are not a person.
-MAX_COORD_M = 20.0
-MAX_USER_ID = 5
-
-#: Every reason a datagram or message can be dropped, in the order the docs list them.
-DROP_REASONS: tuple[str, ...] = (
-    "malformed",        # not OSC at all, truncated, bad padding
-    "unknown_address",  # an address this server does not serve
-    "bad_arity",        # wrong number of arguments
-    "bad_types",        # an argument of the wrong OSC type
-    "non_finite",       # NaN or inf in a coordinate or confidence
-    "out_of_range",     # coordinate over 20 m, confidence outside [0, 1], port outside 1-65535
-    "unknown_joint",    # a joint name that is not one of the 25
-    "duplicate_joint",  # the same joint twice in one skeleton
-    "bad_user_id",      # user id not an integer 0-5
-    "bad_hand",         # hand not left/right
-    "bad_hand_state",   # state not one of the five names or codes
-    "flood",            # a client over its message-rate budget
-    "queue_full",       # the engine queue is full (engine far behind)
-    "not_allowed",      # client or address not in the rig's allow-lists (docs/security.md)
-    "wrong_source",     # a known sensor id sent from another address than it registered from
-    "too_many_clients", # a new sensor id while the client table is full of active sensors
-    "too_many_views",   # a /registerView while the view table is full
-    "bad_time",         # a timetag further from our wall clock than clients.max_clock_skew_s
-    "late",             # older than the frame already fused for that user
-    "kernel_overflow",  # the kernel dropped it: the socket's receive queue was full
-    "internal_error",   # the engine failed on this message (a bug; logged with a traceback)
-)
-#: sensor types and other free text from the wire are cut to this many characters
-MAX_TEXT = 64
-
-
-@dataclass(slots=True)
-class RegisterDevice:
-    client: str
-    sensor_type: str
-
-
-@dataclass(slots=True)
-class NewUser:
-    client: str
-    user: int
-    position: np.ndarray  # (3,) metres, sensor space
-
-
-@dataclass(slots=True)
-class LostUser:
-    client: str
-    user: int
-
-
-@dataclass(slots=True)
-class JointCoordinates:
-    client: str
-    user: int
-    joints: np.ndarray  # (25, 3) float64, metres, sensor space; zeros where absent
-    conf: np.ndarray    # (25,) float64 in [0, 1]; 0 where the joint was not sent
-
-
-@dataclass(slots=True)
-class HandStateMsg:
-    client: str
-    user: int
-    hand: int           # 0 left, 1 right
-    state: HandState
-
-
-@dataclass(slots=True)
-class FloorPlane:
-    """stage extension: the floor plane a sensor reports, ax + by + cz + d = 0 in its space."""
-
-    client: str
-    plane: np.ndarray   # (4,) a, b, c, d; (a, b, c) normalised to unit length
-
-
-@dataclass(slots=True)
-class RegisterView:
-    host: str
-    port: int
-    register: bool = True  # False for /unregisterView
-    rate_hz: float | None = None  # a fixed output rate asked for (stage addition); None: every update
-    forecast_s: float | None = None  # bodies predicted this far ahead (stage addition); None: 0
-
-
-@dataclass(slots=True)
-class StatsQuery:
-    reply_port: int | None  # None: reply to the sender's port
-
-
-@dataclass(slots=True)
-class HealthQuery:
-    """stage extension: ``/stage/health [port]``: the health messages, to the sender's address."""
-
-    reply_port: int | None
-
-
-@dataclass(slots=True)
-class ViewUnreachable:
-    """Not from the wire: the kernel said a datagram to this address was refused (ICMP)."""
-
-    host: str
-    port: int
-
-
-ClientMessage = Union[RegisterDevice, NewUser, LostUser, JointCoordinates, HandStateMsg, FloorPlane]
-Message = Union[ClientMessage, RegisterView, StatsQuery, HealthQuery, ViewUnreachable]
-
-
-@dataclass(slots=True)
-class Inbound:
-    """A decoded message as a receiver hands it to the engine (the sensors -> engine contract)."""
-
-    message: Message
-    arrival: float              # engine clock, when the datagram was read
-    source: tuple[str, int]     # sender address
-    timetag: float | None = None  # capture time on the client's clock (Unix s), if bundled
-
-
-@dataclass(slots=True)
-class Decoded:
-    """What one datagram held: messages with their timetag, and the drops."""
-
-    messages: list[tuple[Message, float | None]] = field(default_factory=list)
-    drops: list[tuple[str, str]] = field(default_factory=list)  # (client or source, reason)
-
+from ..joints import JOINT_INDEX, JOINTS, N_JOINTS, HandState, parse_hand, parse_hand_state
+# The message types and the encoders live in their own modules; they are re-exported
+# here because ``protocol`` is the wire API's one import for views, clients and tests.
+from .encode import (_pad, encode_bundle, encode_client_joints, encode_message,  # noqa: F401
+                     encode_view_hand_state, encode_view_joints, encode_view_lost_user,
+                     encode_view_new_user)
+from .messages import (DROP_REASONS, MAX_COORD_M, MAX_TEXT, MAX_USER_ID,  # noqa: F401
+                       ClientMessage, Decoded, FloorPlane, HandStateMsg, HealthQuery,
+                       Inbound, JointCoordinates, LostUser, Message, NewUser, RegisterDevice,
+                       RegisterView, StatsQuery, ViewUnreachable)
 
 class _Drop(Exception):
     def __init__(self, reason: str) -> None:
@@ -609,105 +489,3 @@ _HANDLERS = {
     "/stage/stats": _h_stats,
     "/stage/health": _h_health,
 }
-
-
-# ---------------------------------------------------------------- encoding
-# Hand-rolled because the hot path sends one /jointCoordinates per person per
-# frame and python-osc's builder costs ~10x more; tests check python-osc
-# decodes these bytes to the same values.
-
-def _pad(b: bytes) -> bytes:
-    return b + b"\0" * (4 - len(b) % 4)
-
-
-_NAME_BYTES = tuple(_pad(name.encode()) for name in JOINTS)
-_ADDR_JOINTS = _pad(b"/jointCoordinates")
-
-
-def _arg(v: object) -> tuple[bytes, bytes]:
-    if isinstance(v, bool):
-        raise TypeError("bool is not an OSC argument here")
-    if isinstance(v, int):
-        return b"i", struct.pack(">i", v)
-    if isinstance(v, float):
-        return b"f", struct.pack(">f", v)
-    if isinstance(v, str):
-        return b"s", _pad(v.encode())
-    raise TypeError(f"cannot encode {type(v).__name__} as an OSC argument")
-
-
-def encode_message(address: str, *args: object) -> bytes:
-    """One OSC message with int (i), float (f) and str (s) arguments."""
-    tags, data = [b","], []
-    for a in args:
-        t, d = _arg(a)
-        tags.append(t)
-        data.append(d)
-    return _pad(address.encode()) + _pad(b"".join(tags)) + b"".join(data)
-
-
-@functools.lru_cache(maxsize=256)
-def _block_layout(prefix_tags: bytes, selected: bytes) -> tuple[bytes, bytes, np.ndarray, np.ndarray]:
-    """The fixed part of a joint block for one set of joints: (address and type tags, the
-    joint names with room for their floats, where the floats go, which joints). Cached:
-    a skeleton stream uses few joint sets, and filling a template costs a fraction of
-    building the message (lru_cache is thread-safe)."""
-    idx = np.flatnonzero(np.frombuffer(selected, dtype=bool))
-    head = _ADDR_JOINTS + _pad(b"," + prefix_tags + b"sffff" * len(idx))
-    body = bytearray()
-    slots = []
-    for i in idx:
-        body += _NAME_BYTES[i]
-        slots.append(len(body))
-        body += bytes(16)
-    where = (np.array(slots, dtype=np.intp)[:, None] + np.arange(16)).ravel()
-    where.setflags(write=False)
-    idx.setflags(write=False)
-    return head, bytes(body), where, idx
-
-
-def _joint_block(prefix_tags: bytes, prefix: bytes, joints: np.ndarray, conf: np.ndarray,
-                 mask: np.ndarray | None) -> bytes:
-    selected = np.ascontiguousarray(conf > 0 if mask is None else mask, dtype=bool)
-    head, template, where, idx = _block_layout(prefix_tags, selected.tobytes())
-    values = np.empty((len(idx), 4), dtype=">f4")
-    values[:, :3] = joints[idx]
-    values[:, 3] = conf[idx]
-    body = np.frombuffer(template, dtype=np.uint8).copy()
-    body[where] = values.view(np.uint8).ravel()
-    return head + prefix + body.tobytes()
-
-
-def encode_view_joints(user: int, joints: np.ndarray, conf: np.ndarray,
-                       mask: np.ndarray | None = None) -> bytes:
-    """Server-to-View ``/jointCoordinates id (name x y z conf)*``.
-
-    ``joints`` (25, 3) metres, stage space; ``conf`` (25,); joints are sent
-    where ``mask`` is true (default: where conf > 0).
-    """
-    return _joint_block(b"i", struct.pack(">i", user), joints, conf, mask)
-
-
-def encode_client_joints(client: str, user: int, joints: np.ndarray, conf: np.ndarray,
-                         mask: np.ndarray | None = None) -> bytes:
-    """Client-to-Server ``/jointCoordinates clientID userID (name x y z conf)*``."""
-    return _joint_block(b"si", _pad(client.encode()) + struct.pack(">i", user), joints, conf,
-                        mask)
-
-
-def encode_view_new_user(user: int, position: np.ndarray) -> bytes:
-    return encode_message("/newUser", user, *(float(v) for v in position))
-
-
-def encode_view_lost_user(user: int) -> bytes:
-    return encode_message("/lostUser", user)
-
-
-def encode_view_hand_state(user: int, hand: int, state: HandState) -> bytes:
-    return encode_message("/handState", user, HANDS[hand], state.wire_name)
-
-
-def encode_bundle(messages: list[bytes], timetag: float | None = None) -> bytes:
-    """An OSC bundle of encoded messages; ``timetag`` in Unix seconds, None = immediately."""
-    stamp = ntp.IMMEDIATELY if timetag is None else ntp.system_time_to_ntp(timetag)
-    return b"#bundle\0" + stamp + b"".join(struct.pack(">i", len(m)) + m for m in messages)
