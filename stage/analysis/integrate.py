@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..joints import N_JOINTS, TORSO
 from ..rig import Rig
-from ..sensors.protocol import JointCoordinates, decode_datagram
+from ..sensors.protocol import JointCoordinates, decode_records
 from .trajectory import Trajectory
 
 log = logging.getLogger("stage.analysis")
@@ -67,20 +67,16 @@ def read_frames(records: Iterable[tuple[float, bytes, float | None]],
     """
     raw: dict[str, list] = {}
     drops: dict[str, int] = {}
-    for arrival, data, capture in records:
-        decoded = decode_datagram(bytes(data))
-        for _, reason in decoded.drops:
-            drops[reason] = drops.get(reason, 0) + 1
-        for msg, timetag in decoded.messages:
-            client = getattr(msg, "client", None)
-            if isinstance(client, str):
-                raw.setdefault(client, [])        # a sensor that never saw anyone is still one
-            if isinstance(msg, JointCoordinates):
-                if not (np.isfinite(msg.joints).all() and np.isfinite(msg.conf).all()):
-                    drops["non_finite"] = drops.get("non_finite", 0) + 1
-                    continue
-                raw.setdefault(msg.client, []).append(
-                    (arrival, timetag, capture, msg.user, msg.joints, msg.conf))
+    for arrival, capture, msg, timetag in decode_records(records, drops):
+        client = getattr(msg, "client", None)
+        if isinstance(client, str):
+            raw.setdefault(client, [])        # a sensor that never saw anyone is still one
+        if isinstance(msg, JointCoordinates):
+            if not (np.isfinite(msg.joints).all() and np.isfinite(msg.conf).all()):
+                drops["non_finite"] = drops.get("non_finite", 0) + 1
+                continue
+            raw.setdefault(msg.client, []).append(
+                (arrival, timetag, capture, msg.user, msg.joints, msg.conf))
     out: dict[str, SensorFrames] = {}
     for sid, items in raw.items():
         if not items:

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import StageError
 from ..joints import N_JOINTS
-from ..sensors.protocol import FloorPlane, JointCoordinates, decode_datagram
+from ..sensors.protocol import FloorPlane, JointCoordinates, decode_records
 
 log = logging.getLogger("stage.calibration")
 
@@ -142,16 +142,12 @@ def streams_from_datagrams(records: Iterable[tuple[float, bytes, float | None]],
     frames: dict[str, list] = {}
     floors: dict[str, list] = {}
     drops: dict[str, int] = {}
-    for arrival, data, capture in records:
-        decoded = decode_datagram(bytes(data))
-        for _, reason in decoded.drops:
-            drops[reason] = drops.get(reason, 0) + 1
-        for msg, timetag in decoded.messages:
-            if isinstance(msg, JointCoordinates):
-                t = capture if capture is not None else timetag if timetag is not None else arrival
-                frames.setdefault(msg.client, []).append((float(t), msg.user, msg.joints, msg.conf))
-            elif isinstance(msg, FloorPlane):
-                floors.setdefault(msg.client, []).append(msg.plane)
+    for arrival, capture, msg, timetag in decode_records(records, drops):
+        if isinstance(msg, JointCoordinates):
+            t = capture if capture is not None else timetag if timetag is not None else arrival
+            frames.setdefault(msg.client, []).append((float(t), msg.user, msg.joints, msg.conf))
+        elif isinstance(msg, FloorPlane):
+            floors.setdefault(msg.client, []).append(msg.plane)
     streams = {sid: Stream.from_frames(sid, f, floors.get(sid)) for sid, f in frames.items()}
     return streams, drops
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import struct
+from typing import Iterable, Iterator
 
 import numpy as np
 from pythonosc import osc_message
@@ -67,6 +68,19 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
         out.drops.clear()
         out.drops.append((source, "malformed"))
     return out
+
+
+def decode_records(records: Iterable[tuple[float, bytes, float | None]], drops: dict[str, int],
+                   ) -> Iterator[tuple[float, float | None, Message, float | None]]:
+    """Decode recorded datagrams: (arrival s, datagram, capture s or None) records ->
+    (arrival, capture, message, timetag) per valid message; every drop is counted in
+    ``drops`` by reason (never fatal). The offline readers (calibration, analysis) share it."""
+    for arrival, data, capture in records:
+        decoded = decode_datagram(bytes(data))
+        for _, reason in decoded.drops:
+            drops[reason] = drops.get(reason, 0) + 1
+        for msg, timetag in decoded.messages:
+            yield arrival, capture, msg, timetag
 
 
 def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None:
