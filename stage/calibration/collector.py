@@ -48,7 +48,8 @@ class Collector:
         if not s.lag_search or st.sensor == self._reference or st.duplicate_of is not None:
             return False
         if st.state == "ok":  # tracking: only while self-healing watches the sensors
-            return s.heal and s.lag_every_s > 0 and now - st.lag_searched >= s.lag_every_s
+            every = s.lag_every_s if st.lag_candidate is None else min(2.0, s.lag_every_s)
+            return s.heal and s.lag_every_s > 0 and now - st.lag_searched >= every
         # a sensor to calibrate: every second until two searches agree, then as when tracking
         every = 1.0 if not st.lag_settled else (s.lag_every_s or 2.0)
         return now - st.lag_searched >= every
@@ -92,36 +93,56 @@ class Collector:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
 
     def _update_lag(self, st: SensorState, search: LagSearch | None, now: float) -> None:
-        """Apply a search's result (caller holds the lock)."""
+        """Apply a search's result (caller holds the lock).
+
+        A calibrated sensor's lag (tracking) is what every judgement of it rests on, so it
+        moves only on a sure search (``lag_track_confidence``), to a lag that fits clearly
+        better than the one in use on the same frames (``lag_hysteresis``), and only when
+        the next search agrees within two frames: in a crowd, searches on a few seconds of
+        one person read confidences of 0.05-0.1 and land anywhere in the window (a
+        synchronised simulated sensor was moved by -0.997 s on confidence 0.09)."""
         if search is None:
             return
+        s = self.settings
         st.lag_searched = now
-        if search.confidence < self.settings.lag_min_confidence:
+        tracking = st.state == "ok"
+        if search.confidence < (s.lag_track_confidence if tracking else s.lag_min_confidence):
+            st.lag_candidate = None  # an unsure search breaks a run of agreeing ones
             return  # nothing moved enough to say: keep the lag we have
         st.lag_confidence = search.confidence
         if abs(search.lag_s) < 1.0 / 30:
             st.lag_settled = True  # this search agrees with the lag in use
+            st.lag_candidate = None
         # a calibrated sensor's lag moves only by two frames or more (a tracked lag is a
         # correction, and noise in it would shake every judgement); a new sensor's by half
-        if abs(search.lag_s) < (2.0 if st.state == "ok" else 0.5) / 30:
+        if abs(search.lag_s) < (2.0 if tracking else 0.5) / 30:
             return
         # hysteresis: short or periodic takes have near-equal minima; move only to a lag that
-        # fits clearly better than the one in use, on the same frames -- unless this search
-        # saw much more than the one that set it (a first search sees little)
+        # fits clearly better than the one in use, on the same frames -- unless this search,
+        # for a sensor still to calibrate, saw much more than the one that set it (a first
+        # search sees little); a tracked lag always needs it
         here = np.flatnonzero(np.abs(search.lags) <= 1e-6)
-        more = search.overlap > 1.5 * st.lag_overlap
+        judged = len(here) > 0 and bool(np.isfinite(search.residual[here[0]]))
+        more = search.overlap > 1.5 * st.lag_overlap and not tracking
         if st.lag_overlap:
             st.lag_overlap = max(st.lag_overlap, search.overlap) if not more else st.lag_overlap
-        if not more and len(here) and np.isfinite(search.residual[here[0]]):
+        if tracking and not judged:
+            return  # the lag in use could not be judged on these frames: no grounds to move
+        if not more and judged:
             best = float(np.nanmin(search.residual))
-            if best > (1.0 - self.settings.lag_hysteresis) * float(search.residual[here[0]]):
+            if best > (1.0 - s.lag_hysteresis) * float(search.residual[here[0]]):
                 st.lag_settled = True  # the lag in use fits about as well: keep it
+                st.lag_candidate = None
                 return
         before = st.lag_s
-        lag = float(np.clip(st.lag_s + search.lag_s, -self.settings.max_lag_s,
-                            self.settings.max_lag_s))
+        lag = float(np.clip(st.lag_s + search.lag_s, -s.max_lag_s, s.max_lag_s))
         if abs(lag - before) < 0.5 / 30:
             return
+        if tracking:  # one sure search proposes; the next one (due soon) must agree
+            if st.lag_candidate is None or abs(lag - st.lag_candidate) > 2.0 / 30:
+                st.lag_candidate = lag
+                return
+            st.lag_candidate = None
         st.lag_s = round(lag, 4)
         st.lag_settled = False
         st.lag_overlap = search.overlap
