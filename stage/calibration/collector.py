@@ -114,6 +114,8 @@ class Collector:
         if abs(search.lag_s) < 1.0 / 30:
             st.lag_settled = True  # this search agrees with the lag in use
             st.lag_candidate = None
+        if not tracking and search.confidence < s.lag_move_confidence:
+            return  # too unsure to move a new sensor's lag (its first searches see little)
         # a calibrated sensor's lag moves only by two frames or more (a tracked lag is a
         # correction, and noise in it would shake every judgement); a new sensor's by half
         if abs(search.lag_s) < (2.0 if tracking else 0.5) / 30:

@@ -71,6 +71,8 @@ class LiveSettings:
     max_lag_s: float = 1.0
     lag_every_s: float = 10.0     # re-search a calibrated sensor's lag this often (0: never)
     lag_min_confidence: float = 0.05
+    lag_move_confidence: float = 0.15  # a new sensor's lag moves only on searches this sure
+                                       # (a first search on 0.8 s of frames can read 0.08)
     lag_track_confidence: float = 0.3  # a calibrated sensor's lag moves only on searches this
                                        # sure (a crowd's searches read 0.05-0.1 with no lag)
     lag_hysteresis: float = 0.1   # a new lag must fit 10 % better than the one in use
