@@ -73,6 +73,27 @@ def pair_transform(sensors: dict, a: str, b: str) -> tuple[np.ndarray, float] | 
     return np.linalg.inv(ta) @ tb, sb["lag_s"] - sa["lag_s"]
 
 
+#: --cache FILE: the brute-force optimum per pair, kept between runs (it is deterministic:
+#: seeded, numpy only, independent of the product), so the product can be measured again
+#: -- before and after a change, or by the lead -- without the ~20 s per triple it costs
+_CACHE: dict | None = None
+
+
+def cached_optimum(sample: str, a: str, b: str, ref: np.ndarray, other: np.ndarray,
+                   hypotheses: int):
+    key = f"{sample}:{a}:{b}:{hypotheses}"
+    if _CACHE is not None and key in _CACHE:
+        hit = _CACHE[key]
+        return None if hit is None else optimum.Optimum(hit["lag_s"], np.eye(4), hit["median_m"],
+                                                        hit["rms_m"], hit["frames"], 0)
+    best = optimum.optimum(ref, other, hypotheses=hypotheses)
+    if _CACHE is not None:
+        _CACHE[key] = None if best is None else {
+            "lag_s": best.lag_s, "median_m": best.median_m, "rms_m": best.rms_m,
+            "frames": best.frames}
+    return best
+
+
 def triple(sample: str, paths: list[str], tmp: str, hypotheses: int) -> dict:
     views = [load_view(p) for p in paths]
     rec = os.path.join(tmp, f"{sample}.stagerec")
@@ -104,7 +125,7 @@ def triple(sample: str, paths: list[str], tmp: str, hypotheses: int) -> dict:
             a, b = ids[i], ids[k]
             if b in copies or a in copies:
                 continue
-            best = optimum.optimum(views[i], views[k], hypotheses=hypotheses)
+            best = cached_optimum(sample, a, b, views[i], views[k], hypotheses)
             if best is None:
                 continue
             entry = {"a": a, "b": b, "optimum_median_m": best.median_m,
@@ -311,8 +332,17 @@ def main() -> int:
     parser.add_argument("--impostors", type=int, default=40, metavar="N",
                         help="also N two-sensor recordings of two different people doing the "
                              "same action (default 40; 0: skip)")
+    parser.add_argument("--cache", metavar="FILE",
+                        help="keep the brute-force optimum per pair in FILE (JSON) and reuse "
+                             "it: the optimum's time then reads ~0")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    global _CACHE
+    if args.cache:
+        _CACHE = {}
+        if os.path.exists(args.cache):
+            with open(args.cache, encoding="utf-8") as f:
+                _CACHE = json.load(f)
     if args.subjects:
         wanted = tuple(s.strip() for s in args.subjects.split(","))
         held = [s for s in wanted if s in nucla.HELD_OUT]
@@ -350,6 +380,9 @@ def main() -> int:
             print(f"  {k + 1}/{len(found)} triples", file=sys.stderr, flush=True)
     summary = summarise(rows)
     summary["simulated"] = simulated_residuals()
+    if args.cache:
+        with open(args.cache, "w", encoding="utf-8") as f:
+            json.dump(_CACHE, f)
     if args.impostors:
         summary["impostors"] = impostors(found, 10 if args.quick else args.impostors)
     if args.ga:

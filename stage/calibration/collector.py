@@ -48,11 +48,15 @@ class Collector:
         if not s.lag_search or st.sensor == self._reference or st.duplicate_of is not None:
             return False
         if st.state == "ok":  # tracking: only while self-healing watches the sensors
-            return (s.heal and s.lag_every_s > 0 and now - st.lag_searched >= s.lag_every_s
+            # the next search is due sooner while a sure one waits for another to agree; a
+            # search that had nothing to compare waits for its retry time (_search_lag)
+            every = s.lag_every_s if st.lag_candidate is None else min(2.0, s.lag_every_s)
+            return (s.heal and s.lag_every_s > 0 and now - st.lag_searched >= every
                     and now >= self._lag_retry.get(st.sensor, -np.inf))
-        # a sensor to calibrate: every second until two searches agree, then as when tracking
-        every = 1.0 if not st.lag_settled else (s.lag_every_s or 2.0)
-        return now - st.lag_searched >= every
+        # a sensor to calibrate: every second, also once two searches agreed: the timing's
+        # confidence judges a poor fit (Gates.too_poor), and it should be the confidence of
+        # a search on what is buffered now, not of the first, short one
+        return now - st.lag_searched >= 1.0
 
     def _search_lag(self, sid: str, views: dict[str, list[View]], trusted: list[str],
                     now: float, since: float) -> LagSearch | None:
@@ -106,36 +110,60 @@ class Collector:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
 
     def _update_lag(self, st: SensorState, search: LagSearch | None, now: float) -> None:
-        """Apply a search's result (caller holds the lock)."""
+        """Apply a search's result (caller holds the lock).
+
+        A calibrated sensor's lag (tracking) is what every judgement of it rests on, so it
+        moves only on a sure search (``lag_track_confidence``), to a lag that fits clearly
+        better than the one in use on the same frames (``lag_hysteresis``), and only when
+        the next search agrees within two frames: in a crowd, searches on a few seconds of
+        one person read confidences of 0.05-0.1 and land anywhere in the window (a
+        synchronised simulated sensor was moved by -0.997 s on confidence 0.09)."""
         if search is None:
             return
+        s = self.settings
         st.lag_searched = now
-        if search.confidence < self.settings.lag_min_confidence:
+        tracking = st.state == "ok"
+        if search.confidence < (s.lag_track_confidence if tracking else s.lag_min_confidence):
+            st.lag_candidate = None  # an unsure search breaks a run of agreeing ones
             return  # nothing moved enough to say: keep the lag we have
         st.lag_confidence = search.confidence
         if abs(search.lag_s) < 1.0 / 30:
             st.lag_settled = True  # this search agrees with the lag in use
+            st.lag_candidate = None
+        if not tracking and search.confidence < s.lag_move_confidence:
+            return  # too unsure to move a new sensor's lag (its first searches see little)
         # a calibrated sensor's lag moves only by two frames or more (a tracked lag is a
         # correction, and noise in it would shake every judgement); a new sensor's by half
-        if abs(search.lag_s) < (2.0 if st.state == "ok" else 0.5) / 30:
+        if abs(search.lag_s) < (2.0 if tracking else 0.5) / 30:
             return
         # hysteresis: short or periodic takes have near-equal minima; move only to a lag that
-        # fits clearly better than the one in use, on the same frames -- unless this search
-        # saw much more than the one that set it (a first search sees little)
+        # fits clearly better than the one in use, on the same frames -- unless this search,
+        # for a sensor still to calibrate, saw much more than the one that set it (a first
+        # search sees little); a tracked lag always needs it
         here = np.flatnonzero(np.abs(search.lags) <= 1e-6)
-        more = search.overlap > 1.5 * st.lag_overlap
+        judged = len(here) > 0 and bool(np.isfinite(search.residual[here[0]]))
+        more = search.overlap > 1.5 * st.lag_overlap and not tracking
         if st.lag_overlap:
             st.lag_overlap = max(st.lag_overlap, search.overlap) if not more else st.lag_overlap
-        if not more and len(here) and np.isfinite(search.residual[here[0]]):
+        if tracking and not judged:
+            return  # the lag in use could not be judged on these frames: no grounds to move
+        if not more and judged:
             best = float(np.nanmin(search.residual))
-            if best > (1.0 - self.settings.lag_hysteresis) * float(search.residual[here[0]]):
+            if best > (1.0 - s.lag_hysteresis) * float(search.residual[here[0]]):
                 st.lag_settled = True  # the lag in use fits about as well: keep it
+                st.lag_candidate = None
                 return
         before = st.lag_s
-        lag = float(np.clip(st.lag_s + search.lag_s, -self.settings.max_lag_s,
-                            self.settings.max_lag_s))
+        lag = float(np.clip(st.lag_s + search.lag_s, -s.max_lag_s, s.max_lag_s))
+        if st.loop_s:  # a looped take's lag is only defined modulo its period: keep it near 0
+            lag = float((lag + 0.5 * st.loop_s) % st.loop_s - 0.5 * st.loop_s)
         if abs(lag - before) < 0.5 / 30:
             return
+        if tracking:  # one sure search proposes; the next one (due soon) must agree
+            if st.lag_candidate is None or abs(lag - st.lag_candidate) > 2.0 / 30:
+                st.lag_candidate = lag
+                return
+            st.lag_candidate = None
         st.lag_s = round(lag, 4)
         st.lag_settled = False
         st.lag_overlap = search.overlap
@@ -148,9 +176,10 @@ class Collector:
         self._event(LiveEvent(now, st.sensor, "lag", text))
 
     def _buffered(self, sid: str, since: float, lag: float, placed: bool) -> Stream | None:
-        """All of a sensor's buffered frames after ``since`` as one stream (caller holds the
-        lock): every user, uncut, on stage time (its lag taken off); ``placed``: in stage
-        space with the transform each frame had (frames without one left out)."""
+        """A sensor's buffered frames after ``since`` with one person in view, as one stream
+        (caller holds the lock): on stage time (its lag taken off), one user id per
+        identity run; ``placed``: in stage space with the transform each frame had (frames
+        without one left out)."""
         entries = [e for key, buf in self._buffers.items() if key[0] == sid for e in buf
                    if e[0].t > since and (not placed or e[0].transform is not None)]
         if len(entries) < 3:
@@ -161,16 +190,32 @@ class Collector:
         if placed:
             joints = np.stack([f.joints @ f.transform[:3, :3].T + f.transform[:3, 3]
                                for f in rows])
+        t = np.array([f.t for f in rows]) - lag
+        conf = np.stack([f.conf for f in rows])
+        # frames with one person in view, judged on the sensor's own user ids: a person lost
+        # and found again under the same id (a looped take, every loop) is still one person
+        alone = Stream(sid, t, np.array([f.user for f in rows]), joints, conf).single_user()
+        if alone.sum() < 3:
+            return None
         # one "user" per identity run, so nothing is interpolated across a lost-and-found
         users = np.array([f.user * 100003 + e[2] for f, e in zip(rows, entries)])
-        return Stream(sid, np.array([f.t for f in rows]) - lag, users, joints,
-                      np.stack([f.conf for f in rows]))
+        return Stream(sid, t, users, joints, conf).subset(alone)
 
     def _search_buffers(self, sid: str, trusted: list[str], since: float,
                         ) -> LagSearch | None:
         """A new sensor's remaining lag: its buffered frames (one person in view) against a
         trusted sensor's, the reference first. Long, uncut streams: a lag searched on a
-        short stretch of a short take finds one of its near-equal minima."""
+        short stretch of a short take finds one of its near-equal minima.
+
+        Frames with two people in view are left out by the sensor's own user ids
+        (``_buffered``); the identity runs only keep interpolation within one run. Judged
+        by the runs instead, a person lost and found again (``stage replay --loop`` of a
+        1-2 s take: every loop) lost the frames around each loop's start and end, and the
+        live search on N-UCLA read confidences of 0.08-0.14 (the poor-fit gate wants 0.15)
+        where the same frames with the runs joined read 0.19-0.48. A source that loops a
+        take sends the same frames again every period P, so a lag and the lag P away pair
+        the same frames: the search then looks within +-P/2 (``loop_period``), and the
+        period is kept to judge a stalled take after one loop (``_ready``)."""
         s = self.settings
         with self._lock:
             if sid not in self._states:   # the engine thread may have forgotten it
@@ -181,11 +226,19 @@ class Collector:
                         if r != sid and r in self._states]
         if mine is None or mine.t[-1] - mine.t[0] < s.lag_min_s:
             return None
+        period = loop_period(mine.t, mine.joints)
+        with self._lock:
+            if sid in self._states:
+                self._states[sid].loop_s = period
+        max_lag = s.max_lag_s
+        if period is not None:
+            max_lag = min(max_lag, 0.5 * period)
         for theirs, _ in partners:
             if theirs is None or theirs.t[-1] - theirs.t[0] < s.lag_min_s:
                 continue
             try:
-                return find_lag(theirs, mine, s.max_lag_s, min_pairs=s.min_pairs)
+                return find_lag(theirs, mine, max_lag, min_pairs=s.min_pairs,
+                                single_window_s=0.0)  # _buffered kept one person's frames
             except CalibrationError:
                 continue
         return None
@@ -229,8 +282,10 @@ class Collector:
             return True
         if n < s.min_pairs:
             return False
-        return (len(st.poses) >= st.wanted_poses
-                or now - st.poses_grew >= s.poses_stall_s > 0)
+        stall = s.poses_stall_s
+        if st.loop_s is not None and stall > 0:  # a looped take: one loop shows all it has
+            stall = min(stall, st.loop_s + 0.2)
+        return len(st.poses) >= st.wanted_poses or now - st.poses_grew >= stall > 0
 
     def _collect(self, now: float, views: dict[str, list[View]], states: dict, epochs: dict,
                  ) -> None:
@@ -368,6 +423,30 @@ class Collector:
         matrix, method = result.matrix, f"{result.method} (live)"
         fitness, rms, wait = result.fitness, result.rms_m, not self.threaded
         self._act(lambda e: e.record_calibration(sid, matrix, method, fitness, rms, path, wait))
+
+
+def loop_period(t: np.ndarray, joints: np.ndarray, min_repeats: int = 10) -> float | None:
+    """The period (s) of a source that sends the same frames over and over, or None.
+
+    t (n,) s; joints (n, 25, 3). A real sensor never sends two bit-identical skeletons
+    of a person (its noise alone differs); a replay of a recording in a loop sends each
+    frame once per loop. Each frame that repeats an earlier one gives the time since it;
+    a loop is when at least ``min_repeats`` frames repeat and 80 % of them do so one
+    period apart (within a frame), a period of at least 0.2 s (not a frozen frame).
+    """
+    seen: dict[bytes, float] = {}
+    gaps = []
+    for ti, row in zip(t, joints):
+        key = np.ascontiguousarray(row).tobytes()
+        if key in seen:
+            gaps.append(ti - seen[key])
+        seen[key] = float(ti)
+    if len(gaps) < min_repeats:
+        return None
+    period = float(np.median(gaps))
+    if period < 0.2 or np.mean(np.abs(np.asarray(gaps) - period) <= 1.0 / 30) < 0.8:
+        return None
+    return period
 
 
 def _worst_window(pairs, m: np.ndarray, window_s: float) -> float:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass, field
+from itertools import combinations
 
 import numpy as np
 
@@ -89,10 +90,45 @@ class SensorGraph:
         found = [(e, e.a != a) for e in self.edges if {e.a, e.b} == {a, b}]
         return min(found, key=lambda f: f[0].cost) if found else None
 
-    def compose(self, reference: str) -> dict[str, np.ndarray]:
-        """sensor -> (4, 4) its space -> the reference's, composed along the best path."""
+    def trees(self, reference: str, max_edges: int = 10) -> list[dict[str, list[str]]]:
+        """Candidate chains (sensor -> path from the reference, as ``best_paths``): the best
+        paths first, then every other spanning tree of the sensors the reference reaches
+        when there are at most ``max_edges`` overlaps among them (otherwise the tree of the
+        cheapest overlaps only). Which overlaps a tree leaves out decides which pairs of
+        sensors get only the composition of the others: on real takes, whose overlaps
+        contradict each other, that is where a pair ends up far from its own fit."""
+        base = self.best_paths(reference)
+        nodes = set(base)
+        edges = [e for e in self.edges if e.a in nodes and e.b in nodes]
+        if len(nodes) < 3:
+            return [base]
+        if len(edges) <= max_edges:
+            sets = list(combinations(edges, len(nodes) - 1))
+        else:
+            sets = [_kruskal(edges)]
+        out = [base]
+        for tree in sets:
+            paths = _tree_paths(reference, tree, nodes)
+            if paths is not None and paths not in out:
+                out.append(paths)
+        return out
+
+    def path_lag(self, path: list[str]) -> float:
+        """The lag of a path's last sensor against its first (s): the overlaps' lags summed."""
+        lag = 0.0
+        for near, far in zip(path, path[1:]):
+            found = self.edge(near, far)
+            if found is not None:
+                edge, reversed_ = found
+                lag += -edge.pairs.lag_s if reversed_ else edge.pairs.lag_s
+        return lag
+
+    def compose(self, reference: str, paths: dict[str, list[str]] | None = None,
+                ) -> dict[str, np.ndarray]:
+        """sensor -> (4, 4) its space -> the reference's, composed along the best path (or
+        along ``paths``)."""
         out = {reference: np.eye(4)}
-        for s, path in self.best_paths(reference).items():
+        for s, path in (paths or self.best_paths(reference)).items():
             m = np.eye(4)
             for near, far in zip(path, path[1:]):
                 edge, reversed_ = self.edge(near, far)  # type: ignore[misc]
@@ -198,6 +234,37 @@ class SensorGraph:
             if np.abs(step).max() < tol:
                 break
         return t, {"before": before, "after": self.objective(t), "iterations": done}
+
+
+def _tree_paths(reference: str, tree, nodes: set[str]) -> dict[str, list[str]] | None:
+    """The paths from the reference along a set of overlaps, or None if it misses a node."""
+    paths = {reference: [reference]}
+    grown = True
+    while grown:
+        grown = False
+        for e in tree:
+            for near, far in ((e.a, e.b), (e.b, e.a)):
+                if near in paths and far not in paths:
+                    paths[far] = [*paths[near], far]
+                    grown = True
+    return paths if set(paths) == nodes else None
+
+
+def _kruskal(edges: list[Edge]) -> list[Edge]:
+    """The spanning tree of the cheapest overlaps (Kruskal)."""
+    parent: dict[str, str] = {}
+
+    def root(s: str) -> str:
+        while parent.get(s, s) != s:
+            s = parent[s]
+        return s
+    tree = []
+    for e in sorted(edges, key=lambda e: e.cost):
+        ra, rb = root(e.a), root(e.b)
+        if ra != rb:
+            parent[ra] = rb
+            tree.append(e)
+    return tree
 
 
 def _points(e: Edge, robust_weights: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -75,6 +75,10 @@ class LiveSettings:
     track_lag_s: float = 0.25     # ... within this of the lag in use (a clock that jumps further
                                   # makes the sensor disagree: suspect, then a full search)
     lag_min_confidence: float = 0.05
+    lag_move_confidence: float = 0.15  # a new sensor's lag moves only on searches this sure
+                                       # (a first search on 0.8 s of frames can read 0.08)
+    lag_track_confidence: float = 0.3  # a calibrated sensor's lag moves only on searches this
+                                       # sure (a crowd's searches read 0.05-0.1 with no lag)
     lag_hysteresis: float = 0.1   # a new lag must fit 10 % better than the one in use
     lag_min_s: float = 0.8        # both views need this much buffered before a lag search
     gate_m: float = 0.30

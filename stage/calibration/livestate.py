@@ -63,6 +63,9 @@ class SensorState:
     lag_searched: float = -INF          # engine time of the last lag search
     lag_settled: bool = False           # a search confirmed the lag in use
     lag_overlap: int = 0                # frames the search that set the lag had
+    lag_candidate: float | None = None  # a tracked sensor's lag one sure search proposed (s):
+                                        # it moves only when the next search agrees
+    loop_s: float | None = None         # the period of a source that loops a take (s)
     last_attempt: str | None = None     # the last calibration attempt's outcome, in words
 
     def reset_pairs(self) -> None:

@@ -182,7 +182,7 @@ def robust_residual(ps: PairSet, rounds: int = 2) -> float:
 def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float | None = None,
              fine_steps: int = 10, max_frames: int = 400, min_pairs: int = 10,
              min_overlap: float = 0.6, prefer_zero: float = 0.02, smooth_frames: int = 5,
-             ) -> LagSearch:
+             single_window_s: float = 0.5) -> LagSearch:
     """The clock offset of ``other`` against ``ref`` with the best robust fit.
 
     For each candidate lag in [-max_lag_s, max_lag_s], one frame apart, the
@@ -197,9 +197,11 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
     ``smooth_frames`` frames (see ``Stream.smoothed``), unless one has fewer
     than ``SMOOTH_FROM_FRAMES`` usable frames. A person standing still makes every lag look alike, so zero is kept unless another lag is
     better by more than ``prefer_zero`` (2 %). ``max_frames`` reference
-    frames, spread over the stream, keep the search fast.
+    frames, spread over the stream, keep the search fast. ``single_window_s``: as
+    ``pair_streams``'s (0: the caller kept only frames with one person in view; its user
+    ids then only cut runs).
     """
-    usable = np.flatnonzero(ref.finite() & ref.single_user())
+    usable = np.flatnonzero(ref.finite() & ref.single_user(single_window_s))
     if len(usable) > max_frames:
         usable = usable[np.linspace(0, len(usable) - 1, max_frames).round().astype(int)]
     step = step_s or other.frame_interval()
@@ -215,7 +217,7 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
     def pairs_at(lag: float) -> PairSet:
         lag = float(round(lag, 9))
         if lag not in paired:
-            paired[lag] = pair_streams(r, other, lag)
+            paired[lag] = pair_streams(r, other, lag, single_window_s=single_window_s)
         return paired[lag]
 
     coarse = np.arange(-max_lag_s, max_lag_s + step / 2, step)
