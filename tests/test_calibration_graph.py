@@ -148,3 +148,27 @@ def _dummy(a: str, b: str) -> PairSet:
     pairs = PairSet.empty(a, b)
     pairs.weight = np.zeros((0, 25))
     return pairs
+
+
+def test_candidate_trees_are_bounded_and_cheapest_first():
+    # five sensors that all overlap have 125 spanning trees; each candidate is composed and
+    # jointly refined offline (about a second each), so only the cheapest few are tried
+    names = ["a", "b", "c", "d", "e"]
+    graph = SensorGraph(names)
+    for i, x in enumerate(names):
+        for y in names[i + 1:]:
+            rms = 0.01 if x == "a" else 0.03 + 0.01 * names.index(y)  # the star from a: cheap
+            graph.add(Edge(x, y, CalibrationResult(np.eye(4), rms, 0.9, "rigid", 50),
+                           _dummy(x, y)))
+    trees = graph.trees("a", max_trees=6)
+    assert len(trees) == 7                      # the best paths, then the six cheapest others
+    assert trees[0] == graph.best_paths("a")
+    assert all(set(t) == set(names) for t in trees)
+    assert len(graph.trees("a", max_trees=200)) == 125   # all of them when allowed
+    assert len({tuple(sorted((s, tuple(p)) for s, p in t.items())) for t in trees}) == 7
+
+    def cost(t):  # a tree's total cost: each overlap it uses once
+        used = {frozenset(p[-2:]) for p in t.values() if len(p) > 1}
+        return sum(graph.edge(*sorted(e))[0].cost for e in used)
+    left_out = [t for t in graph.trees("a", max_trees=200) if t not in trees]
+    assert max(cost(t) for t in trees[1:]) <= min(cost(t) for t in left_out)
