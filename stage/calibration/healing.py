@@ -44,7 +44,7 @@ from ..frames import SensorFrame
 from .collector import Collector
 from .gate import CopyDetector, JumpGate
 from .judge import PairWindow
-from .live import _TORSO, LiveSettings, View
+from .live import LiveSettings, View, torso_centre
 from .livestate import LiveEvent, SensorState
 from .monitor import Monitor
 from .worker import EngineWorker
@@ -319,12 +319,9 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         m = frame.transform
         # tracked torso joints only: a torso the sensor only infers (a person hidden in a
         # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved
-        # (torso_centre with the untracked joints' confidence zeroed, in three numpy calls)
-        w = (frame.conf[_TORSO] >= 1.0).astype(float)
-        n = w.sum()
-        if n == 0 or m is None:
+        c = torso_centre(frame.joints, frame.conf, tracked_only=True)
+        if c is None or m is None:
             return
-        c = (w @ frame.joints[_TORSO]) / n
         sid, user, t = frame.sensor, frame.user, frame.t - st.lag_s  # on stage time
         jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
         if jumped is None:

@@ -229,15 +229,21 @@ def consensus(partners: list[View], at: np.ndarray) -> Consensus:
     return Consensus(total / safe[..., None], np.minimum(weight, 1.0), used)
 
 
-def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
+def torso_centre(joints: np.ndarray, conf: np.ndarray, tracked_only: bool = False,
+                 ) -> np.ndarray | None:
     """(..., 25, 3) -> (..., 3) mean of the torso joints (None if none, for one frame).
 
     Tracked joints (confidence 1) only, when a frame has any: an inferred torso joint can
     be guessed 10-30 cm off, which moved the centre more than the jump gate's agreement.
+    ``tracked_only``: never the inferred ones (a frame without a tracked torso joint has
+    no centre).
     """
     c = conf[..., _TORSO]
     tracked = c >= 1.0
-    w = np.where(tracked.any(axis=-1, keepdims=True), tracked, c > 0).astype(float)
+    if tracked_only:
+        w = tracked.astype(float)
+    else:
+        w = np.where(tracked.any(axis=-1, keepdims=True), tracked, c > 0).astype(float)
     n = w.sum(axis=-1)
     if joints.ndim == 2:  # the engine-thread path: as few numpy calls as possible
         return None if n == 0 else (w @ joints[_TORSO]) / n
