@@ -141,7 +141,7 @@ def check(wait_s: float = 5.0, platform: str = sys.platform, find_spec=importlib
     """``stage client azure --check``: (report, everything needed is there and a body was seen)."""
     import ctypes.util
     from ... import install_hint
-    from .check import Item, format_skeleton, library_item, module_item, report
+    from .check import Item, body_items, library_item, module_item, report
     find_library = find_library or ctypes.util.find_library
     key = "win32" if platform == "win32" else "linux"
     items = [Item("Linux or Windows (x64)", platform in ("linux", "win32"), platform)]
@@ -156,20 +156,9 @@ def check(wait_s: float = 5.0, platform: str = sys.platform, find_spec=importlib
         "an NVIDIA GPU with CUDA, or DirectML on Windows)", find_library, exists))
     items.append(module_item("pykinect_azure", ("pykinect_azure", "pykinect-azure"),
                              install_hint("azure"), find_spec))
-    extra: list[str] = []
-    if all(item.ok for item in items):
-        try:
-            body, waited = first_body(wait_s)
-        except Exception as exc:  # no device, a driver error: one line
-            items.append(Item("device", False, f"cannot open it: {exc}"))
-        else:
-            if body is None:
-                items.append(Item("a tracked body", False, f"none in {waited:.1f} s: is "
-                                  "someone 0.5-4 m in front of the sensor?"))
-            else:
-                items.append(Item("a tracked body", True, f"after {waited:.1f} s; Kinect camera "
-                                  "space, metres (x to the sensor's left, y up, z away)"))
-                extra = format_skeleton(body)
+    extra = body_items(items, first_body, wait_s, "device", "cannot open it",
+                       "is someone 0.5-4 m in front of the sensor?",
+                       "Kinect camera space, metres (x to the sensor's left, y up, z away)")
     return report("stage client azure --check", items, extra)
 
 

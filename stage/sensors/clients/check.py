@@ -61,6 +61,27 @@ def format_skeleton(body: BodyFrame) -> list[str]:
             for name, (x, y, z), c in zip(JOINTS, body.joints, body.conf)]
 
 
+def body_items(items: list[Item], first_body, wait_s: float, device: str, cannot_open: str,
+               none_hint: str, space: str) -> list[str]:
+    """When every item is there, open the device and wait for one tracked body.
+
+    Appends the device's and the body's ``Item`` to ``items`` (a failure to open the
+    device is one line, never a traceback) and returns the body's lines for the report.
+    """
+    if not all(item.ok for item in items):
+        return []
+    try:
+        body, waited = first_body(wait_s)
+    except Exception as exc:  # no device, a driver error: one line
+        items.append(Item(device, False, f"{cannot_open}: {exc}"))
+        return []
+    if body is None:
+        items.append(Item("a tracked body", False, f"none in {waited:.1f} s: {none_hint}"))
+        return []
+    items.append(Item("a tracked body", True, f"after {waited:.1f} s; {space}"))
+    return format_skeleton(body)
+
+
 def report(title: str, items: list[Item], extra: list[str] = ()) -> tuple[str, bool]:
     """(text, every item ok)."""
     lines = [title]

@@ -142,7 +142,7 @@ def check(wait_s: float = 5.0, platform: str = sys.platform, env=os.environ,
           first_body=_first_body) -> tuple[str, bool]:
     """``stage client kinect2 --check``: (report, everything needed is there and a body was seen)."""
     from ... import install_hint
-    from .check import Item, format_skeleton, module_item, report
+    from .check import Item, body_items, module_item, report
     items = [Item("Windows (64-bit)", platform == "win32",
                   platform if platform == "win32" else
                   f"this is {platform}: the Kinect v2 SDK runs only on Windows 8/10/11")]
@@ -155,21 +155,10 @@ def check(wait_s: float = 5.0, platform: str = sys.platform, env=os.environ,
     items.append(module_item("pykinect2", ("pykinect2024", "pykinect2"), install_hint("kinect2"),
                              find_spec))
     items.append(module_item("comtypes", ("comtypes",), install_hint("kinect2"), find_spec))
-    extra: list[str] = []
-    if all(item.ok for item in items):
-        try:
-            body, waited = first_body(wait_s)
-        except Exception as exc:  # the runtime could not start: say so, in one line
-            items.append(Item("sensor", False, f"cannot open the Kinect: {exc}"))
-        else:
-            if body is None:
-                items.append(Item("a tracked body", False, f"none in {waited:.1f} s: is the "
-                                  "sensor on USB 3, powered, and someone 1-4 m in front of it? "
-                                  "(Kinect Configuration Verifier tests the setup)"))
-            else:
-                items.append(Item("a tracked body", True, f"after {waited:.1f} s; camera space, "
-                                  "metres (x to the sensor's left, y up, z away)"))
-                extra = format_skeleton(body)
+    extra = body_items(items, first_body, wait_s, "sensor", "cannot open the Kinect",
+                       "is the sensor on USB 3, powered, and someone 1-4 m in front of it? "
+                       "(Kinect Configuration Verifier tests the setup)",
+                       "camera space, metres (x to the sensor's left, y up, z away)")
     return report("stage client kinect2 --check", items, extra)
 
 
