@@ -225,6 +225,72 @@ def test_azure_32_joints_map_onto_the_25_in_kinect_axes():
     assert b.hands is None
 
 
+class _FakeAzureSDK:
+    """What pykinect_azure offers the client, with one body standing 3 m away.
+
+    The real SDK needs the device; this stands in for the module so that the
+    client's own glue (start, read, map, send, stop) runs against a real server.
+    """
+    K4A_COLOR_RESOLUTION_OFF, K4A_DEPTH_MODE_NFOV_UNBINNED = 0, 2
+
+    def __init__(self, frames: int, stop) -> None:
+        from types import SimpleNamespace as NS
+        self.default_configuration = NS(color_resolution=None, depth_mode=None)
+        self.started: list[str] = []
+        mm = np.zeros((32, 3))
+        mm[AZURE_INDEX] = body(1).joints * [-1000, -1000, 1000]
+        joints = [NS(position=NS(x=x, y=y, z=z), confidence_level=2) for x, y, z in mm]
+        sdk_body = NS(id=4, joints=joints)
+        left = [frames]
+
+        def update():
+            left[0] -= 1
+            if left[0] <= 0 and stop is not None:
+                stop.set()
+            return NS(get_num_bodies=lambda: 1, get_body=lambda k: sdk_body)
+        self.tracker = NS(update=update,
+                          destroy=lambda: self.started.append("body tracker stopped"))
+        self.device = NS(update=lambda: None,
+                         close=lambda: self.started.append("device closed"))
+
+    def initialize_libraries(self, track_body):
+        self.started.append(f"libraries (body tracking {track_body})")
+
+    def start_device(self, config):
+        self.started.append(f"device (colour {config.color_resolution}, depth {config.depth_mode})")
+        return self.device
+
+    def start_body_tracker(self):
+        self.started.append("body tracker")
+        return self.tracker
+
+
+def test_the_azure_client_reads_the_sdk_and_reaches_a_real_server(monkeypatch):
+    import threading
+    from stage.sensors.clients import azure
+    stop = threading.Event()
+    sdk = _FakeAzureSDK(12, stop)
+    monkeypatch.setitem(sys.modules, "pykinect_azure", sdk)
+    with Server(Rig(port=0), host="127.0.0.1") as server:
+        azure.run(server.address, "femto-a", stop)
+        deadline = time.monotonic() + 5
+        while True:
+            stats = query_stats(server.address)
+            if stats["counts"]["frames"] == 12 or time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+    opened = ["libraries (body tracking True)", "device (colour 0, depth 2)", "body tracker"]
+    closed = ["body tracker stopped", "device closed"]   # so that it can be opened again
+    assert sdk.started == opened + closed
+    assert stats["clients"]["femto-a"]["type"] == "azure-kinect"
+    assert stats["counts"]["frames"] == 12 and stats["drops_total"] == 0
+    assert len(stats["persons"]) == 1
+    seen, waited = azure._first_body(1.0)
+    np.testing.assert_allclose(seen.joints, body(1).joints, atol=1e-9)
+    assert seen.key == 4 and waited < 1.0
+    assert sdk.started == (opened + closed) * 2
+
+
 @pytest.mark.parametrize("client, module, extra", [("webcam", "cv2", "webcam"),
                                                    ("kinect2", "pykinect2", "kinect2"),
                                                    ("azure", "pykinect_azure", "azure")])

@@ -62,7 +62,30 @@ def azure_body(body_id: int, positions_mm: np.ndarray, confidence_levels: np.nda
     return BodyFrame(int(body_id), joints, conf, None)
 
 
-def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: no cover
+def _open(pykinect):
+    """Start the depth camera (no colour, narrow unbinned depth) and the body tracker."""
+    pykinect.initialize_libraries(track_body=True)
+    config = pykinect.default_configuration
+    config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
+    config.depth_mode = pykinect.K4A_DEPTH_MODE_NFOV_UNBINNED
+    return pykinect.start_device(config=config), pykinect.start_body_tracker()
+
+
+def _close(device, tracker) -> None:
+    """Stop the body tracker, then the camera, so the device can be opened again."""
+    try:
+        tracker.destroy()
+    finally:
+        device.close()
+
+
+def _body(body) -> BodyFrame:
+    """One SDK body as our BodyFrame."""
+    return azure_body(body.id, [(j.position.x, j.position.y, j.position.z) for j in body.joints],
+                      [j.confidence_level for j in body.joints])
+
+
+def run(target: tuple[str, int], client_id: str, stop=None) -> None:
     """Read the body tracker and send until ``stop`` is set (needs the device and SDKs)."""
     from ... import install_hint
     from ...errors import StageError
@@ -73,12 +96,7 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
         raise StageError("the Azure Kinect / Orbbec client needs the Azure Kinect Sensor and "
                          f"Body Tracking SDKs and pykinect_azure: {install_hint('azure')}"
                          ) from None
-    pykinect.initialize_libraries(track_body=True)
-    config = pykinect.default_configuration
-    config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
-    config.depth_mode = pykinect.K4A_DEPTH_MODE_NFOV_UNBINNED
-    device = pykinect.start_device(config=config)
-    tracker = pykinect.start_body_tracker()
+    device, tracker = _open(pykinect)
     encoder, sender = ClientEncoder(client_id, "azure-kinect"), UdpSender(target)
     sender.send(encoder.register())
     try:
@@ -88,15 +106,13 @@ def run(target: tuple[str, int], client_id: str, stop=None) -> None:  # pragma: 
             stamp = time.time()
             bodies = []
             for k in range(frame.get_num_bodies()):
-                body = frame.get_body(k)
-                positions = [(j.position.x, j.position.y, j.position.z) for j in body.joints]
-                levels = [j.confidence_level for j in body.joints]
-                bodies.append(azure_body(body.id, positions, levels))
+                bodies.append(_body(frame.get_body(k)))
             data = encoder.frame(bodies, stamp)
             if data is not None:
                 sender.send(data)
     finally:
         sender.close()
+        _close(device, tracker)
 
 
 #: where the SDK installers put the libraries when they are not on the loader's path
@@ -111,29 +127,20 @@ _K4ABT_PATHS = {"linux": ["/usr/lib/libk4abt.so", "/usr/lib/x86_64-linux-gnu/lib
                           r"\k4abt.dll"]}
 
 
-def _first_body(wait_s: float) -> tuple[BodyFrame | None, float]:  # pragma: no cover
+def _first_body(wait_s: float) -> tuple[BodyFrame | None, float]:
     """Open the device and body tracker, wait up to ``wait_s`` for a body: (body or None, s)."""
     import pykinect_azure as pykinect
-    pykinect.initialize_libraries(track_body=True)
-    config = pykinect.default_configuration
-    config.color_resolution = pykinect.K4A_COLOR_RESOLUTION_OFF
-    config.depth_mode = pykinect.K4A_DEPTH_MODE_NFOV_UNBINNED
-    device = pykinect.start_device(config=config)
-    tracker = pykinect.start_body_tracker()
+    device, tracker = _open(pykinect)
     start = time.monotonic()
     try:
         while time.monotonic() - start < wait_s:
             device.update()
             frame = tracker.update()
             if frame.get_num_bodies() > 0:
-                body = frame.get_body(0)
-                return azure_body(body.id, [(j.position.x, j.position.y, j.position.z)
-                                            for j in body.joints],
-                                  [j.confidence_level for j in body.joints]), \
-                    time.monotonic() - start
+                return _body(frame.get_body(0)), time.monotonic() - start
         return None, time.monotonic() - start
     finally:
-        device.close()
+        _close(device, tracker)
 
 
 def check(wait_s: float = 5.0, platform: str = sys.platform, find_spec=importlib.util.find_spec,
