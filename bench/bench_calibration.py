@@ -241,7 +241,7 @@ def main() -> int:
     g = report["ga"]
     verdict = "PASS" if g["ga2d_s"]["median"] < GA_TARGET_S and g["ga3d_s"]["median"] < GA_TARGET_S \
         else "FAIL"
-    print(f"\nGA, paper's configuration (population 200, 250 epochs), 300 pairs x 25 joints:")
+    print("\nGA, paper's configuration (population 200, 250 epochs), 300 pairs x 25 joints:")
     print(f"  2-D {g['ga2d_s']['median'] * 1000:.1f} ms (max {g['ga2d_s']['max'] * 1000:.1f}), "
           f"3-D {g['ga3d_s']['median'] * 1000:.1f} ms (max {g['ga3d_s']['max'] * 1000:.1f}) "
           f"-> target < {GA_TARGET_S} s: {verdict}")

@@ -11,11 +11,10 @@ from __future__ import annotations
 import collections
 from importlib import resources
 
-import numpy as np
 import pytest
 
 from stage.app.show import Show, ShowOptions
-from stage.sensors.sim import Simulator, parse_scenario
+from stage.sensors.sim import parse_scenario
 from stage.yamlio import loads_marked
 
 

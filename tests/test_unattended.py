@@ -9,7 +9,6 @@ keeping time at any speed.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shlex
@@ -25,7 +24,7 @@ import numpy as np
 import pytest
 
 from helpers import LOCALHOST, Peer, Sensor, query_stats
-from stage.app.health import Alerter, HealthMonitor, summary_line
+from stage.app.health import HealthMonitor, summary_line
 from stage.app.server import Server
 from stage.app.status_line import StatusLine
 from stage.clock import ManualClock
@@ -38,7 +37,7 @@ from stage.joints import HandState
 from stage.piece.loader import load_piece
 from stage.piece.runtime import PieceRuntime, RecordingSink
 from stage.rig import Rig, load_rig
-from stage.sensors.protocol import encode_client_joints, encode_message
+from stage.sensors.protocol import encode_client_joints
 from stage.sensors.sim import standing_pose
 from stage.settings import AlertSettings
 

@@ -289,7 +289,6 @@ def run(target: tuple[str, int], client_id: str, camera_index: int = 0, fov_h: f
             t1 = time.perf_counter()
             rgb = cv2.cvtColor(frame.image, cv2.COLOR_BGR2RGB)
             found = marks.detect(rgb, frame.t)
-            t2 = time.perf_counter()
             keys = tracker.keys([0.5 * (p.image[L["left_hip"]] + p.image[L["right_hip"]])
                                  for p in found.people])
             bodies = []
