@@ -75,7 +75,7 @@ SETTLE = 0.8                 # s: crossings before the engine has seen the dance
 
 SCENARIO = """
 sensors: {{ring: {{count: 3, radius: 3.5}}}}
-kinect: {{pipeline_delay_s: {delay}, pipeline_jitter_s: 0.003}}
+kinect: {{pipeline_delay_s: {delay}, pipeline_jitter_s: 0.003{kinect}}}
 network: {{latency: 0.005}}
 performers:
   - {{name: dancer, height: 1.75, position: [0, -1.5], motion: {path}}}
@@ -179,11 +179,11 @@ def score(firings: list[tuple[str, str, float]], truth: dict) -> dict[str, dict]
     return out
 
 
-def run(take: str, seed: int, delay: float, settings: list[tuple]) -> dict:
+def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "") -> dict:
     path = cmu_file(take)
     if path is None:
         raise SystemExit(f"CMU take {take} not found ($STAGE_CMU_DIR or shared/data/cmu)")
-    text = SCENARIO.format(delay=delay, path=path)
+    text = SCENARIO.format(delay=delay, path=path, kinect=f", {kinect}" if kinect else "")
     sim = Simulator(parse_scenario(loads_marked(text, "bench.yaml"), "bench.yaml"), seed=seed)
     duration = sim.performers[0].length + 0.5 if hasattr(sim.performers[0], "length") else 11.0
     clock = ManualClock(0.0)
@@ -272,6 +272,9 @@ def main() -> None:
                          "(their false triggers were looked at once), and any beyond were never "
                          "looked at")
     ap.add_argument("--delay", type=float, default=0.060, help="pipeline delay, s")
+    ap.add_argument("--kinect", default="", metavar="KEYS",
+                    help="more keys of the scenario's kinect: section, e.g. 'feet_noise: 1.0' "
+                    "(the sensor model; default: the simulator's)")
     ap.add_argument("--plot", default=str(ROOT / "docs" / "anticipation.png"))
     ap.add_argument("--json", default=None, help="write the table here too")
     ap.add_argument("--variant", action="append", default=[], metavar="KEYS",
@@ -287,13 +290,14 @@ def main() -> None:
     results, sd = [], {}
     for take in takes:
         for seed in seeds:
-            r = run(take, seed, args.delay, settings)
+            r = run(take, seed, args.delay, settings, args.kinect)
             results.append(r)
             for h, v in r["forecast_stats"]["sd_mm"].items():
                 sd.setdefault(h, []).append(v)
     load = (machine_busy_s() - busy0) / (time.monotonic() - wall0)
     table = summarise(results, settings)
-    print(f"pipeline delay {args.delay * 1000:.0f} ms (+3 ms jitter, +5 ms network); takes "
+    print(f"pipeline delay {args.delay * 1000:.0f} ms (+3 ms jitter, +5 ms network); "
+          f"sensor model {'default' + (' + ' + args.kinect if args.kinect else '')}; takes "
           f"{', '.join(takes)}; seeds {list(seeds)}; machine busy {load:.2f} cores "
           f"(of {os.cpu_count()}) during the run")
     print("delay = firing minus true crossing (ms, matched firings); false = firings with no "
