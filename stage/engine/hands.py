@@ -49,7 +49,9 @@ vote weight,
   the later moment are equally likely starts of the change (the sum is the same from
   both); the earlier is taken. Taking the later one (issue 10's first version of this
   rule) restarted the 100 ms on every old-state misread just after a change: two of
-  bench/bench_hands.py's slowest changes on seeds 1-3 (165 and 144 ms) were that.
+  bench/bench_hands.py's slowest changes on seeds 1-3 (162 and 165 ms; now 130 and 145 ms)
+  were that. The cost: a run begun by misreads just before a change, or a burst of them,
+  counts its time from there (one more false change in 18 minutes of that bench).
 
 A misread moment during a change then costs one report of evidence instead of
 interrupting the hold: with two sensors that misread a fifth of the time, the vote can
