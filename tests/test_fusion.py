@@ -138,6 +138,24 @@ def test_a_change_two_sensors_dispute_is_reported_on_the_evidence_within_150_ms(
     assert state == C and 0.5 + 0.1 <= t <= 0.5 + 0.15
 
 
+def test_a_lead_back_at_exactly_0_keeps_its_start():
+    # open until 0.5 s, then closed. Sensor 0 misreads the old state twice just after the
+    # change (0.5 s, 0.567 s), sensor 1 once (0.538 s). Closed's lead (+1 for closed, -1 for
+    # open) goes 0, 1 (0.505 s), 2, 1, 0 (0.567 s: back to 0 but never under it), 1, 2, 3,
+    # 4, 5 (0.638 s). Its run began at 0.505 s: the case is made at 0.638 s (lead 5, margin
+    # 4, begun 133 ms before). Stop 19's rule restarted the run at 0.572 s and, like the
+    # hold alone, reported the change only at 0.667 s
+    frames = [(k / 30, O, O) for k in range(15)]
+    s0 = [O, C, O] + [C] * 7
+    s1 = [C, O, C] + [C] * 7
+    frames += [(0.5 + k / 30, a, b) for k, (a, b) in enumerate(zip(s0, s1))]
+    changes = two_sensors(HandVoter(memory_s=0.03, hold_s=0.1), frames)
+    assert [s for _, s in changes] == [O, C]
+    assert changes[1][0] == pytest.approx(0.5 + 4 / 30 + 0.005)
+    hold_only = two_sensors(HandVoter(memory_s=0.03, hold_s=0.1, evidence=False), frames)
+    assert [s for _, s in hold_only] == [O, C] and hold_only[1][0] > changes[1][0] + 0.02
+
+
 def test_a_run_of_misreads_into_a_third_state_makes_no_case():
     # open until 0.5 s, then lasso, but at first the sensors say closed as often as lasso:
     # the reports against open favour closed as much as lasso (nothing says open any more);

@@ -41,7 +41,17 @@ vote weight,
   below 0, must reach ``EVIDENCE_LEAD`` (5);
 - ``margin``: +1 when it says the state, -1 when it says any other known state, never
   below 0, must reach ``EVIDENCE_MARGIN`` (3);
-- and the lead must have begun (risen from 0) ``hand_hold_s`` or more ago.
+- and the lead's run must have begun ``hand_hold_s`` or more ago: at the first report for
+  the state after the lead last had to be held at 0 (a report against it when it was
+  already 0). A lead that falls back to exactly 0 and rises again keeps its beginning:
+  the lead is a CUSUM, the running sum of the reports' evidence minus its lowest value,
+  and where the sum comes back to its lowest value without going under it, the earlier and
+  the later moment are equally likely starts of the change (the sum is the same from
+  both); the earlier is taken. Taking the later one (issue 10's first version of this
+  rule) restarted the 100 ms on every old-state misread just after a change: two of
+  bench/bench_hands.py's slowest changes on seeds 1-3 (162 and 165 ms; now 130 and 145 ms)
+  were that. The cost: a run begun by misreads just before a change, or a burst of them,
+  counts its time from there (one more false change in 18 minutes of that bench).
 
 A misread moment during a change then costs one report of evidence instead of
 interrupting the hold: with two sensors that misread a fifth of the time, the vote can
@@ -91,12 +101,12 @@ class HandVoter:
         self._last_t: float | None = None
         #: the evidence (module docstring), per hand: each sensor's newest report not yet
         #: counted (key -> (t, state, weight)), the time of each sensor's last counted one,
-        #: and per state code the lead, the margin and when the lead began
+        #: and per state code the lead, the margin and when the lead's run began (-1: none)
         self._pending: tuple[dict, dict] = ({}, {})
         self._counted: tuple[dict, dict] = ({}, {})
         self._lead = ([0.0] * 5, [0.0] * 5)
         self._margin = ([0.0] * 5, [0.0] * 5)
-        self._since = ([0.0] * 5, [0.0] * 5)
+        self._since = ([-1.0] * 5, [-1.0] * 5)    # -1: no run
 
     def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
             t: float) -> None:
@@ -214,13 +224,15 @@ class HandVoter:
                 if c == current:
                     continue
                 step = w if state == c else -w if state == current else 0.0
-                if lead[c] <= 0.0 and step > 0.0:
-                    since[c] = rt
+                if step > 0.0 and since[c] < 0.0:
+                    since[c] = rt         # a run begins
+                elif lead[c] + step < -1e-9:
+                    since[c] = -1.0       # held at 0 (the sum under its lowest): the run is over
                 lead[c] = max(0.0, lead[c] + step)
                 margin[c] = max(0.0, margin[c] + (w if state == c else -w))
         best = max((c for c in _KNOWN if c != current), key=lambda c: lead[c])
         if lead[best] >= EVIDENCE_LEAD and margin[best] >= EVIDENCE_MARGIN and \
-                t - since[best] >= self.hold_s - 1e-9:
+                since[best] >= 0.0 and t - since[best] >= self.hold_s - 1e-9:
             return HandState(best)
         return None
 
@@ -235,4 +247,5 @@ class HandVoter:
         self._candidate[hand] = None
         self._lead[hand][:] = [0.0] * 5     # the evidence was against the state reported before
         self._margin[hand][:] = [0.0] * 5
+        self._since[hand][:] = [-1.0] * 5
         changed.append(hand)
