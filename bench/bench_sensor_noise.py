@@ -264,8 +264,8 @@ def print_kinect2(folder: str, v2: dict, sims: dict, wins: dict, matched: dict,
     st = f["joint_states"]
     total = sum(st.values())
     print(f"\nKinect v2, NTU RGB+D samples in {folder}: {f['files']} files, {f['bodies']} "
-          f"bodies, {f['performers']} performers, {f['frame_triples']} frame triples; "
-          f"SpineBase depth p10/50/90 {lo:.2f}/{mid:.2f}/{hi:.2f} m; joint states "
+          f"bodies, {f['performers']} performer ids in the names, {f['frame_triples']} "
+          f"frame triples; SpineBase depth p10/50/90 {lo:.2f}/{mid:.2f}/{hi:.2f} m; joint states "
           f"{100 * st['tracked'] / total:.1f}% tracked, {100 * st['inferred'] / total:.1f}% "
           f"inferred, {100 * st['not tracked'] / total:.1f}% not tracked")
     print(f"simulated: one person standing still {mid:.2f} m from one sensor, {frames} frames")
