@@ -1,4 +1,4 @@
-"""Joint jitter on real Kinect recordings beside the simulator's Kinect model.
+r"""Joint jitter on real Kinect recordings beside the simulator's Kinect model.
 
 The simulator's noise (``stage/sensors/sim/kinect.py``: about 6 mm per axis at
 1 m, +4 mm per metre, x2 at ankles and feet, x1.5 at wrists and hands, AR(1)
@@ -15,17 +15,19 @@ depth, so the simulated figure is noise alone. A simulated group whose figure
 is above the real one has more jitter than the real sensor, whatever the real
 motion.
 
-With ``--kinect2 DIR`` it does the same on real Kinect v2 recordings (NTU
-RGB+D ``.skeleton`` files, 25 joints, 30 Hz, with per-joint tracking states;
-docs/datasets.md says where to get public samples), against the simulator at
-those recordings' median depth: tracked joints (tracked in all three frames of
-a second difference) and inferred ones (inferred in at least one) apart. For
-Kinect v2 it also prints a second statistic, the median |x - its 0.5 s
-centred moving mean| (mm): jitter that is correlated from frame to frame
-shows there where the second difference misses it.
+With ``--kinect2 DIR`` (repeatable) it does the same on real Kinect v2
+recordings, NTU RGB+D ``.skeleton`` files (25 joints, 30 Hz, per-joint
+tracking states) or Kinectron ``.json`` takes (no states), docs/datasets.md
+says where to get public ones, against the simulator at each folder's median
+depth: tracked joints (tracked in all three frames of a second difference) and
+inferred ones (inferred in at least one) apart. For Kinect v2 it also prints a
+second statistic, the median |x - its 0.5 s centred moving mean| (mm): jitter
+that is correlated from frame to frame shows there where the second difference
+misses it.
 
     python bench/bench_sensor_noise.py bench/data/nucla
-    python bench/bench_sensor_noise.py bench/data/nucla --kinect2 bench/data/kinect2/ntu
+    python bench/bench_sensor_noise.py bench/data/nucla --kinect2 bench/data/kinect2/ntu \
+        --kinect2 bench/data/kinect2/kinectron
     python bench/bench_sensor_noise.py --kinect2 bench/data/kinect2/ntu --quick
     python bench/bench_sensor_noise.py bench/data/nucla --json
 
@@ -129,6 +131,54 @@ def ntu_bodies(path: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return out
 
 
+def kinectron_bodies(path: str, fps: float = 30.0) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Every body of one Kinectron recording (a JSON list of Kinect v2 SDK body frames, each
+    {"trackingId", "joints": 25 x {"cameraX", "cameraY", "cameraZ", ...},
+    "record_timestamp": ms}), as ``ntu_bodies`` gives them. Frames are placed on the 30 Hz
+    grid by their time stamps, so frames the recorder missed become absent frames, not
+    shorter steps. The format has no joint tracking states: every joint present is given
+    state 2. ConfigError on anything else."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            frames = json.load(f)
+        rows = []
+        for frame in frames:
+            joints = frame["joints"]
+            if len(joints) != 25:
+                raise ValueError(f"{len(joints)} joints, not 25")
+            rows.append((str(frame["trackingId"]), float(frame["record_timestamp"]),
+                         [[float(j["cameraX"]), float(j["cameraY"]), float(j["cameraZ"])]
+                          for j in joints]))
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ConfigError(f"not a Kinectron body recording ({type(exc).__name__}: {exc})",
+                          path=path) from None
+    if not rows:
+        return []
+    t0 = min(t for _, t, _ in rows)
+    slots = [round((t - t0) * fps / 1000) for _, t, _ in rows]
+    out = []
+    for k, body_id in enumerate(sorted({b for b, _, _ in rows})):
+        pos = np.full((max(slots) + 1, 25, 3), np.nan)
+        state = np.full((max(slots) + 1, 25), -1)
+        for (b, _, xyz), slot in zip(rows, slots):
+            if b == body_id and state[slot, 0] < 0:      # two frames in one slot: the first
+                pos[slot], state[slot] = xyz, TRACKED
+        out.append((int(body_id) if body_id.isdigit() else k, pos, state))
+    return out
+
+
+READERS = {"ntu": (".skeleton", ntu_bodies), "kinectron": (".json", kinectron_bodies)}
+
+
+def detect_format(folder: str) -> str:
+    """The format of a folder's recordings, by the files' extensions ('ntu' if mixed)."""
+    names = [n.lower() for n in os.listdir(folder)]
+    for fmt, (ext, _) in READERS.items():
+        if any(n.endswith(ext) for n in names):
+            return fmt
+    return "ntu"
+
+
 def _pool(values: list[np.ndarray]) -> tuple[np.ndarray, int]:
     """(median per axis in mm, number of joint samples) of pooled (N, 3) |differences|."""
     v = np.concatenate(values) if values else np.empty((0, 3))
@@ -136,19 +186,21 @@ def _pool(values: list[np.ndarray]) -> tuple[np.ndarray, int]:
     return (np.median(v, axis=0) * 1000 if len(v) else np.full(3, np.nan)), len(v)
 
 
-def kinect2_jitter(folder: str) -> dict:
-    """The statistics on every NTU ``.skeleton`` file in ``folder``: {"tracked", "inferred",
-    "window"} -> group -> (mm per axis, samples), "bodies" (per-body torso and feet medians)
-    and "facts"."""
-    names = sorted(n for n in os.listdir(folder) if n.lower().endswith(".skeleton"))
+def kinect2_jitter(folder: str, fmt: str = "ntu") -> dict:
+    """The statistics on every recording of format ``fmt`` (``READERS``) in ``folder``:
+    {"tracked", "inferred", "window"} -> group -> (mm per axis, samples), "bodies"
+    (per-body torso and feet medians) and "facts" ("states": whether the format has joint
+    tracking states; without them every joint counts as tracked)."""
+    ext, reader = READERS[fmt]
+    names = sorted(n for n in os.listdir(folder) if n.lower().endswith(ext))
     d2 = {k: {g: [] for g in GROUPS} for k in ("tracked", "inferred")}
     dev = {g: [] for g in GROUPS}
     bodies, depths, performers, triples = [], [], set(), 0
     states = np.zeros(3, int)
     for name in names:
-        perf = name.upper().find("P")
+        perf = name.upper().find("P") if fmt == "ntu" else -1
         performers.add(name[perf:perf + 4] if perf >= 0 else name)
-        for body_id, pos, state in ntu_bodies(os.path.join(folder, name)):
+        for body_id, pos, state in reader(os.path.join(folder, name)):
             if np.isfinite(pos[:, 0, 0]).sum() < WINDOW:
                 continue        # a body seen for under 0.5 s (NTU's spurious detections)
             diff = second_differences(pos)
@@ -177,7 +229,8 @@ def kinect2_jitter(folder: str) -> dict:
     out = {k: {g: _pool(v) for g, v in d2[k].items()} for k in d2}
     out["window"] = {g: _pool(v) for g, v in dev.items()}
     out["bodies"] = bodies
-    out["facts"] = {"files": len(names), "bodies": len(bodies), "performers": len(performers),
+    out["facts"] = {"format": fmt, "states": fmt == "ntu",
+                    "files": len(names), "bodies": len(bodies), "performers": len(performers),
                     "frame_triples": triples,
                     "joint_states": {"tracked": int(states[2]), "inferred": int(states[1]),
                                      "not tracked": int(states[0])},
@@ -261,39 +314,48 @@ def print_kinect2(folder: str, v2: dict, sims: dict, wins: dict, matched: dict,
                   imp: dict, frames: str) -> None:
     f = v2["facts"]
     lo, mid, hi = f["depth_m"]
-    st = f["joint_states"]
-    total = sum(st.values())
-    print(f"\nKinect v2, NTU RGB+D samples in {folder}: {f['files']} files, {f['bodies']} "
-          f"bodies, {f['performers']} performer ids in the names, {f['frame_triples']} "
-          f"frame triples; SpineBase depth p10/50/90 {lo:.2f}/{mid:.2f}/{hi:.2f} m; joint states "
-          f"{100 * st['tracked'] / total:.1f}% tracked, {100 * st['inferred'] / total:.1f}% "
-          f"inferred, {100 * st['not tracked'] / total:.1f}% not tracked")
+    name = {"ntu": "NTU RGB+D samples", "kinectron": "Kinectron recordings"}[f["format"]]
+    short = {"ntu": "NTU", "kinectron": "Kinectron"}[f["format"]]
+    if f["states"]:
+        st = f["joint_states"]
+        total = sum(st.values())
+        states = (f"joint states {100 * st['tracked'] / total:.1f}% tracked, "
+                  f"{100 * st['inferred'] / total:.1f}% inferred, "
+                  f"{100 * st['not tracked'] / total:.1f}% not tracked")
+        who = f"{f['performers']} performer ids in the names"
+    else:
+        states = "no joint tracking states in this format (every joint counted)"
+        who = "performers not named"
+    print(f"\nKinect v2, {name} in {folder}: {f['files']} files, {f['bodies']} bodies, {who}, "
+          f"{f['frame_triples']} frame triples; SpineBase depth p10/50/90 "
+          f"{lo:.2f}/{mid:.2f}/{hi:.2f} m; {states}")
     print(f"simulated: one person standing still {mid:.2f} m from one sensor, {frames} frames")
     print("median |second difference| per axis x/y/z, mm (n: joint samples)")
-    print(f"{'group':<15}{'NTU tracked':>22}{'NTU inferred (n)':>30}{'sim real':>22}"
-          f"{'sim clean':>22}{'sim real/NTU':>14}")
+    col = f"{short} tracked" if f["states"] else f"{short} all joints"
+    print(f"{'group':<15}{col:>22}{short + ' inferred (n)':>30}{'sim real':>22}"
+          f"{'sim clean':>22}{'sim real/' + short:>20}")
     for group in GROUPS:
         (t, nt), (i, ni) = v2["tracked"][group], v2["inferred"][group]
-        inferred = _cells(i) + f" ({ni})"
+        inferred = _cells(i) + f" ({ni})" if f["states"] else "-"
         print(f"{group:<15}{_cells(t)}{inferred:>30}"
               f"{_cells(sims['real'][group], sims['clean'][group])}"
-              f"{sims['real'][group].mean() / t.mean():>14.1f}")
+              f"{sims['real'][group].mean() / t.mean():>20.1f}")
     tr = {g: v2["tracked"][g][0].mean() for g in GROUPS}
-    print("relative to the torso (mean of axes): NTU tracked "
+    print(f"relative to the torso (mean of axes): {col} "
           + ", ".join(f"{g} {tr[g] / tr['torso']:.2f}" for g in GROUPS)
           + "; simulator " + ", ".join(
               f"{g} {sims['real'][g].mean() / sims['real']['torso'].mean():.2f}"
               for g in GROUPS))
-    print("per body (tracked, mean of axes, mm): " + "; ".join(
-        f"{b['file'][:20]}#{b['body'] % 1000:03d} {b['depth_m']:.2f} m torso "
+    print(f"per body ({col}, mean of axes, mm): " + "; ".join(
+        f"{b['file'].split('.')[0][:24]}#{b['body'] % 1000:03d} {b['depth_m']:.2f} m torso "
         f"{np.mean(b['torso']):.1f} feet {np.mean(b['ankles, feet']):.1f}"
         for b in v2["bodies"]))
-    print(f"median |x - {WINDOW}-frame centred moving mean| per axis, mm (joints tracked all "
-          "through the window)")
-    print(f"{'group':<15}{'NTU tracked':>22}{'sim real':>22}{'sim real/NTU':>14}")
+    print(f"median |x - {WINDOW}-frame centred moving mean| per axis, mm (joints "
+          f"{'tracked' if f['states'] else 'present'} all through the window)")
+    print(f"{'group':<15}{col:>22}{'sim real':>22}{'sim real/' + short:>20}")
     for group in GROUPS:
         t = v2["window"][group][0]
-        print(f"{group:<15}{_cells(t, wins[group])}{wins[group].mean() / t.mean():>14.1f}")
+        print(f"{group:<15}{_cells(t, wins[group])}{wins[group].mean() / t.mean():>20.1f}")
     print(f"implied upper bounds for KinectModel (defaults unchanged): noise s.d. x"
           f"{imp['scale']:.3f} at {mid:.2f} m (noise_m {1000 * imp['noise_m']:.2f} mm and "
           f"noise_per_m {1000 * imp['noise_per_m']:.2f} mm/m if both scale alike), feet_noise "
@@ -301,67 +363,75 @@ def print_kinect2(folder: str, v2: dict, sims: dict, wins: dict, matched: dict,
           "torso; the model's torso factor is 1)")
     print("check, the 'real' preset with those four settings: " + ", ".join(
         f"{g} {' / '.join(f'{x:.1f}' for x in matched[g])}" for g in GROUPS))
-    print("caveats: NTU's actions move hands and arms (their real figure is mostly motion); "
-          "whether NTU's skeletons were smoothed beyond what the Kinect v2 SDK does is not "
-          "documented; one depth cannot split noise_m from noise_per_m")
+    print("caveats: real figures hold the joints' motion (hands and arms most); whether the "
+          "recordings were smoothed beyond what the Kinect v2 SDK does is not documented; "
+          "one depth cannot split noise_m from noise_per_m")
+
+
+def kinect2_report(folder: str, fmt: str, seeds: int, frames: int) -> tuple:
+    """(v2 statistics, sims real/clean, sim window statistic, sim with the implied settings,
+    implied settings) for one folder of Kinect v2 recordings."""
+    v2 = kinect2_jitter(folder, fmt)
+    depth = v2["facts"]["depth_m"][1]
+    sims = {p: sim_jitter(p, depth, seeds, frames) for p in ("real", "clean")}
+    wins = sim_jitter("real", depth, seeds, frames, window=True)
+    imp = implied(v2, sims)
+    matched = sim_jitter("real", depth, seeds, frames, overrides={
+        k: imp[k] for k in ("noise_m", "noise_per_m", "feet_noise", "hands_noise")})
+    return v2, sims, wins, matched, imp
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("data_dir", nargs="?", help="folder of N-UCLA JSON files "
                     "(docs/datasets.md); only the development subjects are read")
-    ap.add_argument("--kinect2", metavar="DIR", help="folder of Kinect v2 recordings too")
-    ap.add_argument("--format", choices=("ntu",), default="ntu",
-                    help="format of the --kinect2 files: NTU RGB+D .skeleton (the only one "
-                    "so far)")
+    ap.add_argument("--kinect2", metavar="DIR", action="append", default=[],
+                    help="folder of Kinect v2 recordings too (repeatable)")
+    ap.add_argument("--format", choices=("auto",) + tuple(READERS), default="auto",
+                    help="format of the --kinect2 files: NTU RGB+D .skeleton, Kinectron "
+                    ".json, or by extension (auto)")
     ap.add_argument("--quick", action="store_true", help="1 simulated seed x 200 frames "
                     "instead of 5 x 600 (a smoke test)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    if args.data_dir is None and args.kinect2 is None:
+    if args.data_dir is None and not args.kinect2:
         ap.error("give an N-UCLA folder, --kinect2 DIR, or both")
-    for folder in (args.data_dir, args.kinect2):
+    for folder in [args.data_dir] + args.kinect2:
         if folder is not None and not os.path.isdir(folder):
             print(f"bench: {folder}: no such folder (docs/datasets.md says how to get the "
                   "data)", file=sys.stderr)
             return 2
     seeds, frames = (1, 200) if args.quick else (5, 600)
     label = f"{seeds} seed{'s' if seeds > 1 else ''} x {frames}"
-    report: dict = {}
+    nucla_report = None
     if args.data_dir is not None:
         real, facts = real_jitter(args.data_dir)
         if not facts["views"]:
             print(f"bench: no development N-UCLA views in {args.data_dir}", file=sys.stderr)
             return 2
         sims = {p: sim_jitter(p, facts["depth_m"][1], seeds, frames) for p in ("real", "clean")}
-        report["nucla"] = (real, facts, sims)
-    if args.kinect2 is not None:
+        nucla_report = (real, facts, sims)
+    v2_reports = {}
+    for folder in args.kinect2:
+        fmt = detect_format(folder) if args.format == "auto" else args.format
         try:
-            v2 = kinect2_jitter(args.kinect2)
+            v2_reports[folder] = kinect2_report(folder, fmt, seeds, frames)
         except ConfigError as exc:
             print(f"bench: {exc}", file=sys.stderr)
             return 2
-        if not v2["facts"]["bodies"]:
-            print(f"bench: no NTU .skeleton bodies of 0.5 s or more in {args.kinect2}",
-                  file=sys.stderr)
+        except IndexError:      # no body long enough: no depth to simulate at
+            print(f"bench: no {fmt} bodies of 0.5 s or more in {folder}", file=sys.stderr)
             return 2
-        depth = v2["facts"]["depth_m"][1]
-        sims2 = {p: sim_jitter(p, depth, seeds, frames) for p in ("real", "clean")}
-        wins = sim_jitter("real", depth, seeds, frames, window=True)
-        imp = implied(v2, sims2)
-        matched = sim_jitter("real", depth, seeds, frames, overrides={
-            k: imp[k] for k in ("noise_m", "noise_per_m", "feet_noise", "hands_noise")})
-        report["kinect2"] = (v2, sims2, wins, matched, imp)
     if args.json:
         out: dict = {}
-        if "nucla" in report:
-            real, facts, sims = report["nucla"]
+        if nucla_report is not None:
+            real, facts, sims = nucla_report
             out.update({"real": {g: v.tolist() for g, v in real.items()}, "facts": facts,
                         "sim": {p: {g: v.tolist() for g, v in s.items()}
                                 for p, s in sims.items()}})
-        if "kinect2" in report:
-            v2, sims2, wins, matched, imp = report["kinect2"]
-            out["kinect2"] = {
+        out["kinect2"] = {}
+        for folder, (v2, sims2, wins, matched, imp) in v2_reports.items():
+            out["kinect2"][folder] = {
                 **{k: {g: {"mm": v[0].tolist(), "n": v[1]} for g, v in v2[k].items()}
                    for k in ("tracked", "inferred", "window")},
                 "bodies": v2["bodies"], "facts": v2["facts"], "implied": imp,
@@ -370,11 +440,10 @@ def main() -> int:
                 "sim_implied": {g: v.tolist() for g, v in matched.items()}}
         print(json.dumps(out, indent=1))
         return 0
-    if "nucla" in report:
-        print_nucla(*report["nucla"], frames=label)
-    if "kinect2" in report:
-        v2, sims2, wins, matched, imp = report["kinect2"]
-        print_kinect2(args.kinect2, v2, sims2, wins, matched, imp, frames=label)
+    if nucla_report is not None:
+        print_nucla(*nucla_report, frames=label)
+    for folder, report in v2_reports.items():
+        print_kinect2(folder, *report, frames=label)
     return 0
 
 

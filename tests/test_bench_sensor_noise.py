@@ -100,3 +100,32 @@ def test_a_malformed_file_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
     assert bench.main() == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("bench: ") and ".skeleton:3: a body line" in err[0]
+
+
+def kinectron_frame(body_id: str, t_ms: float, positions: np.ndarray) -> dict:
+    return {"bodyIndex": 0, "tracked": True, "trackingId": body_id, "leftHandState": 1,
+            "rightHandState": 1, "record_startime": 1518026639637, "record_timestamp": t_ms,
+            "joints": [{"cameraX": x, "cameraY": y, "cameraZ": z, "depthX": 0.5}
+                       for x, y, z in positions]}
+
+
+def test_kinectron_frames_go_on_the_30_hz_grid_by_their_time_stamps(tmp_path):
+    import json
+    n = 40
+    pos = zigzag(n, 0.001, seed=3)
+    frames = [kinectron_frame("72057594037928243", 11 + 1000 * k / 30 + (k % 3 - 1) * 4,
+                              pos[k]) for k in range(n) if k not in (20, 21)]  # 2 missed
+    (tmp_path / "take.json").write_text(json.dumps(frames))
+    assert bench.detect_format(str(tmp_path)) == "kinectron"
+    got = bench.kinect2_jitter(str(tmp_path), "kinectron")
+    assert not got["facts"]["states"] and got["facts"]["bodies"] == 1
+    # the two missed frames are absent, not shorter steps: 4 triples hold one of them
+    assert got["facts"]["frame_triples"] == n - 2 - 4
+    assert np.allclose(got["tracked"]["ankles, feet"][0], 4.0)
+    assert got["inferred"]["torso"][1] == 0
+
+
+def test_a_file_that_is_not_a_kinectron_recording_is_refused(tmp_path):
+    (tmp_path / "take.json").write_text('[{"trackingId": "1", "joints": []}]')
+    with pytest.raises(bench.ConfigError, match="take.json.*not a Kinectron body recording"):
+        bench.kinect2_jitter(str(tmp_path), "kinectron")
