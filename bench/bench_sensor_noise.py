@@ -370,8 +370,11 @@ def print_kinect2(folder: str, v2: dict, sims: dict, wins: dict, matched: dict,
 
 def kinect2_report(folder: str, fmt: str, seeds: int, frames: int) -> tuple:
     """(v2 statistics, sims real/clean, sim window statistic, sim with the implied settings,
-    implied settings) for one folder of Kinect v2 recordings."""
+    implied settings) for one folder of Kinect v2 recordings; ConfigError on a bad file or
+    a folder without a body seen for 0.5 s."""
     v2 = kinect2_jitter(folder, fmt)
+    if not v2["facts"]["bodies"]:
+        raise ConfigError(f"no {fmt} bodies seen for 0.5 s or more", path=folder)
     depth = v2["facts"]["depth_m"][1]
     sims = {p: sim_jitter(p, depth, seeds, frames) for p in ("real", "clean")}
     wins = sim_jitter("real", depth, seeds, frames, window=True)
@@ -418,9 +421,6 @@ def main() -> int:
             v2_reports[folder] = kinect2_report(folder, fmt, seeds, frames)
         except ConfigError as exc:
             print(f"bench: {exc}", file=sys.stderr)
-            return 2
-        except IndexError:      # no body long enough: no depth to simulate at
-            print(f"bench: no {fmt} bodies of 0.5 s or more in {folder}", file=sys.stderr)
             return 2
     if args.json:
         out: dict = {}

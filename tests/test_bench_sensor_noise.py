@@ -129,3 +129,15 @@ def test_a_file_that_is_not_a_kinectron_recording_is_refused(tmp_path):
     (tmp_path / "take.json").write_text('[{"trackingId": "1", "joints": []}]')
     with pytest.raises(bench.ConfigError, match="take.json.*not a Kinectron body recording"):
         bench.kinect2_jitter(str(tmp_path), "kinectron")
+
+
+def test_a_folder_without_a_long_enough_body_is_one_line_and_exit_2(tmp_path, capsys,
+                                                                     monkeypatch):
+    n = bench.WINDOW - 1
+    pos = zigzag(n, 0.001)
+    write_skeleton_file(tmp_path / "S001C001P001R001A001.skeleton",
+                        [[body(BODY, pos[k], np.full(25, 2))] for k in range(n)])
+    monkeypatch.setattr(sys, "argv", ["bench", "--kinect2", str(tmp_path), "--quick"])
+    assert bench.main() == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no ntu bodies seen for 0.5 s or more" in err[0]
