@@ -712,7 +712,9 @@ def profiled_serve(argv: list[str]) -> int:
             continue
 
         def run(*a, _fn=fn, _name=name, **k):
-            prof = cProfile.Profile()
+            # CPU time of this thread: the wall clock would charge the GIL waits (other
+            # threads running) to whatever function was waiting
+            prof = cProfile.Profile(time.thread_time)
             prof.enable()
             try:
                 return _fn(*a, **k)

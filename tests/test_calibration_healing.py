@@ -427,3 +427,180 @@ def test_threaded_the_observer_only_queues_and_the_worker_still_catches_a_bump(t
     calibrated = run.events("calibrated")
     assert calibrated and calibrated[0].t - bump_t <= 5.0
     assert run.cal.inbox_dropped == 0 and run.cal.crashes == 0
+
+
+def test_the_worker_judges_a_datagram_of_several_people_at_once_and_catches_a_bump(tmp_path):
+    """Live, the worker puts one datagram's skeletons (one sensor, one capture time) through
+    the jump gate together (``JumpGate.check_many``); a bump moves every view of the
+    sensor, and is caught at its first frames as one view at a time would."""
+    from stage.sensors.protocol import encode_bundle
+
+    run = Run(tmp_path, n=3, threaded=True)
+    offset = np.array([1.2, 0.0, 0.0])
+    grouped = []
+    check_many = run.cal._gate.check_many
+
+    def spy(sensor, users, t, centres):
+        grouped.append(len(users))
+        return check_many(sensor, users, t, centres)
+
+    def run_until(until: float) -> None:
+        while run.t < until - 1e-9:
+            truth, _ = dancer(run.t)
+            for k, sid in enumerate(run.ids):
+                msgs = []
+                for user, body in enumerate((truth, truth + offset)):
+                    seen = run.kinects[k].observe(body, user=user)
+                    if seen is not None:
+                        msgs.append(encode_client_joints(sid, user, *seen))
+                if msgs:
+                    run.clock.set(max(run.clock.now(), run.t + 0.002 * k))
+                    run.engine.handle_datagram(encode_bundle(msgs), ("127.0.0.1", 9000 + k))
+            run.engine.tick()
+            run.cal._gate.check_many = spy   # (a crash restart would build a new gate)
+            run.cal.flush()
+            run.engine.drain()
+            run.t = round(run.t + 1 / FPS, 9)
+    try:
+        run_until(4.0)
+        bump_t = run.t
+        run.bump("s1", 10.0)
+        run_until(6.0)
+    finally:
+        run.cal.stop()
+    assert grouped and max(grouped) == 2
+    suspect = run.events("suspect")
+    assert len(suspect) == 1 and "2 of its views jumped" in suspect[0].detail
+    assert suspect[0].t - bump_t <= 0.1
+    assert not run.events("suspect", "s0") and not run.events("suspect", "s2")
+    assert run.cal.crashes == 0
+
+
+def test_check_many_decides_as_one_view_at_a_time():
+    """``JumpGate.check_many`` on one sensor's views of one instant gives the verdicts, the
+    links and the velocities of checking them one by one (the distance it reports may
+    differ in the last bit)."""
+    from stage.calibration.gate import JumpGate
+
+    rng = np.random.default_rng(7)
+    jumps = 0
+    for trial in range(60):
+        one, many = JumpGate(), JumpGate()
+        for gate in (one, many):
+            for sid in ("a", "b", "c"):
+                gate.trust(sid, sid != "c" or trial % 3 != 0)
+        base = rng.normal(size=(4, 3))
+        for step in range(40):
+            t = step / 30
+            for sid in ("a", "b", "c"):
+                centres = base + 0.01 * step + rng.normal(scale=0.03, size=(4, 3))
+                if sid == "b" and step > 20 and trial % 2:
+                    centres = centres + [0.4, 0.0, 0.0]       # bumped
+                if rng.random() < 0.05:
+                    centres[rng.integers(4)] += 0.5           # one view jumps alone
+                users = [int(u) for u in rng.permutation(4)[:rng.integers(1, 5)]]
+                expected = [one.check(sid, u, t, centres[u]) for u in users]
+                got = many.check_many(sid, users, t, centres[users])
+                for e, g in zip(expected, got):
+                    assert (e is None) == (g is None)
+                    if e is not None:
+                        assert e[0] == g[0] and abs(e[1] - g[1]) < 1e-12
+                        jumps += 1
+                if rng.random() < 0.05:
+                    user = int(rng.integers(4))
+                    one.forget(sid, user)
+                    many.forget(sid, user)
+        n = len(one._index)
+        assert one._index == many._index
+        assert np.array_equal(one._links[:n, :n], many._links[:n, :n])
+        assert np.allclose(one._v[:n], many._v[:n], rtol=0, atol=1e-12)
+    assert jumps > 100
+
+
+def test_views_built_together_are_the_views_built_one_by_one():
+    """``View.many`` (one poll's buffers at once) gives ``View.of``'s arrays to the bit,
+    through every way a buffer splits into identities: gaps, torso jumps, another person,
+    a new run of the user id, frames without a torso, sensors without a transform."""
+    from stage.calibration.live import View
+    from stage.frames import SensorFrame
+
+    rng = np.random.default_rng(11)
+    transforms = [None, np.eye(4), invert(ring_poses(3)[1].to_stage)]
+    for trial in range(40):
+        snapshot = []
+        for b in range(int(rng.integers(1, 7))):
+            m = transforms[int(rng.integers(3))]
+            t, centre, person, run, entries = 0.0, rng.normal(size=3), 1, 0, []
+            for k in range(int(rng.integers(1, 16))):
+                t += 1 / 30 + (0.3 if rng.random() < 0.08 else 0.0)
+                centre = centre + (0.5 if rng.random() < 0.08 else 0.01)
+                if rng.random() < 0.06:
+                    person += 1
+                if rng.random() < 0.05:
+                    run += 1
+                joints = centre + rng.normal(scale=0.2, size=(25, 3))
+                conf = rng.choice([0.0, 0.5, 1.0], size=25)
+                if rng.random() < 0.1:
+                    conf[:] = 0.0
+                frame = SensorFrame(f"s{b % 3}", b, t + rng.normal(scale=0.002), joints, conf,
+                                    m, None)
+                entries.append((frame, None if rng.random() < 0.2 else person, run))
+            snapshot.append(entries[::-1])   # as the poll takes them: newest first
+        for one, many in zip([View.of(e) for e in snapshot], View.many(snapshot), strict=True):
+            assert (one.sensor, one.user, one.person) == (many.sensor, many.user, many.person)
+            for name in ("t", "raw", "conf", "stage"):
+                a, b = getattr(one, name), getattr(many, name)
+                assert a.shape == b.shape and a.tobytes() == b.tobytes(), name
+            assert one.transform is many.transform
+
+
+def test_the_monitors_batched_resampling_and_pairs_match_one_view_at_a_time():
+    """``Sampled.of_many`` and ``resample_many`` (one pass for a poll's views) give
+    ``Sampled.of``'s and ``pairs.resample``'s numbers to the bit, and ``Sampled.pairs``
+    the distances of every two views joint by joint: gaps, NaN rows, instants before and
+    after a view, a person with one view."""
+    from stage.calibration.live import View
+    from stage.calibration.pairs import resample
+    from stage.calibration.scoring import CORE, Sampled, grid, resample_many
+
+    rng = np.random.default_rng(5)
+    for trial in range(30):
+        at = grid(1.0, 1.0 + rng.uniform(0.05, 0.4))
+        groups = []
+        for person in range(int(rng.integers(1, 5))):
+            views = []
+            for s in range(int(rng.integers(1, 5))):
+                n = int(rng.integers(1, 20))
+                t = 0.9 + np.sort(rng.uniform(0, 0.6, n))
+                if rng.random() < 0.3:
+                    t = t + 0.1 * (np.arange(n) > n // 2)          # a gap
+                raw = rng.normal(size=(n, 25, 3))
+                conf = rng.choice([0.0, 0.5, 1.0], size=(n, 25))
+                stage = raw + 0.01 * rng.normal(size=raw.shape)
+                if rng.random() < 0.3:
+                    stage[rng.integers(n)] = np.nan                  # no transform then
+                views.append(View(f"s{s}", person, t, raw, conf, stage, person=person))
+            groups.append(views)
+        for one, many in zip([Sampled.of(v, at) for v in groups], Sampled.of_many(groups, at),
+                             strict=True):
+            assert one.sensors == many.sensors
+            assert one.joints.tobytes() == many.joints.tobytes()
+            assert one.conf.tobytes() == many.conf.tobytes()
+            pairs = many.pairs()
+            for i in range(len(one.sensors)):
+                for k in range(i + 1, len(one.sensors)):
+                    w = one.conf[i] * one.conf[k] * CORE
+                    key = tuple(sorted((one.sensors[i], one.sensors[k])))
+                    if not (w > 0).any():
+                        continue
+                    d = np.linalg.norm(one.joints[i][w > 0] - one.joints[k][w > 0], axis=-1)
+                    assert pairs[key][0].tobytes() == d.tobytes()
+                    assert pairs[key][1].tobytes() == w[w > 0].tobytes()
+            assert len(pairs) == sum((one.conf[i] * one.conf[k] * CORE > 0).any()
+                                     for i in range(len(one.sensors))
+                                     for k in range(i + 1, len(one.sensors)))
+        streams = [(v.t, v.raw, v.conf) for views in groups for v in views]
+        j, c = resample_many(streams, at, 0.1, 0.05)
+        for k, (t, raw, conf) in enumerate(streams):
+            rj, rc, _ = resample(t, raw, conf, at, max_gap=0.1, max_dt=0.05)
+            assert rj.tobytes() == j[k].tobytes() and rc.tobytes() == c[k].tobytes()

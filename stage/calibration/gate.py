@@ -104,6 +104,63 @@ class JumpGate:
         names = {k: s for s, k in self._sensors.items()}
         return sorted({names[k] for k in owner[jumped]}), float(d[jumped].max())
 
+    def check_many(self, sensor: str, users: list[int], t: float, centres: np.ndarray,
+                   ) -> list[tuple[list[str], float] | None]:
+        """``check`` for several views of one sensor at one time t (one datagram's
+        skeletons: distinct users), centres (k, 3); one result per view.
+
+        The same as checking them one after another: a view is never compared with views
+        of its own sensor, so no view of the group reads what another one writes (only
+        a caller that stops at the first jump, as the calibrator does once the sensor is
+        left out, sees the later views' positions recorded all the same: they belong to
+        a sensor nobody is compared against until it is trusted again)."""
+        rows = []
+        for user in users:
+            key = (sensor, user)
+            i = self._index.get(key)
+            if i is None:
+                i = self._index[key] = len(self._index)
+                if i >= len(self._t):
+                    self._alloc(2 * len(self._t))
+                self._owner[i] = self._sensor(sensor)
+            rows.append(i)
+        rows_a = np.array(rows)
+        n = len(self._index)
+        dt_self = t - self._t[rows_a]
+        moved = (dt_self > 0) & (dt_self <= 0.2)
+        v = np.zeros((len(rows), 3))
+        if moved.any():
+            v[moved] = (centres[moved] - self._c[rows_a[moved]]) / dt_self[moved, None]
+            speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+            fast = speed > 3.0
+            v[fast] *= (3.0 / speed[fast])[:, None]  # a jump is not a velocity
+        self._v[rows_a] = v
+        self._t[rows_a], self._c[rows_a] = t, centres
+        owner = self._owner[:n]
+        dt = t - self._t[:n]
+        valid = (np.abs(dt) <= 0.1) & self._trusted[owner]
+        valid[owner == self._sensors[sensor]] = False
+        if not valid.any():
+            return [None] * len(rows)
+        predicted = self._c[:n] + self._v[:n] * dt[:, None]               # (n, 3)
+        diff = predicted[None] - centres[:, None]                          # (k, n, 3)
+        d = np.sqrt(np.einsum("kij,kij->ki", diff, diff))
+        agree = valid & (d <= self.agree_m)                                 # (k, n)
+        agreed = agree.any(axis=1)
+        jumped = (valid & (d >= self.gate_m) & ~agreed[:, None]
+                  & (t - self._links[rows_a, :n] <= self.link_s))
+        out: list[tuple[list[str], float] | None] = [None] * len(rows)
+        names = None
+        for r, i in enumerate(rows):
+            if agreed[r]:
+                self._links[i, :n][agree[r]] = t
+                self._links[:n, i][agree[r]] = t
+            elif jumped[r].any():
+                names = names or {k: s for s, k in self._sensors.items()}
+                out[r] = (sorted({names[k] for k in owner[jumped[r]]}),
+                          float(d[r][jumped[r]].max()))
+        return out
+
 
 class CopyDetector:
     """Two sensors sending bit-identical skeletons: one is a copy (a real dataset defect).

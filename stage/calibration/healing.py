@@ -41,10 +41,11 @@ import numpy as np
 
 from ..engine.engine import Engine
 from ..frames import SensorFrame
+from .checks import FrameChecks
 from .collector import Collector
 from .gate import CopyDetector, JumpGate
 from .judge import PairWindow
-from .live import LiveSettings, View, torso_centre
+from .live import LiveSettings, View
 from .livestate import LiveEvent, SensorState
 from .monitor import Monitor
 from .worker import EngineWorker
@@ -57,7 +58,7 @@ MAX_SENSORS = 128
 __all__ = ["LiveCalibrator", "LiveEvent", "attach_live"]
 
 
-class LiveCalibrator(Monitor, Collector, EngineWorker):
+class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
     """See the module docstring. Build with ``attach_live``."""
 
     name = "stage-calibration"
@@ -230,8 +231,19 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         and the GIL are let go between chunks)."""
         while self._inbox:
             with self._lock:
-                for _ in range(min(64, len(self._inbox))):
-                    self._ingest(*self._inbox.popleft())
+                group: list[tuple[SensorFrame, SensorState]] = []  # one datagram's, to judge
+                for _ in range(min(72, len(self._inbox))):
+                    entry = self._inbox.popleft()
+                    frame = entry[0]
+                    if group and (frame.t != group[0][0].t or frame.sensor != group[0][0].sensor
+                                  or any(f.user == frame.user for f, _ in group)):
+                        self._check_jumps(group)
+                        group = []
+                    st = self._keep(*entry)
+                    if st is not None:
+                        group.append((frame, st))
+                if group:
+                    self._check_jumps(group)
             self._yield()
 
     def _ingest(self, frame: SensorFrame, track: object, person: int | None,
@@ -239,6 +251,13 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
         """One frame into the buffers, the copy detector and the jump gate (caller holds
         the lock). ``track``, ``person``, ``reference``: as the engine had them when the
         frame came."""
+        st = self._keep(frame, track, person, reference)
+        if st is not None:
+            self._check_jump(frame, st)
+
+    def _keep(self, frame: SensorFrame, track: object, person: int | None,
+              reference: str | None) -> SensorState | None:
+        """``_ingest`` but the jump check: the frame's state when the check is due, else None."""
         s = self.settings
         self._reference = reference
         if frame.sensor not in self._states and len(self._states) >= MAX_SENSORS:
@@ -263,7 +282,8 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
             if pair is not None:
                 self._flag_identical(pair, frame.t)
         if s.heal and st.state == "ok" and frame.transform is not None:
-            self._check_jump(frame, st)
+            return st
+        return None
 
     def _new_state(self, frame: SensorFrame) -> SensorState:
         sid = frame.sensor
@@ -305,61 +325,6 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
                 "calibration yet", st.epoch + 1
             st.last_good = None
             self._gate.trust(sid, False)
-            self._note(st)
-
-    def _check_jump(self, frame: SensorFrame, st: SensorState) -> None:
-        """Quarantine at once a sensor whose views jumped away from sensors they agreed with.
-
-        One view jumping is a bump only when it is all the sensor sees; with
-        several people, a bump moves every view of the sensor in the same
-        frame, while one view alone jumping is the sensor giving a freed user
-        id to another person (a Kinect reuses its body indices): that view's
-        old agreements are forgotten instead.
-        """
-        m = frame.transform
-        # tracked torso joints only: a torso the sensor only infers (a person hidden in a
-        # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved
-        c = torso_centre(frame.joints, frame.conf, tracked_only=True)
-        if c is None or m is None:
-            return
-        sid, user, t = frame.sensor, frame.user, frame.t - st.lag_s  # on stage time
-        jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
-        if jumped is None:
-            return
-        others = [u for (s2, u), buf in self._buffers.items()
-                  if s2 == sid and u != user and buf and t - buf[-1][0].t <= 0.1]
-        first, users = self._jumps.get(sid, (t, set()))
-        if abs(t - first) > 0.02:        # a jump of an earlier frame: start counting again
-            first, users = t, set()
-        users.add(user)
-        self._jumps[sid] = (first, users)
-        if others and len(users) < 2:
-            self._gate.forget(sid, user)  # one view of several: another person took its id
-            return
-        sensors, distance = jumped
-        self._quarantine(st, t, f"{'its view' if not others else f'{len(users)} of its views'} "
-                                f"jumped {distance:.2f} m away from {', '.join(sensors)} "
-                                "(moved or bumped?)")
-
-    def _flag_identical(self, pair: tuple[str, str], t: float) -> None:
-        a, b = pair
-        ref = self._reference
-        if a == ref or (b != ref and self._order.index(a) < self._order.index(b)):
-            original, copy = a, b
-        else:
-            original, copy = b, a
-        st = self._states[copy]
-        st.duplicate_of = original
-        reason = (f"sends skeletons bit-identical to {original}'s: a copied stream, not a "
-                  "sensor; left out")
-        log.warning("sensor %s %s", copy, reason)
-        self._event(LiveEvent(t, copy, "identical", reason))
-        if st.state == "ok":
-            self._quarantine(st, t, reason, force=True)
-        else:
-            st.reason = reason
-            st.epoch += 1
-            st.reset_pairs()
             self._note(st)
 
     def _quarantine(self, st: SensorState, t: float, reason: str, force: bool = False) -> bool:
@@ -464,8 +429,7 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
             lags = {sid: st.lag_s for sid, st in self._states.items() if st.lag_s}
             self._expire_duplicates(now)
         views: dict[str, list[View]] = {}
-        for entries in snapshot:
-            view = View.of(entries)
+        for view in View.many(snapshot):
             if view.sensor in lags:  # onto stage time: its clock runs lag_s from it
                 view.t = view.t - lags[view.sensor]
             views.setdefault(view.sensor, []).append(view)
@@ -492,18 +456,6 @@ class LiveCalibrator(Monitor, Collector, EngineWorker):
                 st.state == "ok" and st.pairs is None and not st.requested and not st.busy
                 and st.duplicate_of is None and st.below_since is None
                 for st in self._states.values())
-
-    def _expire_duplicates(self, now: float) -> None:
-        for pair in self._copies.expired(now):
-            for sid in pair:
-                st = self._states.get(sid)
-                if st is not None and st.duplicate_of in pair:
-                    st.duplicate_of = None
-                    st.collect_from = st.collected_to = now
-                    st.reason = "no longer a copy: checking and re-calibrating"
-                    st.reset_pairs()
-                    st.epoch += 1
-                    self._note(st)
 
 
 

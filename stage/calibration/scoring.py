@@ -67,20 +67,56 @@ class Sampled:
             names.append(v.sensor)
         if not js:
             return cls([], np.zeros((0, len(at), N_JOINTS, 3)), np.zeros((0, len(at), N_JOINTS)))
-        return cls(names, np.stack(js), np.stack(cs))
+        return cls(names, np.array(js), np.array(cs))
 
-    def pairs(self) -> Distances:
-        """Joint distances of every two of these views (both seen), keyed (a, b), a < b."""
-        out: Distances = {}
-        for i in range(len(self.sensors)):
-            for k in range(i + 1, len(self.sensors)):
-                w = self.conf[i] * self.conf[k] * CORE
-                keep = w > 0
-                if not keep.any():
+    @classmethod
+    def of_many(cls, groups: list[list[View]], at: np.ndarray) -> list["Sampled"]:
+        """``[Sampled.of(views, at) for views in groups]``, the same arrays to the bit, with
+        one resampling pass over every view of every group (a poll's persons)."""
+        flat = [v for views in groups for v in views]
+        streams, owner = [], []
+        for g, views in enumerate(groups):
+            for v in views:
+                rows = np.isfinite(v.stage).all(axis=(1, 2))
+                if rows.all():
+                    streams.append((v.t, v.stage, v.conf))
+                elif rows.any():
+                    streams.append((v.t[rows], v.stage[rows], v.conf[rows]))
+                else:
                     continue
-                d = np.linalg.norm(self.joints[i][keep] - self.joints[k][keep], axis=-1)
-                a, b = sorted((self.sensors[i], self.sensors[k]))
-                _add(out, (a, b), d, w[keep])
+                owner.append((g, v.sensor))
+        if not flat or not len(at) or not streams:
+            return [cls.of(views, at) for views in groups]
+        joints, conf = resample_many(streams, at, max_gap=0.1, max_dt=0.05)
+        out = []
+        first = 0
+        for g in range(len(groups)):
+            last = first
+            while last < len(owner) and owner[last][0] == g:
+                last += 1
+            if last == first:
+                out.append(cls([], np.zeros((0, len(at), N_JOINTS, 3)),
+                               np.zeros((0, len(at), N_JOINTS))))
+            else:
+                out.append(cls([name for _, name in owner[first:last]], joints[first:last],
+                               conf[first:last]))
+            first = last
+        return out
+
+    def pairs(self, out: Distances | None = None) -> Distances:
+        """Joint distances of every two of these views (both seen), keyed (a, b), a < b
+        (added to ``out``, if given, as ``_add`` does)."""
+        out = {} if out is None else out
+        n = len(self.sensors)
+        if n < 2:
+            return out
+        first, second = np.triu_indices(n, 1)         # the pairs, in the order (0, 1), (0, 2)...
+        w = self.conf[first] * self.conf[second] * CORE                    # (pairs, G, 25)
+        keep = w > 0
+        d = np.linalg.norm(self.joints[first] - self.joints[second], axis=-1)
+        for p in np.flatnonzero(keep.any(axis=(1, 2))):
+            a, b = sorted((self.sensors[first[p]], self.sensors[second[p]]))
+            _add(out, (a, b), d[p][keep[p]], w[p][keep[p]])
         return out
 
     def centre(self) -> np.ndarray:
@@ -92,6 +128,45 @@ class Sampled:
         out = total / np.maximum(n, 1)[:, None]
         out[n == 0] = np.nan
         return out
+
+
+def resample_many(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], at: np.ndarray,
+                  max_gap: float, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """``pairs.resample`` of every (times (n,), joints (n, J, 3), conf (n, J)) stream (none
+    empty) at the instants ``at`` (m,), stacked: (joints (V, m, J, 3), conf (V, m, J)), the
+    same numbers to the bit, with one pass of array operations for all of them."""
+    sizes = np.array([len(t) for t, _, _ in streams])
+    offset = np.concatenate([[0], np.cumsum(sizes)[:-1]])[:, None]
+    times = np.concatenate([t for t, _, _ in streams])
+    joints = np.concatenate([j for _, j, _ in streams])
+    conf = np.concatenate([c for _, _, c in streams])
+    idx = np.array([np.searchsorted(t, at) for t, _, _ in streams])     # (V, m), per stream
+    n = sizes[:, None]
+    i0 = np.maximum(idx - 1, 0) + offset
+    i1 = np.minimum(idx, n - 1) + offset
+    when = np.broadcast_to(at, idx.shape)
+    shape = idx.shape
+    out_j = np.zeros(shape + joints.shape[1:])
+    out_c = np.zeros(shape + conf.shape[1:])
+    span = times[i1] - times[i0]
+    valid = (idx > 0) & (idx < n) & (span > 0) & (span <= max_gap)
+    if valid.any():
+        a = ((when[valid] - times[i0[valid]]) / span[valid])[:, None, None]
+        out_j[valid] = (1 - a) * joints[i0[valid]] + a * joints[i1[valid]]
+        c0, c1 = conf[i0[valid]], conf[i1[valid]]
+        out_c[valid] = np.where((c0 > 0) & (c1 > 0), np.minimum(c0, c1), 0.0)
+    if not valid.all():
+        d0 = np.where(idx > 0, np.abs(when - times[i0]), np.inf)
+        d1 = np.where(idx < n, np.abs(times[i1] - when), np.inf)
+        near = np.where(d0 <= d1, i0, i1)
+        nearest = ~valid & (np.minimum(d0, d1) <= max_dt)
+        out_j[nearest] = joints[near[nearest]]
+        out_c[nearest] = conf[near[nearest]]
+    return out_j, out_c
+
+
+def _sensor_of(view: View) -> str:
+    return view.sensor
 
 
 def _add(out: Distances, key: tuple[str, str], d: np.ndarray, w: np.ndarray) -> None:
@@ -120,13 +195,15 @@ def distances(views: dict[str, list[View]], states: dict, at: np.ndarray, match_
                 persons.setdefault(v.person, []).append(v)
     trusted: Distances = {}
     sampled_persons = []
-    for pid in sorted(persons):
-        sampled = Sampled.of(sorted(persons[pid], key=lambda v: v.sensor), at)
-        for key, (d, w) in sampled.pairs().items():
-            _add(trusted, key, d, w)
+    groups = [sorted(persons[pid], key=_sensor_of) for pid in sorted(persons)]
+    for sampled in Sampled.of_many(groups, at):
+        sampled.pairs(trusted)
         if sampled.sensors:
-            sampled_persons.append((sampled, sampled.centre()))
+            sampled_persons.append(sampled)
     suspects: Distances = {}
+    if any(state == "suspect" and last_good is not None and dup is None
+           for state, _t, last_good, dup in states.values()):
+        sampled_persons = [(sampled, sampled.centre()) for sampled in sampled_persons]
     for sid, (state, _t, last_good, dup) in states.items():
         if state != "suspect" or last_good is None or dup is not None:
             continue

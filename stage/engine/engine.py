@@ -237,6 +237,13 @@ class Engine:
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message
+        kind = type(msg)
+        if kind is JointCoordinates or kind is HandStateMsg:
+            # the stream itself (three messages a skeleton): straight to its handler
+            client = self.registry.client(msg, item)
+            if client is not None:
+                self._on_data(client, msg, item, t)
+            return
         if isinstance(msg, Call):
             msg.fn(self)
             return
@@ -263,14 +270,8 @@ class Engine:
         client = self.registry.client(msg, item)
         if client is None:
             return
-        if isinstance(msg, JointCoordinates):
-            stamp = item.arrival if item.timetag is None else item.timetag
-            self._on_frame(client, msg, t, item.arrival, stamp)
-        elif isinstance(msg, HandStateMsg):
-            track = client.tracks.get(msg.user)
-            if track is None:
-                track = client.tracks[msg.user] = Track(client.id, msg.user)
-            self.people.hand(track, msg.hand, msg.state, t)
+        if isinstance(msg, (JointCoordinates, HandStateMsg)):
+            self._on_data(client, msg, item, t)
         elif isinstance(msg, FloorPlane):
             client.floor = msg.plane
         elif isinstance(msg, NewUser):
@@ -282,6 +283,17 @@ class Engine:
             track = client.tracks.pop(msg.user, None)
             if track is not None:
                 self._drop_track(track, t)
+
+    def _on_data(self, client: ClientState, msg: JointCoordinates | HandStateMsg, item: Inbound,
+                 t: float) -> None:
+        if isinstance(msg, JointCoordinates):
+            stamp = item.arrival if item.timetag is None else item.timetag
+            self._on_frame(client, msg, t, item.arrival, stamp)
+            return
+        track = client.tracks.get(msg.user)
+        if track is None:
+            track = client.tracks[msg.user] = Track(client.id, msg.user)
+        self.people.hand(track, msg.hand, msg.state, t)
 
     def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
         """Use a new sensor->stage transform from now on (None: leave the sensor out)."""

@@ -214,8 +214,8 @@ class Fuser:
     def _agrees(self, view: View, members: list[_Step]) -> bool:
         """Whether ``view`` agrees with every view of its instant on every joint both see
         (the test of ``fusion.consistent_views``; the prior cannot change the choice then)."""
-        z = np.stack([m.view.joints for m in members])
-        r = np.stack([m.view.r for m in members])
+        z = np.array([m.view.joints for m in members])
+        r = np.array([m.view.r for m in members])
         d = z - view.joints
         with np.errstate(invalid="ignore"):
             d2 = (d * d).sum(axis=2) / (r + view.r + 2.0 * self.f.view_bias_m ** 2)
@@ -233,8 +233,8 @@ class Fuser:
             first.prior = body.prior(anchor, self.s)
             body.state = saved
         prior, var = first.prior
-        z = np.stack([v.joints for v in views])
-        r = np.stack([v.r for v in views])
+        z = np.array([v.joints for v in views])
+        r = np.array([v.r for v in views])
         gate2 = self.s.gate_sigma ** 2
         return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2)
 

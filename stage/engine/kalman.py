@@ -46,6 +46,7 @@ benchmarks use them, with the outlier gate:
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -87,7 +88,7 @@ def transition(dt: np.ndarray, s: KalmanSettings) -> tuple[np.ndarray, np.ndarra
 
 def _outer(d: np.ndarray) -> np.ndarray:
     """(3, ...) packed outer product of d = (2, ...) [position, velocity] differences."""
-    return np.stack([d[0] * d[0], d[0] * d[1], d[1] * d[1]])
+    return np.array([d[0] * d[0], d[0] * d[1], d[1] * d[1]])
 
 
 def mix(x: np.ndarray, P: np.ndarray, mu: np.ndarray, p01: np.ndarray, p10: np.ndarray,
@@ -103,8 +104,8 @@ def mix(x: np.ndarray, P: np.ndarray, mu: np.ndarray, p01: np.ndarray, p10: np.n
     p10 = p10[:, None]
     a1 = p10 * mu[1]                        # T10 mu1
     b1 = (1.0 - p10) * mu[1]                # T11 mu1
-    cbar = np.stack([(1.0 - p01) * mu[0] + a1, p01 * mu[0] + b1])
-    w1 = np.stack([a1, b1]) / cbar          # (M, N, 3): weight of mode 1 in each mixture
+    cbar = np.array([(1.0 - p01) * mu[0] + a1, p01 * mu[0] + b1])
+    w1 = np.array([a1, b1]) / cbar          # (M, N, 3): weight of mode 1 in each mixture
     d = x[:, 1] - x[:, 0]                   # (2, N, 3)
     x0 = x[:, 0, None] + w1 * d[:, None]
     P0 = P[:, 0, None] + w1 * (P[:, 1] - P[:, 0])[:, None] + (w1 * (1.0 - w1)) * _outer(d)[:, None]
@@ -149,9 +150,9 @@ def update(x: np.ndarray, P: np.ndarray, cbar: np.ndarray, z: np.ndarray, r: np.
     inv = 1.0 / s
     k1 = b * inv
     g = r3 * inv                                             # 1 - k0 without cancellation
-    x_new = np.stack([x[0] + (a * inv) * y, x[1] + k1 * y])
+    x_new = np.array([x[0] + (a * inv) * y, x[1] + k1 * y])
     # (I - K H) P, filterpy's Joseph form for the optimal gain
-    P_new = np.stack([a * g, b * g, c - k1 * b])
+    P_new = np.array([a * g, b * g, c - k1 * b])
     # mode probabilities: cbar times each mode's likelihood, normalised; the largest
     # log-likelihood is taken out first so that nothing underflows for big innovations
     log_l = -0.5 * (np.log(s) + y * y * inv)                 # (the 2 pi cancels)
@@ -277,12 +278,27 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     row's time (the engine replays out-of-order frames before this happens). ``q_scale``
     (N,): per-row factor on both modes' process noise (default 1).
     """
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        return _step(state, t, z, r, s, q_scale)
+
+
+@functools.lru_cache(maxsize=16)
+def _mode_noise(quiet: float, fast: float) -> np.ndarray:
+    """(M,) the modes' acceleration variances (read-only: shared by every step)."""
+    q = np.array([quiet, fast])
+    q.setflags(write=False)
+    return q
+
+
+def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+          s: KalmanSettings, q_scale: np.ndarray | None) -> np.ndarray:
+    """``step``, inside one ``np.errstate`` (entering one costs as much as a few array
+    operations of a step)."""
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
     t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
-    with np.errstate(invalid="ignore"):
-        valid = (r > 0) & np.isfinite(r) & np.isfinite(z.sum(axis=1)) & np.isfinite(t)
+    valid = (r > 0) & np.isfinite(r) & np.isfinite(z.sum(axis=1)) & np.isfinite(t)
     outcome = np.zeros(n, dtype=np.int8)
     init = ~np.isnan(state.t)
     upd = valid & init
@@ -292,19 +308,18 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
         # or junk) and only the measured ones are kept: one pass of whole-array operations
         # is cheaper than gathering and scattering the rows
         dt = np.where(upd, np.maximum(t - state.t, 0.0), 0.0)
-        q = np.array([s.quiet_noise, s.fast_noise])
+        q = _mode_noise(s.quiet_noise, s.fast_noise)
         if q_scale is not None:
             q = q[:, None] * np.asarray(q_scale, dtype=float)[None]
         gate2 = s.gate_sigma ** 2
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
-            xp, Pp = predict(x0, P0, dt, q)
-            d2 = gate_distance(xp, Pp, cbar, z, r)
-            # beyond the gate the variance grows with the distance: r d^2 / gate^2
-            xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
-            use = upd & (d2 <= s.reject_sigma ** 2)
-            outcome = np.where(upd, np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED),
-                               NOT_MEASURED).astype(np.int8)
+        x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
+        xp, Pp = predict(x0, P0, dt, q)
+        d2 = gate_distance(xp, Pp, cbar, z, r)
+        # beyond the gate the variance grows with the distance: r d^2 / gate^2
+        xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
+        use = upd & (d2 <= s.reject_sigma ** 2)
+        outcome = np.where(upd, np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED),
+                           NOT_MEASURED).astype(np.int8)
         if use.all():
             state.x, state.P, state.mu = xu, Pu, muu
             state.t = np.maximum(t, state.t)

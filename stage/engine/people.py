@@ -125,9 +125,9 @@ class People:
         live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
         # each joint's variance from its confidence and its distance from the sensor (whose
         # position in stage space is the translation of its transform), all views at once
-        joints = np.stack([v.joints for _, v, _ in views])                  # (K, 25, 3)
-        conf = np.stack([v.conf for _, v, _ in views])                      # (K, 25)
-        offset = joints - np.stack([where for _, _, where in views])[:, None]
+        joints = np.array([v.joints for _, v, _ in views])                  # (K, 25, 3)
+        conf = np.array([v.conf for _, v, _ in views])                      # (K, 25)
+        offset = joints - np.array([where for _, _, where in views])[:, None]
         seen = conf > 0
         r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0),
                                                 np.sqrt((offset * offset).sum(axis=2)),
@@ -153,15 +153,15 @@ class People:
         for all persons of a batch at once."""
         stale = self.rig.fusion.stale_s
         t = np.array([max(p.t, p.filter.output[0]) for p in persons])
-        pos = np.stack([p.filter.output[1] for p in persons])           # (P, 25, 3)
-        vel = np.stack([p.filter.output[2] for p in persons])
-        row_t = np.stack([p.filter.state.t for p in persons])           # (P, 25)
-        conf = np.stack([self._recent_conf(p, tp, stale) for p, tp in zip(persons, t)])
+        pos = np.array([p.filter.output[1] for p in persons])           # (P, 25, 3)
+        vel = np.array([p.filter.output[2] for p in persons])
+        row_t = np.array([p.filter.state.t for p in persons])           # (P, 25)
+        conf = np.array([self._recent_conf(p, tp, stale) for p, tp in zip(persons, t)])
         # a joint a sensor sees whose filter has had a measurement lately: one whose
         # latest frames were gated out is sent where the filter predicts it
         seen = (conf > 0) & (t[:, None] - row_t <= stale) & np.isfinite(pos).all(axis=2)
-        joints = np.where(seen[..., None], pos, np.stack([p.joints for p in persons]))
-        known = np.stack([p.known for p in persons]) | seen
+        joints = np.where(seen[..., None], pos, np.array([p.joints for p in persons]))
+        known = np.array([p.known for p in persons]) | seen
         conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
         vel = np.where(np.isfinite(vel), vel, 0.0)
         # the centre uses every torso joint ever seen, not just this frame's, so it

@@ -247,7 +247,7 @@ class Tracker:
         if len(live) < 2:
             self._close_since.clear()
             return
-        centres = np.stack([p.centre for p in live])
+        centres = np.array([p.centre for p in live])
         diff = centres[:, None] - centres[None]
         near = (diff * diff).sum(axis=2) <= fs.merge_m ** 2      # every pair at once
         for i, j in zip(*np.nonzero(np.triu(near, 1))):
