@@ -46,10 +46,16 @@ def fold_loops(a: Stream, lag_a: float, b: Stream, lag_b: float, period: float,
     def fold(s: Stream, lag: float) -> Stream:
         raw = s.t + lag
         folded = restart + np.mod(raw - restart, period)
-        _, keep = np.unique(np.round(folded, 4), return_index=True)
-        out = Stream(s.sensor, folded[keep] - lag, np.zeros(len(keep), int), s.joints[keep],
-                     s.conf[keep], s.floor)
-        return out
+        # one frame per skeleton, its newest pass: repeats are bit-identical, while their
+        # folded times differ by the period's error (live timetags put a 1.5 s loop at
+        # 1.4989 s) and, deduplicated by time, left near-copies 1 ms apart that made the
+        # lag search's frame step 1 ms (thousands of lags: the worker stalled for good)
+        newest: dict[bytes, int] = {}
+        for k, row in enumerate(s.joints):
+            newest[np.ascontiguousarray(row).tobytes()] = k
+        keep = np.array(sorted(newest.values(), key=lambda k: folded[k]), dtype=int)
+        return Stream(s.sensor, folded[keep] - lag, np.zeros(len(keep), int), s.joints[keep],
+                      s.conf[keep], s.floor)
     return fold(a, lag_a), fold(b, lag_b)
 
 
