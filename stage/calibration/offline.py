@@ -354,7 +354,12 @@ def _refine_lag(a: Stream, b: Stream, lag_s: float, ps: PairSet, used: PairSet,
     what the overlap is judged by. Long overlaps keep the search's lag: their lag is sharp
     and this would cost seconds. Returns (lag, pairs, pairs used, result)."""
     step = b.frame_interval() / 4.0
-    best = (result.median_m, lag_s, ps, used, result)
+    quick = {**options, "starts": 0}  # the scan: one start each; the winner refitted in full
+    try:
+        base = calibrate(used, "rigid", **quick).median_m
+    except CalibrationError:
+        return lag_s, ps, used, result
+    scan = (base, lag_s, ps, used)
     for k in (-4, -3, -2, -1, 1, 2, 3, 4):
         lag = lag_s + k * step
         try:
@@ -365,12 +370,17 @@ def _refine_lag(a: Stream, b: Stream, lag_s: float, ps: PairSet, used: PairSet,
             continue  # a few frames at the edge fit anything
         used_k = ps_k.evenly(n_pairs)
         try:
-            res_k = calibrate(used_k, "rigid", **options)
+            med_k = calibrate(used_k, "rigid", **quick).median_m
         except CalibrationError:
             continue
-        if res_k.median_m < best[0] - 1e-6:
-            best = (res_k.median_m, lag, ps_k, used_k, res_k)
-    return best[1], best[2], best[3], best[4]
+        if med_k < scan[0] - 1e-6:
+            scan = (med_k, lag, ps_k, used_k)
+    if scan[1] == lag_s:
+        return lag_s, ps, used, result
+    full = calibrate(scan[3], "rigid", **options)
+    if full.median_m < result.median_m - 1e-6:
+        return scan[1], scan[2], scan[3], full
+    return lag_s, ps, used, result
 
 
 def _summary(s: str, transforms: dict[str, np.ndarray], composed: np.ndarray, path: list[str],
