@@ -546,12 +546,18 @@ def test_views_built_together_are_the_views_built_one_by_one():
                                     m, None)
                 entries.append((frame, None if rng.random() < 0.2 else person, run))
             snapshot.append(entries[::-1])   # as the poll takes them: newest first
-        for one, many in zip([View.of(e) for e in snapshot], View.many(snapshot), strict=True):
+        shifts = [float(rng.choice([0.0, 0.38, -1.2])) for _ in snapshot]  # sensors' lags
+        singles = [View.of(e, shift) for e, shift in zip(snapshot, shifts)]
+        for one, many in zip(singles, View.many(snapshot, shifts), strict=True):
             assert (one.sensor, one.user, one.person) == (many.sensor, many.user, many.person)
-            for name in ("t", "raw", "conf", "stage"):
-                a, b = getattr(one, name), getattr(many, name)
-                assert a.shape == b.shape and a.tobytes() == b.tobytes(), name
-            assert one.transform is many.transform
+            assert one.shift == many.shift and (one.entries is None) == (many.entries is None)
+            for whole in (False, True):  # the newest run, then every run (View.whole)
+                for name in ("t", "raw", "conf", "stage"):
+                    a, b = getattr(one, name), getattr(many, name)
+                    assert a.shape == b.shape and a.tobytes() == b.tobytes(), name
+                assert one.transform is many.transform
+                one, many = one.whole(), many.whole()
+            assert np.array_equal(one.run, many.run)
 
 
 def test_the_monitors_batched_resampling_and_pairs_match_one_view_at_a_time():

@@ -123,3 +123,32 @@ def test_the_live_lag_search_keeps_one_person_found_again(tracked):
     assert search is not None and ours is not None
     assert search.overlap >= len(ours) - 3      # every frame pairs but the edges
     assert abs(search.lag_s) <= 1 / 30 and search.confidence > 0.3
+
+
+def test_a_looped_take_is_folded_onto_one_pass_whatever_the_period_error():
+    """Live timetags put a loop's period a millisecond off: folding must still keep one
+    frame per skeleton (by content), or near-copies 1 ms apart made the lag search step by
+    1 ms and stalled the calibration worker; and the lag searched on the folded passes is
+    the take's own, not one pairing the end of a pass with the start of the next."""
+    from stage.calibration.loops import fold_loops
+    from stage.calibration.pairs import find_lag
+    from stage.calibration.streams import Stream
+    rng = np.random.default_rng(7)
+    n_ref, n_other, true_lag = 30, 21, -13 / 30          # frames of each view; other's lag
+    walk = np.cumsum(rng.normal(0, 0.03, size=(60, 25, 3)), axis=0) + rng.normal(size=(25, 3))
+    period, measured = 31 / 30, 31 / 30 - 0.0011         # the loop, and as measured live
+
+    def looped(frames: np.ndarray, start: int, passes: int = 4) -> Stream:
+        take = walk[start:start + frames]
+        t = np.concatenate([k * period + np.arange(frames) / 30 for k in range(passes)])
+        return Stream("x", t, np.zeros(len(t), int), np.concatenate([take] * passes),
+                      np.ones((len(t), 25)))
+    ref = looped(n_ref, 0)
+    other = looped(n_other, 13)                        # other's frame k is ref's frame k + 13
+    folded = fold_loops(ref, 0.0, other, 0.0, measured)
+    assert folded is not None
+    a, b = folded
+    assert len(a) == n_ref and len(b) == n_other        # one frame per skeleton
+    assert np.diff(b.t).min() > 0.9 / 30
+    search = find_lag(a, b, 1.0)
+    assert search.lag_s == pytest.approx(true_lag, abs=0.5 / 30)

@@ -29,6 +29,7 @@ from .live import View, new_pairs
 from .livestate import LiveEvent, SensorState
 from .methods import CalibrationResult, calibrate
 from .pairs import LagSearch, find_lag
+from .loops import fold_loops, loop_period
 from .streams import Stream
 
 log = logging.getLogger("stage.calibration")
@@ -155,7 +156,8 @@ class Collector:
                 return
         before = st.lag_s
         lag = float(np.clip(st.lag_s + search.lag_s, -s.max_lag_s, s.max_lag_s))
-        if st.loop_s:  # a looped take's lag is only defined modulo its period: keep it near 0
+        if st.loop_s and not st.loop_folded:  # a looped take's lag searched on the loops is
+            # only defined modulo its period: keep it near 0
             lag = float((lag + 0.5 * st.loop_s) % st.loop_s - 0.5 * st.loop_s)
         if abs(lag - before) < 0.5 / 30:
             return
@@ -230,14 +232,27 @@ class Collector:
         with self._lock:
             if sid in self._states:
                 self._states[sid].loop_s = period
-        max_lag = s.max_lag_s
-        if period is not None:
-            max_lag = min(max_lag, 0.5 * period)
-        for theirs, _ in partners:
+        with self._lock:
+            lags = {r: st.lag_s for r, st in self._states.items()}
+        for theirs, r in partners:
             if theirs is None or theirs.t[-1] - theirs.t[0] < s.lag_min_s:
                 continue
+            a, b, max_lag, folded = theirs, mine, s.max_lag_s, None
+            if period is not None:  # one pass of the take each, as offline
+                folded = fold_loops(theirs, lags.get(r, 0.0), mine, lags.get(sid, 0.0), period)
+                if folded is not None:
+                    a, b = folded
+                else:  # a lag and the lag P away pair the same frames
+                    max_lag = min(max_lag, 0.5 * period)
+            with self._lock:
+                st = self._states.get(sid)
+                if st is not None:  # folded: the lag is that of one pass, not modulo P
+                    if folded is not None and not st.loop_folded:
+                        st.lag_overlap = 0  # the first search on one pass replaces those
+                        # made on the loops before the loop was seen (their frames wrapped)
+                    st.loop_folded = folded is not None
             try:
-                return find_lag(theirs, mine, max_lag, min_pairs=s.min_pairs,
+                return find_lag(a, b, max_lag, min_pairs=s.min_pairs,
                                 single_window_s=0.0)  # _buffered kept one person's frames
             except CalibrationError:
                 continue
@@ -299,14 +314,20 @@ class Collector:
                     continue
                 wanted = self._wants_pairs(st)
                 start = max(st.collected_to, st.collect_from)
-            if not wanted:
+                # a lag search of this poll moved its lag: these views are on the old one
+                stale = bool(views.get(sid)) and abs(views[sid][0].shift - st.lag_s) > 1e-9
+            if not wanted or stale:
                 continue
             # with lags, sensors' frames reach the same stage time at different moments:
             # pair only up to where the sensor and its partners all have frames
             latest = [max(v.t[-1] for v in views[r]) for r in [sid, *trusted]
                       if views.get(r) and max(v.t[-1] for v in views[r]) > now - 1.0]
             until = min([t1, *latest])
-            new, waiting = new_pairs(sid, views, trusted, start, until, now, s.min_joints)
+            with self._lock:  # partners that agree with the others as a good fit does
+                good = {r for r in trusted if r in self._states
+                        and (self._states[r].fitness or 0.0) >= s.min_fitness}
+            new, waiting = new_pairs(sid, views, trusted, start, until, now, s.min_joints,
+                                      self._reference, good)
             self._yield()
             with self._lock:
                 st = self._states.get(sid)
@@ -423,30 +444,6 @@ class Collector:
         matrix, method = result.matrix, f"{result.method} (live)"
         fitness, rms, wait = result.fitness, result.rms_m, not self.threaded
         self._act(lambda e: e.record_calibration(sid, matrix, method, fitness, rms, path, wait))
-
-
-def loop_period(t: np.ndarray, joints: np.ndarray, min_repeats: int = 10) -> float | None:
-    """The period (s) of a source that sends the same frames over and over, or None.
-
-    t (n,) s; joints (n, 25, 3). A real sensor never sends two bit-identical skeletons
-    of a person (its noise alone differs); a replay of a recording in a loop sends each
-    frame once per loop. Each frame that repeats an earlier one gives the time since it;
-    a loop is when at least ``min_repeats`` frames repeat and 80 % of them do so one
-    period apart (within a frame), a period of at least 0.2 s (not a frozen frame).
-    """
-    seen: dict[bytes, float] = {}
-    gaps = []
-    for ti, row in zip(t, joints):
-        key = np.ascontiguousarray(row).tobytes()
-        if key in seen:
-            gaps.append(ti - seen[key])
-        seen[key] = float(ti)
-    if len(gaps) < min_repeats:
-        return None
-    period = float(np.median(gaps))
-    if period < 0.2 or np.mean(np.abs(np.asarray(gaps) - period) <= 1.0 / 30) < 0.8:
-        return None
-    return period
 
 
 def _worst_window(pairs, m: np.ndarray, window_s: float) -> float:

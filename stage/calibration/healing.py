@@ -411,27 +411,33 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             if any(self._lag_due(st, now) for st in self._states.values()):
                 oldest = -INF  # a lag search wants everything buffered
             since = max(oldest, now - s.buffer_s) - 0.25  # room to interpolate at the edges
+            if any(st.pairs is not None or self._wants_pairs(st) for st in self._states.values()):
+                # pairs look back up to a lag for where each view's identity run began
+                since -= s.max_lag_s
             for key in [k for k, b in self._buffers.items() if b and b[-1][0].t < now - s.buffer_s]:
                 del self._buffers[key]
+            lags = {sid: st.lag_s for sid, st in self._states.items() if st.lag_s}
             snapshot = []
-            for buf in self._buffers.values():
+            for (sid, _user), buf in self._buffers.items():
+                # ``since`` is stage time; a sensor's own clock runs lag_s from it (a clock
+                # behind stage time lost its frames of the last ``lag_s`` before ``since``)
+                cut = since + lags.get(sid, 0.0)
                 recent = []
                 for e in reversed(buf):  # newest first; frames are nearly in time order
-                    if e[0].t <= since - 0.2:
+                    if e[0].t <= cut - 0.2:
                         break
-                    if e[0].t > since:
+                    if e[0].t > cut:
                         recent.append(e)
                 if recent:
                     snapshot.append(recent)
             epochs = {sid: st.epoch for sid, st in self._states.items()}
             states = {sid: (st.state, st.transform, st.last_good, st.duplicate_of)
                       for sid, st in self._states.items()}
-            lags = {sid: st.lag_s for sid, st in self._states.items() if st.lag_s}
             self._expire_duplicates(now)
         views: dict[str, list[View]] = {}
-        for view in View.many(snapshot):
-            if view.sensor in lags:  # onto stage time: its clock runs lag_s from it
-                view.t = view.t - lags[view.sensor]
+        # onto stage time: a sensor's clock runs lag_s from it
+        for view in View.many(snapshot, [lags.get(entries[0][0].sensor, 0.0)
+                                         for entries in snapshot]):
             views.setdefault(view.sensor, []).append(view)
         self._yield()
         if s.heal and t1 > t0:

@@ -66,6 +66,7 @@ class SensorState:
     lag_candidate: float | None = None  # a tracked sensor's lag one sure search proposed (s):
                                         # it moves only when the next search agrees
     loop_s: float | None = None         # the period of a source that loops a take (s)
+    loop_folded: bool = False           # its lag was searched on one pass of the take
     last_attempt: str | None = None     # the last calibration attempt's outcome, in words
 
     def reset_pairs(self) -> None:

@@ -148,6 +148,8 @@ def _empty(ref: Stream, other: Stream, lag_s: float) -> PairSet:
 
 #: streams shorter than this (frames) are searched unsmoothed (see find_lag)
 SMOOTH_FROM_FRAMES = 100
+#: the finest coarse step of a lag search (s): 250 Hz, finer than any skeleton sensor
+MIN_LAG_STEP_S = 0.004
 
 
 @dataclass(frozen=True)
@@ -204,7 +206,8 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
     usable = np.flatnonzero(ref.finite() & ref.single_user(single_window_s))
     if len(usable) > max_frames:
         usable = usable[np.linspace(0, len(usable) - 1, max_frames).round().astype(int)]
-    step = step_s or other.frame_interval()
+    # (a floor: near-duplicate frames 1 ms apart once made this 1 ms, thousands of lags)
+    step = max(step_s or other.frame_interval(), MIN_LAG_STEP_S)
     # both streams smoothed alike: see Stream.smoothed for why; not short takes, whose few
     # frames the smoothing would blur into each other (measured on N-UCLA: 42 of 50 pairs
     # within a frame of the brute-force lag unsmoothed, 39 smoothed)
