@@ -61,6 +61,17 @@ class JumpGate:
             self._links[i, :n] = -INF
             self._links[:n, i] = -INF
 
+    def _row(self, sensor: str, user: int) -> int:
+        """The row of view (sensor, user), made on first sight."""
+        key = (sensor, user)
+        i = self._index.get(key)
+        if i is None:
+            i = self._index[key] = len(self._index)
+            if i >= len(self._t):
+                self._alloc(2 * len(self._t))
+            self._owner[i] = self._sensor(sensor)
+        return i
+
     def check(self, sensor: str, user: int, t: float, centre: np.ndarray,
               ) -> tuple[list[str], float] | None:
         """Record a view's stage-space torso centre (3,) at time t.
@@ -69,13 +80,7 @@ class JumpGate:
         it disagrees with views it agreed with a moment ago and agrees with
         none; else None.
         """
-        key = (sensor, user)
-        i = self._index.get(key)
-        if i is None:
-            i = self._index[key] = len(self._index)
-            if i >= len(self._t):
-                self._alloc(2 * len(self._t))
-            self._owner[i] = self._sensor(sensor)
+        i = self._row(sensor, user)
         n = len(self._index)
         dt_self = t - self._t[i]
         if 0 < dt_self <= 0.2:
@@ -114,16 +119,7 @@ class JumpGate:
         a caller that stops at the first jump, as the calibrator does once the sensor is
         left out, sees the later views' positions recorded all the same: they belong to
         a sensor nobody is compared against until it is trusted again)."""
-        rows = []
-        for user in users:
-            key = (sensor, user)
-            i = self._index.get(key)
-            if i is None:
-                i = self._index[key] = len(self._index)
-                if i >= len(self._t):
-                    self._alloc(2 * len(self._t))
-                self._owner[i] = self._sensor(sensor)
-            rows.append(i)
+        rows = [self._row(sensor, user) for user in users]
         rows_a = np.array(rows)
         n = len(self._index)
         dt_self = t - self._t[rows_a]

@@ -152,15 +152,7 @@ class View:
             every = entries
             entries, frames = entries[first:], frames[first:]
             t, raw, conf = t[first:], raw[first:], conf[first:]
-        stage = np.full_like(raw, np.nan)
-        # frames share transform objects; place each run of one transform at once
-        start = 0
-        for k in range(1, len(frames) + 1):
-            if k == len(frames) or frames[k].transform is not frames[start].transform:
-                m = frames[start].transform
-                if m is not None:
-                    stage[start:k] = raw[start:k] @ m[:3, :3].T + m[:3, 3]
-                start = k
+        stage = _placed(frames, raw)
         return cls(frames[0].sensor, frames[0].user, t, raw, conf, stage,
                    frames[-1].floor, frames[-1].transform, entries[-1][1], run, shift, every)
 
@@ -194,14 +186,7 @@ class View:
         raw = np.array([f.joints for f in frames])
         conf = np.array([f.conf for f in frames])
         centres = torso_centre(raw, conf)
-        stage = np.full_like(raw, np.nan)
-        start = 0  # frames share transform objects; place each run of one transform at once
-        for k in range(1, len(frames) + 1):
-            if k == len(frames) or frames[k].transform is not frames[start].transform:
-                m = frames[start].transform
-                if m is not None:
-                    stage[start:k] = raw[start:k] @ m[:3, :3].T + m[:3, 3]
-                start = k
+        stage = _placed(frames, raw)
         sizes = [len(entries) for entries in ordered]
         persons = [e[1] for entries in ordered for e in entries]
         runs = [e[2] if len(e) > 2 else 0 for entries in ordered for e in entries]
@@ -293,6 +278,20 @@ def _identity_starts(t: np.ndarray, c: np.ndarray, persons: list[int | None], ru
 
 def _frame_time(entry: tuple) -> float:
     return entry[0].t
+
+
+def _placed(frames: list, raw: np.ndarray) -> np.ndarray:
+    """(n, 25, 3) the frames' joints in stage space by each one's transform (NaN where a
+    frame has none). Frames share transform objects: each run of one is placed at once."""
+    stage = np.full_like(raw, np.nan)
+    start = 0
+    for k in range(1, len(frames) + 1):
+        if k == len(frames) or frames[k].transform is not frames[start].transform:
+            m = frames[start].transform
+            if m is not None:
+                stage[start:k] = raw[start:k] @ m[:3, :3].T + m[:3, 3]
+            start = k
+    return stage
 
 
 @dataclass
