@@ -13,9 +13,11 @@ from stage.errors import ConfigError
 from stage.joints import JOINT_INDEX as J
 from stage.joints import HandState
 from stage.sensors.sim import Simulator, builtin_names, load_scenario, parse_scenario
+from stage.testing.walks import cmu_file
 from stage.yamlio import loads_marked
 
-CMU = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu" / "131_01.bvh"
+#: $STAGE_CMU_DIR, else shared/data/cmu beside the checkout or above it (a worktree too)
+CMU = cmu_file("131_01")
 
 
 def performer(timeline: str, extra: str = "", path: str = "test.yaml"):
@@ -308,7 +310,8 @@ def test_bvh_performer_is_placed_turned_and_scaled(tmp_path):
     assert p.state(2.5)[0][J["SpineBase"]][[0, 2]] == pytest.approx([3, -1], abs=0.05)
 
 
-@pytest.mark.skipif(not CMU.exists(), reason=f"CMU motion capture not found at {CMU}")
+@pytest.mark.skipif(CMU is None, reason="CMU motion capture not found ($STAGE_CMU_DIR or "
+                    "shared/data/cmu above the checkout)")
 def test_cmu_walk_drives_a_performer_seen_by_the_sensors(tmp_path):
     text = textwrap.dedent(f"""
         sensors: {{ring: {{count: 3, radius: 3.5}}}}
