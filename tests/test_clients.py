@@ -39,6 +39,16 @@ def decode(data: bytes) -> list:
     return [m for m, _ in decoded.messages]
 
 
+def _stats_after(server: Server, frames: int, within_s: float = 5.0) -> dict:
+    """The server's stats once it has counted ``frames`` frames (or after ``within_s``)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        stats = query_stats(server.address)
+        if stats["counts"]["frames"] == frames or time.monotonic() > deadline:
+            return stats
+        time.sleep(0.02)
+
+
 # ---------------------------------------------------------------- the shared encoder
 
 def test_user_slots_take_the_lowest_free_id():
@@ -102,12 +112,7 @@ def test_a_client_reaches_a_real_server():
         for k in range(10):
             sender.send(enc.frame([body("me")], time.time()))
         sender.close()
-        deadline = time.monotonic() + 5
-        while True:
-            stats = query_stats(server.address)
-            if stats["counts"]["frames"] == 10 or time.monotonic() > deadline:
-                break
-            time.sleep(0.02)
+        stats = _stats_after(server, frames=10)
     assert stats["clients"]["laptop"]["type"] == "webcam-mediapipe"
     assert stats["counts"]["frames"] == 10 and stats["drops_total"] == 0
     assert len(stats["persons"]) == 1
@@ -273,12 +278,7 @@ def test_the_azure_client_reads_the_sdk_and_reaches_a_real_server(monkeypatch):
     monkeypatch.setitem(sys.modules, "pykinect_azure", sdk)
     with Server(Rig(port=0), host="127.0.0.1") as server:
         azure.run(server.address, "femto-a", stop)
-        deadline = time.monotonic() + 5
-        while True:
-            stats = query_stats(server.address)
-            if stats["counts"]["frames"] == 12 or time.monotonic() > deadline:
-                break
-            time.sleep(0.02)
+        stats = _stats_after(server, frames=12)
     opened = ["libraries (body tracking True)", "device (colour 0, depth 2)", "body tracker"]
     closed = ["body tracker stopped", "device closed"]   # so that it can be opened again
     assert sdk.started == opened + closed

@@ -14,10 +14,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..frames import SensorFrame
 from ..joints import N_JOINTS, TORSO
 from .coverage import Gates
-from .pairs import resample
+from .pairs import PairSet, resample
 
 _TORSO = np.array(TORSO)
 

@@ -109,14 +109,27 @@ def resample(times: np.ndarray, joints: np.ndarray, conf: np.ndarray, at: np.nda
     that are not valid hold zeros.
     """
     n, m = len(times), len(at)
-    out_j = np.zeros((m,) + joints.shape[1:])
-    out_c = np.zeros((m,) + conf.shape[1:])
-    valid = np.zeros(m, dtype=bool)
     if n == 0 or m == 0:
-        return out_j, out_c, valid
+        return np.zeros((m,) + joints.shape[1:]), np.zeros((m,) + conf.shape[1:]), \
+            np.zeros(m, dtype=bool)
     idx = np.searchsorted(times, at)
     i0 = np.maximum(idx - 1, 0)   # (np.clip costs several times more on small arrays)
     i1 = np.minimum(idx, n - 1)
+    return read_between(times, joints, conf, at, idx, n, i0, i1, max_gap, max_dt, user, linear)
+
+
+def read_between(times: np.ndarray, joints: np.ndarray, conf: np.ndarray, at: np.ndarray,
+                 idx: np.ndarray, n, i0: np.ndarray, i1: np.ndarray, max_gap: float,
+                 max_dt: float, user: np.ndarray | None = None, linear: bool = True,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``resample``'s reading once the neighbours are found, for instants ``at`` of any
+    shape S: ``idx`` (S) each instant's insertion point in its own stream of ``n`` frames
+    (``n`` broadcast against S), ``i0``/``i1`` (S) the frames before and after it as rows
+    of ``times``/``joints``/``conf`` (several streams may be laid end to end). Returns
+    (joints S+(J, 3), conf S+(J,), valid S)."""
+    out_j = np.zeros(idx.shape + joints.shape[1:])
+    out_c = np.zeros(idx.shape + conf.shape[1:])
+    valid = np.zeros(idx.shape, dtype=bool)
     if linear:
         span = times[i1] - times[i0]
         ok = (idx > 0) & (idx < n) & (span > 0) & (span <= max_gap)

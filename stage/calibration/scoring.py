@@ -23,7 +23,7 @@ import numpy as np
 
 from ..joints import JOINT_INDEX, N_JOINTS
 from .live import View, torso_centre
-from .pairs import resample
+from .pairs import read_between, resample
 
 #: (sensor a, sensor b) -> (distances (n,) m, weights (n,)); a < b for trusted pairs
 Distances = dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
@@ -145,23 +145,7 @@ def resample_many(streams: list[tuple[np.ndarray, np.ndarray, np.ndarray]], at: 
     i0 = np.maximum(idx - 1, 0) + offset
     i1 = np.minimum(idx, n - 1) + offset
     when = np.broadcast_to(at, idx.shape)
-    shape = idx.shape
-    out_j = np.zeros(shape + joints.shape[1:])
-    out_c = np.zeros(shape + conf.shape[1:])
-    span = times[i1] - times[i0]
-    valid = (idx > 0) & (idx < n) & (span > 0) & (span <= max_gap)
-    if valid.any():
-        a = ((when[valid] - times[i0[valid]]) / span[valid])[:, None, None]
-        out_j[valid] = (1 - a) * joints[i0[valid]] + a * joints[i1[valid]]
-        c0, c1 = conf[i0[valid]], conf[i1[valid]]
-        out_c[valid] = np.where((c0 > 0) & (c1 > 0), np.minimum(c0, c1), 0.0)
-    if not valid.all():
-        d0 = np.where(idx > 0, np.abs(when - times[i0]), np.inf)
-        d1 = np.where(idx < n, np.abs(times[i1] - when), np.inf)
-        near = np.where(d0 <= d1, i0, i1)
-        nearest = ~valid & (np.minimum(d0, d1) <= max_dt)
-        out_j[nearest] = joints[near[nearest]]
-        out_c[nearest] = conf[near[nearest]]
+    out_j, out_c, _ = read_between(times, joints, conf, when, idx, n, i0, i1, max_gap, max_dt)
     return out_j, out_c
 
 
