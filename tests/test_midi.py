@@ -397,16 +397,24 @@ def jack_server(monkeypatch, tmp_path):
             stop_jackd(running)
 
 
-@pytest.mark.integration
-def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_server):
+def start_midi_dump() -> subprocess.Popen:
+    """``jack_midi_dump`` as client "dump", returned once its input port is registered."""
     dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + 5
+    while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
+                                             text=True).stdout:
+        if time.monotonic() > deadline:
+            dump.kill()
+            raise AssertionError("jack_midi_dump did not register its port")
+        time.sleep(0.05)
+    return dump
+
+
+@pytest.mark.integration
+def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_server):
+    dump = start_midi_dump()
     try:
-        deadline = time.monotonic() + 5
-        while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
-                                                 text=True).stdout:
-            assert time.monotonic() < deadline, "jack_midi_dump did not register its port"
-            time.sleep(0.05)
         host = ViewHost.for_play([OutputDecl("keys", "midi"), OutputDecl("bass", "midi")],
                                  midi_port=None, plugins=False).start()
         try:
@@ -476,14 +484,8 @@ def test_a_port_whose_jack_server_dies_is_reopened_when_it_comes_back(jack_serve
         jack_server_processes.append(start_dummy_jackd(jack_server, 256, 48000))
         change = port.check()
         assert change is not None and "is back" in change and port.state()["reconnects"] == 1
-        dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
-                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        dump = start_midi_dump()
         try:
-            deadline = time.monotonic() + 5
-            while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
-                                                     text=True).stdout:
-                assert time.monotonic() < deadline, "jack_midi_dump did not register its port"
-                time.sleep(0.05)
             done = subprocess.run(["jack_connect", "stage:keys", "dump:input"],
                                   capture_output=True, text=True)
             assert done.returncode == 0, done.stderr
