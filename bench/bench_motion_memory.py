@@ -28,6 +28,7 @@ motion model's own error above.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -88,6 +89,9 @@ def main() -> None:
                     help="also the fused feet of the anticipation bench's seeds 1-3")
     ap.add_argument("--kinect", default="", metavar="KEYS",
                     help="with --fused: more keys of the scenario's kinect: section")
+    ap.add_argument("--forecast", default="", metavar="KEYS",
+                    help="with --fused: the rig's forecast keys, e.g. "
+                         "'foot_velocity_memory_s: 0' (a constant-velocity forecast)")
     args = ap.parse_args()
     ys = [heights(take) for take in TAKES]
     print(f"CMU {', '.join(TAKES)}: {sum(len(y) for y in ys) / RATE:.1f} s of motion "
@@ -119,7 +123,7 @@ def main() -> None:
         if group == "feet":
             rises(series, vel)
     if args.fused:
-        fused(args.kinect)
+        fused(args.kinect, args.forecast)
 
 
 def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
@@ -144,7 +148,7 @@ def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
                   f"rise/speed {np.median(q) * 1000:.0f} ms [{np.percentile(q, 90) * 1000:.0f}]")
 
 
-def fused(kinect: str) -> None:
+def fused(kinect: str, forecast: str = "") -> None:
     """The fused feet against the truth the sensors showed (see the module docstring)."""
     from bench_anticipation import SCENARIO as BENCH
 
@@ -160,7 +164,11 @@ def fused(kinect: str) -> None:
             sim = Simulator(parse_scenario(loads_marked(text, "b.yaml"), "b.yaml"), seed=seed)
             end = sim.performers[0].length + 0.5
             clock = ManualClock(0.0)
-            engine = Engine(sim.rig(), clock)
+            rig = sim.rig()
+            if forecast:
+                rig.forecast = dataclasses.replace(rig.forecast, **loads_marked(
+                    "{" + forecast + "}", "--forecast"))
+            engine = Engine(rig, clock)
             engine.people.want_forecast(0.05)
             got: list = []
             engine.listeners.append(lambda f: got.extend(
@@ -184,6 +192,7 @@ def fused(kinect: str) -> None:
         return np.concatenate(out)
 
     print(f"fused feet, seeds 1-3, sensor model {'default' + (' + ' + kinect if kinect else '')}"
+          f"{', forecast ' + forecast if forecast else ''}"
           f" ({sum(len(r[3]) for r in rows)} foot-frames): against the motion capture "
           f"{delay * 1000:.0f} ms before each capture stamp")
     e = err(1, 0.0)
