@@ -294,7 +294,9 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance"}
+#: settings for which 0 means something (off, none): every other number must be > 0
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance",
+                 "foot_velocity_memory_s", "hand_velocity_memory_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
