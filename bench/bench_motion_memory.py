@@ -136,7 +136,7 @@ def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
             e = i
             while e + 1 < len(y) and v[e + 1] > 0:
                 e += 1
-            rows.append((v[i], y[e] - y[i], y[e]))
+            rows.append((v[i], y[e] - y[i], y[e], y[i]))
     a = np.array(rows)
     print("  a rising foot's remaining rise (m) by upward speed: median [90th pct] of "
           "rise / speed (s)")
@@ -146,6 +146,15 @@ def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
             q = a[m, 1] / a[m, 0]
             print(f"    {lo:g}-{hi:g} m/s: n {m.sum():4d}, rise {np.median(a[m, 1]):.3f} m, "
                   f"rise/speed {np.median(q) * 1000:.0f} ms [{np.percentile(q, 90) * 1000:.0f}]")
+    # the anticipation bench's foot trigger: 0.25 m; where a predicted crossing is decided,
+    # the foot is 12-24 cm up (docs/reports/issue-15.md, stop 20)
+    band = (a[:, 3] >= 0.12) & (a[:, 3] <= 0.24)
+    for name, m in (("steps (peak below 0.25 m)", band & (a[:, 2] < 0.25)),
+                    ("lifts (peak above 0.25 m)", band & (a[:, 2] >= 0.25))):
+        v = a[m, 0]
+        print(f"    {name}, rising and 12-24 cm up: n {m.sum()}, upward speed median "
+              f"{np.median(v):.2f} m/s (10-90 %: {np.percentile(v, 10):.2f}-"
+              f"{np.percentile(v, 90):.2f})")
 
 
 def fused(kinect: str, forecast: str = "") -> None:

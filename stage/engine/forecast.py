@@ -104,7 +104,7 @@ class Forecast:
     t: float                  # capture time the forecast starts from, engine clock
     horizon: float            # seconds ahead of ``t``
     joints: np.ndarray        # (25, 3) metres
-    velocity: np.ndarray      # (25, 3) m/s (the filter's: constant over the horizon)
+    velocity: np.ndarray      # (25, 3) m/s, the filter's (not faded by a velocity memory)
     sd: np.ndarray            # (25,) position s.d., m (NaN for joints never measured)
     speed_capped: int = 0     # joints whose predicted move was cut to their speed limit
     bones_fixed: int = 0      # joints moved to keep a bone's length
