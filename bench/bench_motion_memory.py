@@ -22,6 +22,7 @@ motion model's own error above.
 
     python bench/bench_motion_memory.py            # under a second
     python bench/bench_motion_memory.py --fused    # about half a minute
+    python bench/bench_motion_memory.py --fused --quick   # one take, one seed
     python bench/bench_motion_memory.py --fused --kinect 'noise_m: 0.00066, noise_per_m: 0.00044'
 """
 
@@ -85,6 +86,8 @@ def fit_sigma(rho: np.ndarray) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="a smoke test: with --fused, one take and one seed")
     ap.add_argument("--fused", action="store_true",
                     help="also the fused feet of the anticipation bench's seeds 1-3")
     ap.add_argument("--kinect", default="", metavar="KEYS",
@@ -123,7 +126,8 @@ def main() -> None:
         if group == "feet":
             rises(series, vel)
     if args.fused:
-        fused(args.kinect, args.forecast)
+        fused(args.kinect, args.forecast, TAKES[:1] if args.quick else TAKES,
+              (1,) if args.quick else (1, 2, 3))
 
 
 def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
@@ -157,7 +161,8 @@ def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
               f"{np.percentile(v, 90):.2f})")
 
 
-def fused(kinect: str, forecast: str = "") -> None:
+def fused(kinect: str, forecast: str = "", takes: tuple[str, ...] = TAKES,
+          seeds: tuple[int, ...] = (1, 2, 3)) -> None:
     """The fused feet against the truth the sensors showed (see the module docstring)."""
     from bench_anticipation import SCENARIO as BENCH
 
@@ -166,8 +171,8 @@ def fused(kinect: str, forecast: str = "") -> None:
     from stage.engine import Engine
     delay, feet = 0.060, [J["FootLeft"], J["FootRight"]]
     rows = []     # per frame and foot: capture time, fused y, vy, forecast y, truth series
-    for take in TAKES:
-        for seed in (1, 2, 3):
+    for take in takes:
+        for seed in seeds:
             text = BENCH.format(delay=delay, path=cmu_file(take),
                                 kinect=f", {kinect}" if kinect else "")
             sim = Simulator(parse_scenario(loads_marked(text, "b.yaml"), "b.yaml"), seed=seed)
@@ -200,7 +205,7 @@ def fused(kinect: str, forecast: str = "") -> None:
             out.append((f[:, col] - true)[keep])
         return np.concatenate(out)
 
-    print(f"fused feet, seeds 1-3, sensor model {'default' + (' + ' + kinect if kinect else '')}"
+    print(f"fused feet, {', '.join(takes)}, seeds {', '.join(map(str, seeds))}, sensor model {'default' + (' + ' + kinect if kinect else '')}"
           f"{', forecast ' + forecast if forecast else ''}"
           f" ({sum(len(r[3]) for r in rows)} foot-frames): against the motion capture "
           f"{delay * 1000:.0f} ms before each capture stamp")
