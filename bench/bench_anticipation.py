@@ -32,11 +32,13 @@ engine time minus the true crossing's time (engine clock = simulation clock).
 
     python bench/bench_anticipation.py            # 3 takes x 10 seeds, plot in docs/
     python bench/bench_anticipation.py --quick    # one take, one seed, no plot
+    python bench/bench_anticipation.py --seeds 21-40 --plot ''   # a fresh set of seeds
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -179,7 +181,8 @@ def score(firings: list[tuple[str, str, float]], truth: dict) -> dict[str, dict]
     return out
 
 
-def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "") -> dict:
+def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "",
+        forecast: str = "") -> dict:
     path = cmu_file(take)
     if path is None:
         raise SystemExit(f"CMU take {take} not found ($STAGE_CMU_DIR or shared/data/cmu)")
@@ -187,7 +190,11 @@ def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str =
     sim = Simulator(parse_scenario(loads_marked(text, "bench.yaml"), "bench.yaml"), seed=seed)
     duration = sim.performers[0].length + 0.5 if hasattr(sim.performers[0], "length") else 11.0
     clock = ManualClock(0.0)
-    engine = Engine(sim.rig(), clock)
+    rig = sim.rig()
+    if forecast:
+        rig.forecast = dataclasses.replace(rig.forecast, **loads_marked(
+            "{" + forecast + "}", "--forecast"))
+    engine = Engine(rig, clock)
     runtimes = {}
     for mode, h, *extra in settings:
         piece = loads_piece(piece_text(mode, h, *extra), "bench.yaml")
@@ -265,7 +272,9 @@ def print_table(title: str, table: dict, settings: list[tuple]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="one take, one seed, no plot")
-    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--seeds", default="10",
+                    help="N: seeds 1-N; A-B: seeds A to B (e.g. 21-40, seeds nobody tuned on "
+                         "or looked at)")
     ap.add_argument("--groups", default="3,5,10",
                     help="seed groups printed apart, by their last seeds: 1-3 tuned the groups' "
                          "defaults, 4-5 were held back while tuning, 6-10 were never tuned on "
@@ -275,6 +284,9 @@ def main() -> None:
     ap.add_argument("--kinect", default="", metavar="KEYS",
                     help="more keys of the scenario's kinect: section, e.g. 'feet_noise: 1.0' "
                     "(the sensor model; default: the simulator's)")
+    ap.add_argument("--forecast", default="", metavar="KEYS",
+                    help="rig forecast: keys for the engine, e.g. 'foot_memory_s: 0' (default: "
+                         "the rig's defaults)")
     ap.add_argument("--plot", default=str(ROOT / "docs" / "anticipation.png"))
     ap.add_argument("--json", default=None, help="write the table here too")
     ap.add_argument("--variant", action="append", default=[], metavar="KEYS",
@@ -282,7 +294,9 @@ def main() -> None:
                          f"'min_p: 0.9, trend: 0.5' (repeatable; default: '{BARE}')")
     args = ap.parse_args()
     takes = TAKES[:1] if args.quick else TAKES
-    seeds = range(1, 2 if args.quick else args.seeds + 1)
+    first, _, last = args.seeds.partition("-")
+    seeds = range(1, 2) if args.quick else \
+        range(int(first), int(last) + 1) if last else range(1, int(first) + 1)
     settings: list[tuple] = [("none", 0.0)] + [(m, h) for m in ("forecast", "anticipate")
                                                 for h in HORIZONS]
     settings += [("anticipate", 0.05, v) for v in args.variant or [BARE]]
@@ -290,7 +304,7 @@ def main() -> None:
     results, sd = [], {}
     for take in takes:
         for seed in seeds:
-            r = run(take, seed, args.delay, settings, args.kinect)
+            r = run(take, seed, args.delay, settings, args.kinect, args.forecast)
             results.append(r)
             for h, v in r["forecast_stats"]["sd_mm"].items():
                 sd.setdefault(h, []).append(v)
@@ -307,9 +321,10 @@ def main() -> None:
             "fresh (never tuned on)", "fresh (never looked at)")
     lo = 1
     for k, hi in enumerate(ends):
-        part = [r for r in results if lo <= r["seed"] <= hi]
+        part = [r for r in results if max(lo, seeds[0]) <= r["seed"] <= hi]
         if part and len(part) < len(results):
-            print_table(f"{what[min(k, 3)]} seeds {lo}-{hi}", summarise(part, settings), settings)
+            print_table(f"{what[min(k, 3)]} seeds {max(lo, seeds[0])}-{hi}",
+                        summarise(part, settings), settings)
         lo = hi + 1
     print_table(f"all seeds {seeds[0]}-{seeds[-1]}", table, settings)
     for key in settings[1:]:

@@ -54,6 +54,8 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       limb_speed_m_s: 8.0          # ...elbows, knees
       extremity_speed_m_s: 12.0    # ...wrists, hands, ankles, feet
       bone_tolerance: 0.1          # predicted bones keep their length within 10 %
+      foot_velocity_memory_s: 0.0545  # how long a foot's vertical velocity lasts, s
+      hand_velocity_memory_s: 0.0  # ...a hand's (0: for ever, constant velocity)
 
 Retired keys (``settings.RETIRED_KEYS``: ``fusion: min_interval_s``, ``fusion: outlier_m``,
 ``smoothing: process_noise``) are refused with a line naming what replaced them.
@@ -292,7 +294,9 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
     return matrix
 
 
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance"}
+#: settings for which 0 means something (off, none): every other number must be > 0
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance",
+                 "foot_velocity_memory_s", "hand_velocity_memory_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

@@ -111,6 +111,12 @@ class ForecastSettings:
     extremity_speed_m_s: float = 12.0  # wrists, hands, thumbs, tips, ankles, feet (CMU 131:
                                       # feet reach 12 m/s in kicks, docs/smoothing.md)
     bone_tolerance: float = 0.1
+    # how long a joint's vertical velocity lasts, s (0: for ever, a constant-velocity
+    # forecast): the s.d. of the Gaussian fitted to the vertical velocity's autocorrelation
+    # in CMU subject 131's motion capture (bench/bench_motion_memory.py; docs/anticipation.md)
+    foot_velocity_memory_s: float = 0.0545  # ankles, feet (measured 54.5 ms)
+    hand_velocity_memory_s: float = 0.0     # wrists, hands, thumbs, tips (measured 79 ms; off:
+                                            # it changed no hand trigger on the tuning seeds)
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -124,3 +124,16 @@ def test_missing_rig_file_is_a_clear_error(tmp_path):
 def test_empty_rig_file_gives_defaults(tmp_path):
     rig = load_rig(write(tmp_path, ""))
     assert rig.port == Rig().port and rig.sensors == {}
+
+
+def test_the_forecasts_velocity_memories_load_and_zero_turns_one_off(tmp_path):
+    rig = load_rig(write(tmp_path, "forecast: {foot_velocity_memory_s: 0, "
+                                   "hand_velocity_memory_s: 0.079}\n"))
+    assert rig.forecast.foot_velocity_memory_s == 0.0
+    assert rig.forecast.hand_velocity_memory_s == 0.079
+    rig.save()
+    assert load_rig(rig.path).forecast == rig.forecast       # a default of 0 round-trips too
+    assert load_rig(write(tmp_path, "{}\n", "empty.yaml")).forecast.foot_velocity_memory_s \
+        == 0.0545
+    with pytest.raises(ConfigError, match="'foot_velocity_memory_s' must be at least 0"):
+        load_rig(write(tmp_path, "forecast: {foot_velocity_memory_s: -0.05}\n"))

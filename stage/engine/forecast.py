@@ -16,10 +16,20 @@ whose covariance grows with ``h``. Two bounds keep a prediction a body:
 
 The uncertainty given with a forecast is each joint's position s.d. (m): the
 square root of the mean of its three axes' predicted variances.
+
+A foot's vertical velocity does not last: a foot that rises fast in a step stops
+10-20 cm up. Where the rig gives a joint group a velocity memory
+(``foot_velocity_memory_s``, ``hand_velocity_memory_s``: the s.d. of a Gaussian fitted
+to the vertical velocity's autocorrelation in motion capture,
+bench/bench_motion_memory.py), the vertical axis of those joints is carried by the same
+IMM prediction over the *effective horizon* (``effective_horizon``: the least-squares
+linear prediction of the displacement from the present velocity) instead of ``h``;
+their mean and covariance both come from it, so the s.d. stays the filter's.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +58,39 @@ _EXTREMITY = {"WristLeft", "WristRight", "HandLeft", "HandRight", "HandTipLeft",
               "ThumbLeft", "ThumbRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
 
 
+_FOOT = {"AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
+_HAND = _EXTREMITY - _FOOT
+UP = 1  # the vertical axis
+
+
+def memories(s: ForecastSettings) -> np.ndarray:
+    """(25,) how long each joint's vertical velocity is remembered, s (0: for ever, i.e.
+    constant velocity)."""
+    return np.array([s.foot_velocity_memory_s if n in _FOOT else
+                     s.hand_velocity_memory_s if n in _HAND else 0.0 for n in JOINTS])
+
+
+def effective_horizon(dt: np.ndarray, memory: np.ndarray) -> np.ndarray:
+    """How far ahead (s) the velocity carries a joint in ``dt`` (s): the integral over
+    ``dt`` of the velocity's autocorrelation, a Gaussian of s.d. ``memory`` (s; 0: constant
+    velocity, the integral is ``dt``). This is the least-squares linear prediction of the
+    displacement from the present velocity: ``sigma sqrt(pi/2) erf(dt / (sigma sqrt 2))``,
+    about ``dt`` for ``dt`` much shorter than ``sigma``, at most ``1.25 sigma``."""
+    dt = np.asarray(dt, dtype=float)
+    memory = np.broadcast_to(np.asarray(memory, dtype=float), dt.shape)
+    out = dt.copy()
+    m = memory > 0
+    if m.any():
+        sig = memory[m]
+        out[m] = sig * _SQRT_HALF_PI * _erf(dt[m] / (sig * _SQRT2))
+    return out
+
+
+_SQRT2 = float(np.sqrt(2.0))
+_SQRT_HALF_PI = float(np.sqrt(np.pi / 2.0))
+_erf = np.vectorize(math.erf, otypes=[float])
+
+
 def speed_limits(s: ForecastSettings) -> np.ndarray:
     """(25,) the fastest each joint may be predicted to move, m/s."""
     return np.array([s.extremity_speed_m_s if n in _EXTREMITY else
@@ -61,7 +104,7 @@ class Forecast:
     t: float                  # capture time the forecast starts from, engine clock
     horizon: float            # seconds ahead of ``t``
     joints: np.ndarray        # (25, 3) metres
-    velocity: np.ndarray      # (25, 3) m/s (the filter's: constant over the horizon)
+    velocity: np.ndarray      # (25, 3) m/s, the filter's (not faded by a velocity memory)
     sd: np.ndarray            # (25,) position s.d., m (NaN for joints never measured)
     speed_capped: int = 0     # joints whose predicted move was cut to their speed limit
     bones_fixed: int = 0      # joints moved to keep a bone's length
@@ -73,6 +116,8 @@ class Forecaster:
     def __init__(self, smoothing: KalmanSettings, settings: ForecastSettings) -> None:
         self.smoothing, self.settings = smoothing, settings
         self.limits = speed_limits(settings)
+        self.memory = memories(settings)
+        self._remembers = self.memory > 0
         self._q = np.array([smoothing.quiet_noise, smoothing.fast_noise])
         self.made = 0
         self.speed_capped = 0
@@ -93,6 +138,15 @@ class Forecaster:
             x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
             xp, Pp = predict(x0, P0, dt, self._q)
             xm, Pm = combine(xp, Pp, cbar)
+            if self._remembers.any():
+                # the vertical axis of joints whose velocity fades: the same IMM prediction
+                # over the effective horizon (the modes still switch over ``dt``)
+                r = self._remembers
+                xk, Pk = predict(x0[:, :, r], P0[:, :, r], effective_horizon(dt[r],
+                                 self.memory[r]), self._q)
+                xk, Pk = combine(xk, Pk, cbar[:, r])
+                xm[:, r, UP] = xk[:, :, UP]
+                Pm[:, r, UP] = Pk[:, :, UP]
         pos, vel = xm[0], xm[1]
         sd = np.sqrt(Pm[0].mean(axis=1))
         ok = seen & np.isfinite(pos).all(axis=1)
@@ -163,4 +217,5 @@ def _mend(pred: np.ndarray, now: np.ndarray, parent: int, child: int, tol: float
     return 1
 
 
-__all__ = ["BONES", "Forecast", "Forecaster", "speed_limits", "N_JOINTS"]
+__all__ = ["BONES", "Forecast", "Forecaster", "effective_horizon", "memories", "speed_limits",
+           "N_JOINTS"]

@@ -31,9 +31,11 @@ SQRT2 = math.sqrt(2.0)
 #: joint group -> (min_p, trend m/s or None) for an ``anticipate`` that does not say.
 #: Chosen on bench/bench_anticipation.py's tuning seeds 1-3 (docs/anticipation.md): a foot
 #: that lifts fast but not high is predicted past a height as often as one that goes on
-#: rising, so feet wait for a near-certain prediction; a hand hovering near a border is
-#: predicted across it by its jitter, so hands need a measured approach of 1 m/s; the
-#: torso (zones) moves smoothly and fires on the bare prediction.
+#: rising, so feet wait for a nearly certain prediction (0.94; with the feet's velocity
+#: memory in the forecast 0.86 gave more earliness on those seeds, but added false feet on
+#: the check seeds 4-10 and over seeds 1-20 and 21-40, so it was not kept); a hand
+#: hovering near a border is predicted across it by its jitter, so hands need a measured
+#: approach of 1 m/s; the torso (zones) moves smoothly and fires on the bare prediction.
 GROUP_DEFAULTS: dict[str, tuple[float, float | None, int]] = {
     "legs": (0.94, None, 1), "arms": (0.0, 1.0, 1), "torso": (0.0, None, 1)}
 _LEGS = {"KneeLeft", "KneeRight", "AnkleLeft", "AnkleRight", "FootLeft", "FootRight"}
