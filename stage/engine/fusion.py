@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..joints import TORSO
+from ..joints import JOINT_INDEX, TORSO
 
 
 def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
@@ -67,3 +67,60 @@ def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
 def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 homogeneous transform to (..., 3) points."""
     return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _side(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    return (np.array([JOINT_INDEX[n + "Left"] for n in names]),
+            np.array([JOINT_INDEX[n + "Right"] for n in names]))
+
+
+#: the girdles whose left-right axes say which side of the body is which
+_GIRDLES = _side(("Shoulder", "Hip"))
+#: per limb: the joints that must both lie on the wrong side for the limb to count as
+#: swapped, and the joints traded back
+_LIMBS = tuple((_side(check), _side(traded)) for check, traded in (
+    (("Elbow", "Wrist"), ("Elbow", "Wrist", "Hand", "HandTip", "Thumb")),
+    (("Knee", "Ankle"), ("Knee", "Ankle", "Foot"))))
+#: how far (m, along the body's left-right axis) a limb's joints must lie on the wrong side
+SWAP_MARGIN_M = 0.03
+
+
+def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """A sensor's left and right arm (or leg) traded back when the sensor swapped them.
+
+    joints (25, 3), conf (25,) of one view. The body's left-right axis is the mean of the
+    shoulders' and the hips' (each pair seen, weighted by its confidence; at least one
+    pair tracked). A limb counts as swapped when BOTH its check joints (elbow and wrist;
+    knee and ankle) of the left side lie at least ``SWAP_MARGIN_M`` right of the right
+    side's along that axis: depth cameras mix up a left and a right limb that overlap in
+    their image (real Kinects do, and the simulator's model), and when two of three
+    sensors do it at once the consistency vote follows them (legs 20 cm off). Crossed
+    arms cross the wrists but not the elbows, and crossed legs the ankles but rarely the
+    knees, so they are left alone. Returns (joints, conf, limbs traded back); the arrays
+    are new only when something was traded.
+    """
+    gl, gr = _GIRDLES
+    w = np.minimum(conf[gl], conf[gr])                    # (2,) shoulders, hips
+    if not (w >= 1.0).any():
+        return joints, conf, 0
+    lateral = joints[gl] - joints[gr]
+    norm = np.linalg.norm(lateral, axis=1)
+    ok = (w > 0) & (norm > 0.05)
+    if not ok.any():
+        return joints, conf, 0
+    axis = (lateral[ok] / norm[ok, None] * w[ok, None]).sum(axis=0)
+    size = float(np.linalg.norm(axis))
+    if size < 1e-6:
+        return joints, conf, 0
+    axis /= size
+    traded = 0
+    for (cl, cr), (tl, tr) in _LIMBS:
+        if (conf[cl] <= 0).any() or (conf[cr] <= 0).any():
+            continue
+        if ((joints[cl] - joints[cr]) @ axis < -SWAP_MARGIN_M).all():
+            if not traded:
+                joints, conf = joints.copy(), conf.copy()
+            joints[tl], joints[tr] = joints[tr].copy(), joints[tl].copy()
+            conf[tl], conf[tr] = conf[tr].copy(), conf[tl].copy()
+            traded += 1
+    return joints, conf, traded
