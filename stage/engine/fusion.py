@@ -74,13 +74,12 @@ def _side(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
             np.array([JOINT_INDEX[n + "Right"] for n in names]))
 
 
-#: the girdles whose left-right axes say which side of the body is which
-_GIRDLES = _side(("Shoulder", "Hip"))
-#: per limb: the joints that must both lie on the wrong side for the limb to count as
-#: swapped, and the joints traded back
-_LIMBS = tuple((_side(check), _side(traded)) for check, traded in (
-    (("Elbow", "Wrist"), ("Elbow", "Wrist", "Hand", "HandTip", "Thumb")),
-    (("Knee", "Ankle"), ("Knee", "Ankle", "Foot"))))
+#: left and right joints looked at, in pairs: the girdles (shoulders, hips) whose left-right
+#: axes say which side of the body is which, then each limb's check joints (elbow and wrist;
+#: knee and ankle), which must both lie on the wrong side for the limb to count as swapped
+_LOOK_L, _LOOK_R = _side(("Shoulder", "Hip", "Elbow", "Wrist", "Knee", "Ankle"))
+#: the joints traded back per limb (arm, leg)
+_TRADED = (_side(("Elbow", "Wrist", "Hand", "HandTip", "Thumb")), _side(("Knee", "Ankle", "Foot")))
 #: how far (m, along the body's left-right axis) a limb's joints must lie on the wrong side
 SWAP_MARGIN_M = 0.03
 
@@ -99,28 +98,26 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
     knees, so they are left alone. Returns (joints, conf, limbs traded back); the arrays
     are new only when something was traded.
     """
-    gl, gr = _GIRDLES
-    w = np.minimum(conf[gl], conf[gr])                    # (2,) shoulders, hips
-    if not (w >= 1.0).any():
+    c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
+    if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
         return joints, conf, 0
-    lateral = joints[gl] - joints[gr]
-    norm = np.linalg.norm(lateral, axis=1)
-    ok = (w > 0) & (norm > 0.05)
-    if not ok.any():
-        return joints, conf, 0
-    axis = (lateral[ok] / norm[ok, None] * w[ok, None]).sum(axis=0)
-    size = float(np.linalg.norm(axis))
+    if not ((c[2] > 0 and c[3] > 0) or (c[4] > 0 and c[5] > 0)):
+        return joints, conf, 0                            # no limb to judge
+    diff = joints[_LOOK_L] - joints[_LOOK_R]              # (6, 3) left minus right
+    norm = np.sqrt((diff[:2] * diff[:2]).sum(axis=1))
+    w = np.where((c[:2] > 0) & (norm > 0.05), c[:2], 0.0) / np.maximum(norm, 1e-9)
+    axis = w @ diff[:2]
+    size = float(np.sqrt(axis @ axis))
     if size < 1e-6:
         return joints, conf, 0
-    axis /= size
+    across = diff[2:] @ axis / size                       # elbow, wrist, knee, ankle
     traded = 0
-    for (cl, cr), (tl, tr) in _LIMBS:
-        if (conf[cl] <= 0).any() or (conf[cr] <= 0).any():
-            continue
-        if ((joints[cl] - joints[cr]) @ axis < -SWAP_MARGIN_M).all():
+    for k, (tl, tr) in enumerate(_TRADED):
+        if c[2 + 2 * k] > 0 and c[3 + 2 * k] > 0 and across[2 * k] < -SWAP_MARGIN_M \
+                and across[2 * k + 1] < -SWAP_MARGIN_M:
             if not traded:
                 joints, conf = joints.copy(), conf.copy()
-            joints[tl], joints[tr] = joints[tr].copy(), joints[tl].copy()
-            conf[tl], conf[tr] = conf[tr].copy(), conf[tl].copy()
+            joints[tl], joints[tr] = joints[tr], joints[tl]
+            conf[tl], conf[tr] = conf[tr], conf[tl]
             traded += 1
     return joints, conf, traded
