@@ -98,3 +98,14 @@ def test_two_of_three_sensors_swapping_the_legs_do_not_swap_the_fused_legs(unswa
         assert engine.counts["limbs_unswapped"] == 2 * 10
     else:  # the earlier fusion followed the majority (the behaviour this fixes)
         assert err > 0.1
+
+
+def test_the_rig_file_can_turn_it_off_and_says_so_when_the_value_is_not_a_boolean(tmp_path):
+    from stage.errors import ConfigError
+    from stage.rig import load_rig
+    path = tmp_path / "rig.yaml"
+    path.write_text("fusion:\n  unswap_limbs: false\n")
+    assert load_rig(str(path)).fusion.unswap_limbs is False
+    path.write_text("fusion:\n  unswap_limbs: 1\n")
+    with pytest.raises(ConfigError, match="'unswap_limbs' must be true or false"):
+        load_rig(str(path))
