@@ -36,6 +36,7 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       rejoin_s: 3.0                # a person lost this recently...
       rejoin_m: 0.75               # ...back this close to where they were lost...
       rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
+      unswap_limbs: true           # trade back a view's swapped left/right arm or leg
     smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
       enabled: true                # false: each joint is its latest accepted measurement
       quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2
@@ -309,7 +310,11 @@ def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     values: dict[str, Any] = {}
     for name, value in section.items():
         default = fields[name].default
-        if isinstance(default, str):
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise where.at_key(section, name, f"'{name}' must be true or false")
+            values[name] = value
+        elif isinstance(default, str):
             if not isinstance(value, str):
                 raise where.at_key(section, name, f"'{name}' must be text")
             values[name] = value

@@ -86,6 +86,9 @@ class FusionSettings:
     rejoin_s: float = 3.0        # a person lost this recently...
     rejoin_m: float = 0.75       # ...who reappears this close to where they were lost...
     rejoin_size_m: float = 0.05  # ...with a trunk length this close to theirs gets their id back
+    unswap_limbs: bool = True    # trade back a view's left and right arm (leg) when both its
+                                 # elbow and wrist (knee and ankle) lie on the wrong side of the
+                                 # shoulders' (hips') axis (``fusion.unswap_limbs``)
 
     def __post_init__(self) -> None:
         if self.hand_vote not in ("plain", "confidence"):

@@ -87,6 +87,50 @@ def test_a_tracked_lag_needs_a_clearly_better_fit(tracked):
     assert st.lag_s == 0.0
 
 
+@pytest.fixture
+def bumped(tracked):
+    """The tracked sensor s1 suspected (as after a bump): it is to be re-calibrated."""
+    run, st = tracked
+    with run.cal._lock:
+        assert run.cal._quarantine(st, 1.0, "bumped (test)")
+    assert st.state == "suspect" and st.last_good is not None and not st.lag_settled
+    return run, st
+
+
+def test_an_unsure_search_does_not_move_a_suspects_lag(bumped):
+    # a bump moves a sensor, not its clock: on the ring (bench_healing_sim) a search of
+    # confidence 0.23 moved a synchronised s1 by 0.8 frame after a 10-degree bump, and the
+    # re-calibration at that lag ended 2.2 degrees and 55 mm off (0.8 degrees and 34 mm
+    # at the lag it had)
+    run, st = bumped
+    unsure = _search(0.5, depth=0.025)              # confidence 0.25
+    assert 0.15 < unsure.confidence < 0.3
+    _update(run, st, unsure, 2.0)
+    assert st.lag_s == 0.0 and not run.events("lag")
+    assert st.lag_settled                            # its lag stands: pairs can be fitted
+    assert run.cal._ready(st, 2.0) is False         # (not before there are pairs)
+
+
+def test_a_sure_search_still_moves_a_suspects_lag_at_once(bumped):
+    # a clock that really jumped gives a sure search that fits clearly better
+    run, st = bumped
+    sure = _search(0.4, depth=0.05)                 # confidence 0.5
+    _update(run, st, sure, 2.0)
+    assert st.lag_s == pytest.approx(0.4, abs=1e-3)
+    assert len(run.events("lag")) == 1
+    # but not to a lag the one in use fits about as well
+    run2_lag = st.lag_s
+    _update(run, st, _search(0.3, depth=0.05, zero=0.052), 3.0)
+    assert st.lag_s == run2_lag
+
+
+def test_a_new_sensors_lag_still_moves_on_a_fairly_sure_search(tracked):
+    run, st = tracked
+    st.state, st.last_good = "uncalibrated", None   # never calibrated here
+    _update(run, st, _search(0.5, depth=0.025), 2.0)
+    assert st.lag_s == pytest.approx(0.5, abs=1e-3)
+
+
 def test_a_looped_take_is_recognised_by_its_repeated_frames():
     from stage.calibration.collector import loop_period
     rng = np.random.default_rng(4)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..joints import TORSO
+from ..joints import JOINT_INDEX, TORSO
 
 
 def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
@@ -67,3 +67,57 @@ def torso_centre(joints: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
 def apply_transform(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 homogeneous transform to (..., 3) points."""
     return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def _side(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    return (np.array([JOINT_INDEX[n + "Left"] for n in names]),
+            np.array([JOINT_INDEX[n + "Right"] for n in names]))
+
+
+#: left and right joints looked at, in pairs: the girdles (shoulders, hips) whose left-right
+#: axes say which side of the body is which, then each limb's check joints (elbow and wrist;
+#: knee and ankle), which must both lie on the wrong side for the limb to count as swapped
+_LOOK_L, _LOOK_R = _side(("Shoulder", "Hip", "Elbow", "Wrist", "Knee", "Ankle"))
+#: the joints traded back per limb (arm, leg)
+_TRADED = (_side(("Elbow", "Wrist", "Hand", "HandTip", "Thumb")), _side(("Knee", "Ankle", "Foot")))
+#: how far (m, along the body's left-right axis) a limb's joints must lie on the wrong side
+SWAP_MARGIN_M = 0.03
+
+
+def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """A sensor's left and right arm (or leg) traded back when the sensor swapped them.
+
+    joints (25, 3), conf (25,) of one view. The body's left-right axis is the mean of the
+    shoulders' and the hips' (each pair seen, weighted by its confidence; at least one
+    pair tracked). A limb counts as swapped when BOTH its check joints (elbow and wrist;
+    knee and ankle) of the left side lie at least ``SWAP_MARGIN_M`` right of the right
+    side's along that axis: depth cameras mix up a left and a right limb that overlap in
+    their image (real Kinects do, and the simulator's model), and when two of three
+    sensors do it at once the consistency vote follows them (legs 20 cm off). Crossed
+    arms cross the wrists but not the elbows, and crossed legs the ankles but rarely the
+    knees, so they are left alone. Returns (joints, conf, limbs traded back); the arrays
+    are new only when something was traded.
+    """
+    c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
+    if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
+        return joints, conf, 0
+    if not ((c[2] > 0 and c[3] > 0) or (c[4] > 0 and c[5] > 0)):
+        return joints, conf, 0                            # no limb to judge
+    diff = joints[_LOOK_L] - joints[_LOOK_R]              # (6, 3) left minus right
+    norm = np.sqrt((diff[:2] * diff[:2]).sum(axis=1))
+    w = np.where((c[:2] > 0) & (norm > 0.05), c[:2], 0.0) / np.maximum(norm, 1e-9)
+    axis = w @ diff[:2]
+    size = float(np.sqrt(axis @ axis))
+    if size < 1e-6:
+        return joints, conf, 0
+    across = diff[2:] @ axis / size                       # elbow, wrist, knee, ankle
+    traded = 0
+    for k, (tl, tr) in enumerate(_TRADED):
+        if c[2 + 2 * k] > 0 and c[3 + 2 * k] > 0 and across[2 * k] < -SWAP_MARGIN_M \
+                and across[2 * k + 1] < -SWAP_MARGIN_M:
+            if not traded:
+                joints, conf = joints.copy(), conf.copy()
+            joints[tl], joints[tr] = joints[tr], joints[tl]
+            conf[tl], conf[tr] = conf[tr], conf[tl]
+            traded += 1
+    return joints, conf, traded

@@ -28,7 +28,7 @@ from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
-from .fusion import apply_transform, torso_centre
+from .fusion import apply_transform, torso_centre, unswap_limbs
 from .kalman import KalmanSettings, measurement_variance
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
@@ -74,6 +74,10 @@ class People:
         """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
         (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
         track.joints = apply_transform(transform, joints)
+        if self.rig.fusion.unswap_limbs:
+            track.joints, conf, traded = unswap_limbs(track.joints, conf)
+            if traded:
+                self.counts["limbs_unswapped"] = self.counts.get("limbs_unswapped", 0) + traded
         track.conf = conf
         track.t = t
         seen = conf > 0
