@@ -87,16 +87,19 @@ SWAP_MARGIN_M = 0.03
 def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """A sensor's left and right arm (or leg) traded back when the sensor swapped them.
 
-    joints (25, 3), conf (25,) of one view. The body's left-right axis is the mean of the
-    shoulders' and the hips' (each pair seen, weighted by its confidence; at least one
-    pair tracked). A limb counts as swapped when BOTH its check joints (elbow and wrist;
-    knee and ankle) of the left side lie at least ``SWAP_MARGIN_M`` right of the right
-    side's along that axis: depth cameras mix up a left and a right limb that overlap in
-    their image (real Kinects do, and the simulator's model), and when two of three
-    sensors do it at once the consistency vote follows them (legs 20 cm off). Crossed
-    arms cross the wrists but not the elbows, and crossed legs the ankles but rarely the
-    knees, so they are left alone. Returns (joints, conf, limbs traded back); the arrays
-    are new only when something was traded.
+    joints (25, 3), conf (25,) of one view. Each limb is judged along the left-right axis
+    of its own girdle (arms: the shoulders; legs: the hips), or of the other girdle when
+    its own is not tracked; a twisted torso over a lunge would otherwise make a correct
+    pair of legs look crossed along the shoulders' axis. A limb counts as swapped when
+    BOTH its check joints (elbow and wrist; knee and ankle) of the left side lie at least
+    ``SWAP_MARGIN_M`` right of the right side's along that axis: depth cameras mix up a
+    left and a right limb that overlap in their image (real Kinects do, and the
+    simulator's model), and when two of three sensors do it at once the consistency vote
+    follows them (legs 20 cm off). Crossed arms cross the wrists but not the elbows, and
+    crossed legs the ankles but rarely the knees, so they are left alone; a leg crossed
+    fully behind the other (a curtsy) is traded all the same (docs/smoothing.md).
+    Returns (joints, conf, limbs traded back); the arrays are new only when something
+    was traded.
     """
     c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
     if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
@@ -104,17 +107,17 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
     if not ((c[2] > 0 and c[3] > 0) or (c[4] > 0 and c[5] > 0)):
         return joints, conf, 0                            # no limb to judge
     diff = joints[_LOOK_L] - joints[_LOOK_R]              # (6, 3) left minus right
-    norm = np.sqrt((diff[:2] * diff[:2]).sum(axis=1))
-    w = np.where((c[:2] > 0) & (norm > 0.05), c[:2], 0.0) / np.maximum(norm, 1e-9)
-    axis = w @ diff[:2]
-    size = float(np.sqrt(axis @ axis))
-    if size < 1e-6:
-        return joints, conf, 0
-    across = diff[2:] @ axis / size                       # elbow, wrist, knee, ankle
     traded = 0
-    for k, (tl, tr) in enumerate(_TRADED):
-        if c[2 + 2 * k] > 0 and c[3 + 2 * k] > 0 and across[2 * k] < -SWAP_MARGIN_M \
-                and across[2 * k + 1] < -SWAP_MARGIN_M:
+    for k, (tl, tr) in enumerate(_TRADED):                # arm (shoulders), leg (hips)
+        if not (c[2 + 2 * k] > 0 and c[3 + 2 * k] > 0):
+            continue
+        girdle = k if c[k] >= 1.0 else 1 - k
+        axis = diff[girdle]
+        size = float(np.sqrt(axis @ axis))
+        if size < 0.05:                                   # shoulders or hips on one point
+            continue
+        across = diff[2 + 2 * k: 4 + 2 * k] @ axis / size  # elbow, wrist or knee, ankle
+        if across[0] < -SWAP_MARGIN_M and across[1] < -SWAP_MARGIN_M:
             if not traded:
                 joints, conf = joints.copy(), conf.copy()
             joints[tl], joints[tr] = joints[tr], joints[tl]
