@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from stage.engine.fusion import unswap_limbs
-from stage.joints import JOINT_INDEX as J
+from stage.joints import JOINT_INDEX as J, HandState
 from stage.sensors import sim as sim_mod
 from stage.yamlio import loads_marked
 from test_engine import frame, make_engine, send
@@ -51,7 +51,7 @@ def test_true_skeletons_are_never_traded():
         assert unswap_limbs(joints, conf)[2] == 0
 
 
-@pytest.mark.parametrize("names, traded", [(LEG, 1), (ARM, 1)])
+@pytest.mark.parametrize("names, traded", [(LEG, 2), (ARM, 1)])
 def test_a_swapped_limb_is_traded_back(names, traded):
     conf = np.ones(25)
     hits = 0
@@ -139,4 +139,28 @@ def test_a_twisted_torso_over_a_lunge_keeps_its_legs():
         for step in (0.2, 0.4, 0.6, -0.2, -0.4, -0.6):
             assert unswap_limbs(_twisted_lunge(base, twist, step), conf)[2] == 0, (twist, step)
         swapped = _swap(_twisted_lunge(base, twist, 0.2), LEG)
-        assert unswap_limbs(swapped, conf)[2] == 1
+        assert unswap_limbs(swapped, conf)[2] == 2                    # LEG_TRADED
+
+
+@pytest.mark.parametrize("unswap", [True, False])
+def test_a_sensor_that_swapped_the_arms_has_its_hand_states_traded_back_too(unswap):
+    """A sensor that mixes up the arms names each hand's state by the wrong side as well:
+    with its arms traded back, its "left" hand state counts for the right hand."""
+    truth = _routines()[0]
+    engine, clock, out = make_engine(sim_mod.ring_poses(3), unswap_limbs=unswap)
+    poses = sim_mod.ring_poses(3)
+    for k in range(15):
+        clock.set(100.0 + k / 30)
+        for i, pose in enumerate(poses):
+            swapped = i > 0                                      # s1 and s2 swap the arms
+            seen = _swap(truth, ARM) if swapped else truth
+            hands = ("closed", "open") if swapped else ("open", "closed")
+            cam = pose.observe(seen[None])[0]
+            send(engine, frame(f"s{i}", 1, cam, hands=hands), ("10.0.0.1", 5000 + i))
+    engine.drain()
+    person = next(iter(engine.persons.values()))
+    left, right = person.hands
+    if unswap:
+        assert (left, right) == (HandState.OPEN, HandState.CLOSED)
+    else:  # two of three sensors outvote the third on each hand (the behaviour this fixes)
+        assert (left, right) == (HandState.CLOSED, HandState.OPEN)

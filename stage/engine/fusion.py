@@ -80,6 +80,8 @@ def _side(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
 _LOOK_L, _LOOK_R = _side(("Shoulder", "Hip", "Elbow", "Wrist", "Knee", "Ankle"))
 #: the joints traded back per limb (arm, leg)
 _TRADED = (_side(("Elbow", "Wrist", "Hand", "HandTip", "Thumb")), _side(("Knee", "Ankle", "Foot")))
+#: ``unswap_limbs``'s bit mask: the arms were traded, the legs were
+ARM_TRADED, LEG_TRADED = 1, 2
 #: how far (m, along the body's left-right axis) a limb's joints must lie on the wrong side
 SWAP_MARGIN_M = 0.03
 
@@ -98,8 +100,9 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
     follows them (legs 20 cm off). Crossed arms cross the wrists but not the elbows, and
     crossed legs the ankles but rarely the knees, so they are left alone; a leg crossed
     fully behind the other (a curtsy) is traded all the same (docs/smoothing.md).
-    Returns (joints, conf, limbs traded back); the arrays are new only when something
-    was traded.
+    Returns (joints, conf, traded): ``traded`` is a bit mask, ``ARM_TRADED`` (1) and
+    ``LEG_TRADED`` (2), 0 when nothing was; the arrays are new only when something was
+    traded.
     """
     c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
     if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
@@ -122,5 +125,5 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
                 joints, conf = joints.copy(), conf.copy()
             joints[tl], joints[tr] = joints[tr], joints[tl]
             conf[tl], conf[tr] = conf[tr], conf[tl]
-            traded += 1
+            traded |= 1 << k
     return joints, conf, traded

@@ -28,7 +28,7 @@ from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
-from .fusion import apply_transform, torso_centre, unswap_limbs
+from .fusion import ARM_TRADED, apply_transform, torso_centre, unswap_limbs
 from .kalman import KalmanSettings, measurement_variance
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
@@ -76,8 +76,13 @@ class People:
         track.joints = apply_transform(transform, joints)
         if self.rig.fusion.unswap_limbs:
             track.joints, conf, traded = unswap_limbs(track.joints, conf)
+            # the sensor's hand states follow its arms: its "left" hand is the right one
+            # while it has the arms swapped (kept until a frame says otherwise, so a
+            # /handState sent before the frame of its datagram reads the last frame's)
+            track.arms_traded = 1 if traded & ARM_TRADED else 0
             if traded:
-                self.counts["limbs_unswapped"] = self.counts.get("limbs_unswapped", 0) + traded
+                self.counts["limbs_unswapped"] = (self.counts.get("limbs_unswapped", 0)
+                                                  + bin(traded).count("1"))
         track.conf = conf
         track.t = t
         seen = conf > 0
@@ -96,14 +101,15 @@ class People:
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand in (0, 1):
             weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
-            person.voter.add(track.key, hand, track.hands[hand], weight, t)
+            person.voter.add(track.key, hand, track.hands[hand ^ track.arms_traded], weight, t)
 
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
-        """A ``/handState`` of ``track`` captured at ``t``."""
+        """A ``/handState`` of ``track`` captured at ``t`` (``hand`` as the sensor names it)."""
         track.hands[hand] = state
         person = self.persons.get(track.person) if track.person is not None else None
         if person is None:
             return
+        hand ^= track.arms_traded                   # the sensor's arms traded back
         weighted = self.rig.fusion.hand_vote == "confidence"
         weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
         person.voter.add(track.key, hand, state, weight, t)

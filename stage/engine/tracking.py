@@ -77,6 +77,7 @@ class Track:
     t: float = float("-inf")            # capture time of the latest frame (engine clock)
     stamp: float = float("-inf")        # the same on the client's clock (timetag or arrival)
     hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
+    arms_traded: int = 0                # 1 while its latest frame had the arms swapped back
     person: int | None = None
     far_frames: int = 0                 # consecutive frames beyond release distance
 
