@@ -181,8 +181,11 @@ def score(firings: list[tuple[str, str, float]], truth: dict) -> dict[str, dict]
     return out
 
 
-def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "",
-        forecast: str = "") -> dict:
+def sim_engine(take: str, seed: int, delay: float, kinect: str = "",
+               forecast: str = "") -> tuple[Simulator, ManualClock, Engine, float]:
+    """The bench's simulator (CMU ``take`` danced before three Kinects, ``kinect`` extra
+    sensor-model keys) and an engine on a manual clock with the rig's forecast settings
+    overridden by ``forecast`` keys; the take's duration in seconds."""
     path = cmu_file(take)
     if path is None:
         raise SystemExit(f"CMU take {take} not found ($STAGE_CMU_DIR or shared/data/cmu)")
@@ -194,7 +197,12 @@ def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str =
     if forecast:
         rig.forecast = dataclasses.replace(rig.forecast, **loads_marked(
             "{" + forecast + "}", "--forecast"))
-    engine = Engine(rig, clock)
+    return sim, clock, Engine(rig, clock), duration
+
+
+def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "",
+        forecast: str = "") -> dict:
+    sim, clock, engine, duration = sim_engine(take, seed, delay, kinect, forecast)
     runtimes = {}
     for mode, h, *extra in settings:
         piece = loads_piece(piece_text(mode, h, *extra), "bench.yaml")

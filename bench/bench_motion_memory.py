@@ -29,7 +29,6 @@ motion model's own error above.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -164,25 +163,14 @@ def rises(series: list[np.ndarray], vel: list[np.ndarray]) -> None:
 def fused(kinect: str, forecast: str = "", takes: tuple[str, ...] = TAKES,
           seeds: tuple[int, ...] = (1, 2, 3)) -> None:
     """The fused feet against the truth the sensors showed (see the module docstring)."""
-    from bench_anticipation import SCENARIO as BENCH
+    from bench_anticipation import sim_engine
 
     from stage.app.offline import feed
-    from stage.clock import ManualClock
-    from stage.engine import Engine
     delay, feet = 0.060, [J["FootLeft"], J["FootRight"]]
     rows = []     # per frame and foot: capture time, fused y, vy, forecast y, truth series
     for take in takes:
         for seed in seeds:
-            text = BENCH.format(delay=delay, path=cmu_file(take),
-                                kinect=f", {kinect}" if kinect else "")
-            sim = Simulator(parse_scenario(loads_marked(text, "b.yaml"), "b.yaml"), seed=seed)
-            end = sim.performers[0].length + 0.5
-            clock = ManualClock(0.0)
-            rig = sim.rig()
-            if forecast:
-                rig.forecast = dataclasses.replace(rig.forecast, **loads_marked(
-                    "{" + forecast + "}", "--forecast"))
-            engine = Engine(rig, clock)
+            sim, clock, engine, end = sim_engine(take, seed, delay, kinect, forecast)
             engine.people.want_forecast(0.05)
             got: list = []
             engine.listeners.append(lambda f: got.extend(
