@@ -107,8 +107,6 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
     c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
     if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
         return joints, conf, 0
-    if not ((c[2] > 0 and c[3] > 0) or (c[4] > 0 and c[5] > 0)):
-        return joints, conf, 0                            # no limb to judge
     diff = joints[_LOOK_L] - joints[_LOOK_R]              # (6, 3) left minus right
     traded = 0
     for k, (tl, tr) in enumerate(_TRADED):                # arm (shoulders), leg (hips)
