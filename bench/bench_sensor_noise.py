@@ -335,7 +335,7 @@ def print_kinect2(folder: str, v2: dict, sims: dict, wins: dict, matched: dict,
     print(f"{'group':<15}{col:>22}{short + ' inferred (n)':>30}{'sim real':>22}"
           f"{'sim clean':>22}{'sim real/' + short:>20}")
     for group in GROUPS:
-        (t, nt), (i, ni) = v2["tracked"][group], v2["inferred"][group]
+        (t, _), (i, ni) = v2["tracked"][group], v2["inferred"][group]
         inferred = _cells(i) + f" ({ni})" if f["states"] else "-"
         print(f"{group:<15}{_cells(t)}{inferred:>30}"
               f"{_cells(sims['real'][group], sims['clean'][group])}"
