@@ -181,7 +181,7 @@ class Fuser:
     def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]]) -> None:
         n = N_JOINTS
         before = FilterState.concat([body.state for body, *_ in items])
-        work = FilterState(before.x, before.P, before.mu, before.t, before.held_z, before.held_t)
+        work = before.shallow()
         t = np.repeat([view.t for _, view, _, _ in items], n)
         z = np.concatenate([view.joints for _, view, _, _ in items])
         r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
@@ -251,7 +251,7 @@ class Fuser:
         state = hist[start].before if start < len(hist) else body.state
         views = [s.view for s in hist[start:p]] + [view] + [s.view for s in hist[p:]]
         del hist[start:]
-        state = FilterState(state.x, state.P, state.mu, state.t, state.held_z, state.held_t)
+        state = state.shallow()
         k = 0
         while k < len(views):
             anchor = views[k].t
@@ -262,8 +262,7 @@ class Fuser:
             first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
             masks = self._choose(body, group, first, anchor)
             for j, (v, mask) in enumerate(zip(group, masks)):
-                before = FilterState(state.x, state.P, state.mu, state.t, state.held_z,
-                                     state.held_t)       # step replaces, never writes into
+                before = state.shallow()       # step replaces, never writes into
                 outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
                                np.where(mask, v.r, np.nan), self.s, self.q_scale)
                 self._count(outcome)
