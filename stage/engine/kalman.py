@@ -308,11 +308,13 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     r = np.asarray(r, dtype=float)
     t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
     # r <= 0, r = inf, NaN anywhere: not measured (0 * inf and 0 * NaN are NaN)
-    valid = np.isfinite(z.sum(axis=1) + t + 0.0 * r) & (r > 0)
+    valid = np.isfinite(z[:, 0] + z[:, 1] + z[:, 2] + t + 0.0 * r) & (r > 0)
     init = ~np.isnan(state.t)
     upd = valid & init
     fresh = valid & ~init
-    if upd.any():
+    # (np.count_nonzero, not .any() / .all(): a numpy reduction costs several elementwise
+    # operations; the step is made of small operations, so their count is its cost)
+    if np.count_nonzero(upd):
         # every row is computed (rows without a measurement, or without a state, give NaN
         # or junk) and only the measured ones are kept: one pass of whole-array operations
         # is cheaper than gathering and scattering the rows
@@ -323,7 +325,7 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
         use = upd & (d2 <= s.reject_sigma ** 2)
         outcome = np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED).astype(np.int8)
         outcome[~upd] = NOT_MEASURED
-        if not use.all():
+        if np.count_nonzero(use) < n:
             new = np.where(use[:, None], new, S)
         keep = FilterState.of_block(new, np.where(use, np.maximum(t, state.t), state.t),
                                     state.held_z, np.where(use, np.nan, state.held_t))
@@ -341,7 +343,7 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                 outcome[again] = RESTARTED
     else:
         outcome = np.zeros(n, dtype=np.int8)
-    if fresh.any():
+    if np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
     return outcome
