@@ -10,8 +10,6 @@ so the number of calls is the step's cost.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from ..settings import KalmanSettings
@@ -20,15 +18,23 @@ M = 2  # modes: 0 quiet, 1 fast
 _MU_FLOOR = 1e-300
 
 
-@functools.lru_cache(maxsize=16)
+_CONSTANTS: dict[int, tuple] = {}
+
+
 def _constants(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
     """(the modes' acceleration variances (M, 1, 1), minus the switching rates (2, 1)),
-    read-only: shared by every step with these settings."""
-    q = np.array([s.quiet_noise, s.fast_noise])[:, None, None]
-    rates = -np.array([[s.quiet_to_fast_per_s], [s.fast_to_quiet_per_s]])
-    q.setflags(write=False)
-    rates.setflags(write=False)
-    return q, rates
+    read-only: shared by every step with these settings. Kept by the settings object's
+    identity (hashing a frozen dataclass of ten fields costs more than a numpy call)."""
+    entry = _CONSTANTS.get(id(s))
+    if entry is None or entry[0] is not s:
+        q = np.array([s.quiet_noise, s.fast_noise])[:, None, None]
+        rates = -np.array([[s.quiet_to_fast_per_s], [s.fast_to_quiet_per_s]])
+        q.setflags(write=False)
+        rates.setflags(write=False)
+        if len(_CONSTANTS) > 64:
+            _CONSTANTS.clear()
+        entry = _CONSTANTS[id(s)] = (s, q, rates)     # s kept: its id is not reused meanwhile
+    return entry[1], entry[2]
 
 
 def fused_update(S: np.ndarray, dt: np.ndarray, z: np.ndarray, r: np.ndarray, s: KalmanSettings,

@@ -306,32 +306,44 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
-    t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
+    t = np.asarray(t, dtype=float)
+    if t.shape != (n,):
+        t = np.broadcast_to(t, (n,))
     # r <= 0, r = inf, NaN anywhere: not measured (0 * inf and 0 * NaN are NaN)
     valid = np.isfinite(z[:, 0] + z[:, 1] + z[:, 2] + t + 0.0 * r) & (r > 0)
-    init = ~np.isnan(state.t)
+    init = state.t == state.t                                # not NaN: has a state
     upd = valid & init
-    fresh = valid & ~init
     # (np.count_nonzero, not .any() / .all(): a numpy reduction costs several elementwise
-    # operations; the step is made of small operations, so their count is its cost)
-    if np.count_nonzero(upd):
+    # operations; the step is made of small operations, so their count is its cost; the
+    # usual step -- every row measured, known and accepted -- skips the masks it needs not)
+    n_upd = np.count_nonzero(upd)
+    fresh = valid & ~init if n_upd < np.count_nonzero(valid) else None
+    outcome = None
+    if n_upd:
         # every row is computed (rows without a measurement, or without a state, give NaN
         # or junk) and only the measured ones are kept: one pass of whole-array operations
         # is cheaper than gathering and scattering the rows
         S = state.stacked()
-        dt = np.where(upd, np.maximum(t - state.t, 0.0), 0.0)
+        dt = np.maximum(t - state.t, 0.0)
+        if n_upd < n:
+            dt = np.where(upd, dt, 0.0)
         gate2 = s.gate_sigma ** 2
         new, d2 = fused_update(S, dt, z, r, s, q_scale, gate2)
-        use = upd & (d2 <= s.reject_sigma ** 2)
-        outcome = np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED).astype(np.int8)
-        outcome[~upd] = NOT_MEASURED
-        if np.count_nonzero(use) < n:
-            new = np.where(use[:, None], new, S)
-        keep = FilterState.of_block(new, np.where(use, np.maximum(t, state.t), state.t),
-                                    state.held_z, np.where(use, np.nan, state.held_t))
+        use = d2 <= s.reject_sigma ** 2
+        outcome = np.add(d2 > gate2, ACCEPTED, dtype=np.int8)   # DOWNWEIGHTED = ACCEPTED + 1
+        if n_upd < n:
+            use &= upd
+            outcome[~upd] = NOT_MEASURED
+        if np.count_nonzero(use) == n:
+            keep = FilterState.of_block(new, np.maximum(t, state.t), state.held_z,
+                                        np.full(n, np.nan))
+        else:
+            keep = FilterState.of_block(np.where(use[:, None], new, S),
+                                        np.where(use, np.maximum(t, state.t), state.t),
+                                        state.held_z, np.where(use, np.nan, state.held_t))
         state.x, state.P, state.mu, state.t, state.held_t, state.block = (
             keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
-        bad = np.flatnonzero(upd & ~use)
+        bad = np.flatnonzero(upd & ~use) if np.count_nonzero(use) < n_upd else ()
         if len(bad):
             again = bad[~np.isnan(state.held_t[bad])]
             first = bad[np.isnan(state.held_t[bad])]
@@ -341,9 +353,9 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
             if len(again):
                 _restart(state, again, z[again], t[again], r[again], s)
                 outcome[again] = RESTARTED
-    else:
+    if outcome is None:
         outcome = np.zeros(n, dtype=np.int8)
-    if np.count_nonzero(fresh):
+    if fresh is not None and np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
     return outcome
