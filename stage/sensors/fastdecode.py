@@ -79,6 +79,7 @@ def _canonical_layout() -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
 
 
 _CANON_LEN, _CANON_NAME_IDX, _CANON_NAMES, _CANON_VALUE_IDX = _canonical_layout()
+_CANON_NAME_BYTES = _CANON_NAMES.tobytes()
 
 
 #: the valid range of each value of a joint (x, y, z metres; confidence): NaN and inf fall
@@ -92,12 +93,17 @@ def canonical_joints_batch(tails: list[bytes]) -> tuple[np.ndarray, np.ndarray, 
     the first joint name on (all the same length: the canonical layout's). Returns (ok (B,) bool: the names
     are the canonical ones and every value is valid, joints (B, 25, 3) m, conf (B, 25)); a
     skeleton that is not ok goes to the general path, which decodes it or names the drop."""
-    buf = np.frombuffer(b"".join(tails), dtype=np.uint8).reshape(len(tails), _CANON_LEN)
-    # (np.take, not buf[:, idx]: that one is not C-ordered for several rows, so no .view)
-    values = np.take(buf, _CANON_VALUE_IDX, axis=1).view(">f4").reshape(len(tails), N_JOINTS, 4)
+    b = len(tails)
+    buf = np.frombuffer(b"".join(tails), dtype=np.uint8).reshape(b, _CANON_LEN)
+    # (.take, not buf[:, idx]: that one is not C-ordered for several rows, so no .view)
+    values = buf.take(_CANON_VALUE_IDX, axis=1).view(">f4").reshape(b, N_JOINTS, 4)
     values = values.astype(float)
-    ok = (buf[:, _CANON_NAME_IDX] == _CANON_NAMES).all(axis=1)
-    ok &= ((values >= _LOW) & (values <= _HIGH)).all(axis=(1, 2))
+    names = buf.take(_CANON_NAME_IDX, axis=1).tobytes()
+    n = len(_CANON_NAME_BYTES)
+    ok = np.array([names[k * n:(k + 1) * n] == _CANON_NAME_BYTES for k in range(b)])
+    inside = (values >= _LOW) & (values <= _HIGH)
+    if np.count_nonzero(inside) < inside.size:    # (a reduction per row only then: rare)
+        ok &= inside.all(axis=(1, 2))
     return ok, np.ascontiguousarray(values[:, :, :3]), np.ascontiguousarray(values[:, :, 3])
 
 
