@@ -278,6 +278,46 @@ def settled(n: int = 3, s: KalmanSettings = KalmanSettings()) -> JointKalman:
     return kf
 
 
+@pytest.mark.parametrize("scaled", [False, True])
+def test_step_is_the_pure_functions_composed_bit_for_bit(scaled):
+    """``step`` runs mix, predict, the gate and update fused into one pass over the stacked
+    state (fewer numpy calls); it must give exactly the floats the pure functions give, so
+    that the pure functions' filterpy tests cover it and replays do not drift."""
+    s = KalmanSettings()
+    rng = np.random.default_rng(7)
+    n = 40
+    q_scale = rng.uniform(0.5, 2.0, n) if scaled else None
+    state = FilterState.empty(n)
+    t = 0.0
+    seen: set[int] = set()
+    for k in range(60):
+        t += (0.0, 1 / 30, 1 / 90, 0.25)[k % 4]
+        z = rng.normal(0.0, 0.02 if k % 9 else 0.6, (n, 3))     # some beyond the gate
+        r = rng.uniform(1e-5, 1e-3, n)
+        r[rng.random(n) < 0.1] = np.nan                           # not measured
+        times = t - rng.choice([0.0, 0.0, 0.0, 0.05], n)          # some older than the row
+        before = state.copy()
+        outcome = step(state, times, z, r, s, q_scale)
+        if np.isnan(before.t).all():
+            continue
+        q = np.array([s.quiet_noise, s.fast_noise])
+        q = q if q_scale is None else q[:, None] * q_scale[None]
+        dt = np.where(np.isnan(before.t), 0.0, np.maximum(times - before.t, 0.0))
+        x0, P0, cbar = mix(before.x, before.P, before.mu, *transition(dt, s))
+        xp, Pp = predict(x0, P0, dt, q)
+        d2 = gate_distance(xp, Pp, cbar, z, r)
+        xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / s.gate_sigma ** 2, 1.0))
+        kept = np.isin(outcome, (ACCEPTED, DOWNWEIGHTED))
+        idle = outcome == 0
+        seen |= set(np.unique(outcome).tolist())
+        np.testing.assert_array_equal(state.x[:, :, kept], xu[:, :, kept])
+        np.testing.assert_array_equal(state.P[:, :, kept], Pu[:, :, kept])
+        np.testing.assert_array_equal(state.mu[:, kept], muu[:, kept])
+        np.testing.assert_array_equal(state.x[:, :, idle], before.x[:, :, idle])
+        np.testing.assert_array_equal(state.P[:, :, idle], before.P[:, :, idle])
+    assert {0, ACCEPTED, DOWNWEIGHTED, REJECTED} <= seen      # every path was taken
+
+
 def test_a_measurement_beyond_the_gate_counts_less_than_at_face_value():
     gated, ungated = KalmanSettings(), KalmanSettings(**UNGATED)
     for jump, outcome in ((0.02, ACCEPTED), (0.05, ACCEPTED), (0.1, DOWNWEIGHTED),

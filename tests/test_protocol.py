@@ -317,3 +317,49 @@ def _assert_same_skeleton(general, fast) -> None:
     slow = general.messages[0][0]
     assert (fast.client, fast.user) == (slow.client, slow.user)
     assert np.array_equal(fast.joints, slow.joints) and np.array_equal(fast.conf, slow.conf)
+
+
+def test_a_bundles_kinect_order_skeletons_decoded_together_as_each_alone():
+    """The Kinect-order skeletons of one bundle are checked and converted together; the result
+    is what decoding each element alone gives (python-osc's general path for the odd ones):
+    the same messages in the same order, the same drops, nested bundles included."""
+    from pythonosc.osc_bundle_builder import OscBundleBuilder as Builder
+    from pythonosc.osc_message import OscMessage as Msg
+    from stage.sensors.protocol import Decoded, _decode_element, decode_datagram
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        elements = []
+        for k in range(int(rng.integers(1, 8))):
+            args = ["kin", int(rng.integers(0, 6))]
+            names = list(JOINTS)
+            kind = rng.integers(0, 6)
+            if kind == 1:
+                names[4], names[5] = names[5], names[4]            # another order
+            for n, name in enumerate(names):
+                xyz = rng.normal(0.0, 1.0, 3)
+                c = 1.0
+                if kind == 2 and n == 7:
+                    xyz[1] = np.nan                                # invalid value: a drop
+                if kind == 3 and n == 0:
+                    c = 1.5                                        # confidence out of range
+                args += [name, *map(float, xyz), c]
+            elements.append(build("/jointCoordinates", *args))
+            if kind == 4:
+                elements.append(build("/handState", "kin", 1, "left", "open"))
+        outer = Builder(IMMEDIATELY)
+        inner = Builder(IMMEDIATELY)
+        for k, e in enumerate(elements):
+            (inner if trial % 2 and k % 2 else outer).add_content(Msg(e))
+        if trial % 2:
+            outer.add_content(inner.build())
+        got = decode_datagram(outer.build().dgram, "x:1")
+        alone = Decoded()
+        for e in [e for k, e in enumerate(elements) if not (trial % 2 and k % 2)] + \
+                [e for k, e in enumerate(elements) if trial % 2 and k % 2]:
+            _decode_element(e, None, alone, "x:1")
+        assert sorted(got.drops) == sorted(alone.drops)
+        assert len(got.messages) == len(alone.messages)
+        for (m, _), (a, _) in zip(got.messages, alone.messages):
+            assert type(m) is type(a) and m.client == a.client and m.user == a.user
+            if isinstance(m, JointCoordinates):
+                assert np.array_equal(m.joints, a.joints) and np.array_equal(m.conf, a.conf)

@@ -290,7 +290,7 @@ class ClientRegistry:
         return True
 
     def _skeleton(self, state: ClientState, msg: JointCoordinates, now: float) -> None:
-        if int((msg.conf[_TORSO] > 0).sum()) < 2:
+        if np.count_nonzero(msg.conf[_TORSO] > 0) < 2:   # (count_nonzero: no reduction)
             return  # not a person's skeleton: does not count towards the reference
         state.skeletons += 1
         if state.skeleton_since is None:

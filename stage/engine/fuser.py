@@ -60,16 +60,28 @@ class View:
     excluded: int = 0             # joints the consistency check left out (for the stats)
 
 
-@dataclass(eq=False)
 class _Step:
-    view: View
-    before: FilterState           # the state before this view (never changed)
-    anchor: float                 # capture time of the first view of its instant
-    mask: np.ndarray              # (25,) joints the instant's consistency check let through
-    #: the mask is every joint the view sees (nothing of it was left out)
-    whole: bool = True
-    #: on the first view of an instant: the filter's prediction for the instant (cached)
-    prior: tuple[np.ndarray, np.ndarray] | None = None
+    """One view folded in: the view; the state before it (never changed); the capture time
+    of the first view of its instant (``anchor``); the (25,) joints the instant's
+    consistency check let through (``mask``); whether that is every joint the view sees
+    (``whole``); on the first view of an instant, the filter's prediction for the instant
+    (``prior``, cached). ``before`` may be given as (state, start, stop): rows of a wave's
+    state, cut out only if a replay or a consistency check reads it (most never are)."""
+
+    __slots__ = ("view", "_before", "anchor", "mask", "whole", "prior")
+
+    def __init__(self, view: View, before: FilterState | tuple[FilterState, int, int],
+                 anchor: float, mask: np.ndarray, whole: bool = True,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        self.view, self._before, self.anchor = view, before, anchor
+        self.mask, self.whole, self.prior = mask, whole, prior
+
+    @property
+    def before(self) -> FilterState:
+        b = self._before
+        if type(b) is tuple:
+            b = self._before = b[0].view_rows(b[1], b[2])
+        return b
 
 
 class BodyFilter:
@@ -181,8 +193,8 @@ class Fuser:
     def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]]) -> None:
         n = N_JOINTS
         before = FilterState.concat([body.state for body, *_ in items])
-        work = FilterState(before.x, before.P, before.mu, before.t, before.held_z, before.held_t)
-        t = np.repeat([view.t for _, view, _, _ in items], n)
+        work = before.shallow()
+        t = np.array([view.t for _, view, _, _ in items]).repeat(n)
         z = np.concatenate([view.joints for _, view, _, _ in items])
         r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
                             for _, view, mask, _ in items])
@@ -190,18 +202,19 @@ class Fuser:
         outcome = step(work, t, z, r, self.s, q)
         self._count(outcome)
         pos, vel = work.predicted(t)
+        used = _USED[outcome]
+        seen = np.isfinite(r)           # a view's rows, where it has no mask: np.isfinite(view.r)
         for k, (body, view, mask, anchor) in enumerate(items):
             a, b = k * n, (k + 1) * n
             body.state = work.view_rows(a, b)
             body.output = (view.t, pos[a:b], vel[a:b])
-            view.used = _USED[outcome[a:b]]
+            view.used = used[a:b]
             if mask is None:
-                mask = np.isfinite(view.r)
+                mask = seen[a:b]
             else:
                 view.excluded = int((np.isfinite(view.r) & ~mask).sum())
                 self.stats.disagreeing += view.excluded
-            body.history.append(_Step(view, before.view_rows(a, b), anchor, mask,
-                                      view.excluded == 0))
+            body.history.append(_Step(view, (before, a, b), anchor, mask, view.excluded == 0))
 
     # ------------------------------------------------------------ instants and replays
     def _instant_start(self, body: BodyFilter, i: int) -> int:
@@ -251,7 +264,7 @@ class Fuser:
         state = hist[start].before if start < len(hist) else body.state
         views = [s.view for s in hist[start:p]] + [view] + [s.view for s in hist[p:]]
         del hist[start:]
-        state = FilterState(state.x, state.P, state.mu, state.t, state.held_z, state.held_t)
+        state = state.shallow()
         k = 0
         while k < len(views):
             anchor = views[k].t
@@ -262,8 +275,7 @@ class Fuser:
             first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
             masks = self._choose(body, group, first, anchor)
             for j, (v, mask) in enumerate(zip(group, masks)):
-                before = FilterState(state.x, state.P, state.mu, state.t, state.held_z,
-                                     state.held_t)       # step replaces, never writes into
+                before = state.shallow()       # step replaces, never writes into
                 outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
                                np.where(mask, v.r, np.nan), self.s, self.q_scale)
                 self._count(outcome)

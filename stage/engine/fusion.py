@@ -7,6 +7,8 @@ into each person's filter (``fuser``).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..joints import JOINT_INDEX, TORSO
@@ -78,6 +80,7 @@ def _side(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
 #: axes say which side of the body is which, then each limb's check joints (elbow and wrist;
 #: knee and ankle), which must both lie on the wrong side for the limb to count as swapped
 _LOOK_L, _LOOK_R = _side(("Shoulder", "Hip", "Elbow", "Wrist", "Knee", "Ankle"))
+_LOOK = np.array([_LOOK_L, _LOOK_R])                  # (2, 6): one fancy index for both sides
 #: the joints traded back per limb (arm, leg)
 _TRADED = (_side(("Elbow", "Wrist", "Hand", "HandTip", "Thumb")), _side(("Knee", "Ankle", "Foot")))
 #: ``unswap_limbs``'s bit mask: the arms were traded, the legs were
@@ -104,20 +107,24 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
     ``LEG_TRADED`` (2), 0 when nothing was; the arrays are new only when something was
     traded.
     """
-    c = np.minimum(conf[_LOOK_L], conf[_LOOK_R])          # (6,) per pair: both seen?
+    # a dozen numbers: read into Python once (small numpy operations cost more than these)
+    cl, cr = conf[_LOOK].tolist()
+    c = [a if a < b else b for a, b in zip(cl, cr)]       # (6,) per pair: both seen?
     if c[0] < 1.0 and c[1] < 1.0:                         # no girdle tracked
         return joints, conf, 0
-    diff = joints[_LOOK_L] - joints[_LOOK_R]              # (6, 3) left minus right
+    pl, pr = joints[_LOOK].tolist()
+    diff = [(a[0] - b[0], a[1] - b[1], a[2] - b[2]) for a, b in zip(pl, pr)]  # left - right
     traded = 0
     for k, (tl, tr) in enumerate(_TRADED):                # arm (shoulders), leg (hips)
         if not (c[2 + 2 * k] > 0 and c[3 + 2 * k] > 0):
             continue
         girdle = k if c[k] >= 1.0 else 1 - k
-        axis = diff[girdle]
-        size = float(np.sqrt(axis @ axis))
+        ax, ay, az = diff[girdle]
+        size = math.sqrt(ax * ax + ay * ay + az * az)
         if size < 0.05:                                   # shoulders or hips on one point
             continue
-        across = diff[2 + 2 * k: 4 + 2 * k] @ axis / size  # elbow, wrist or knee, ankle
+        # elbow, wrist or knee, ankle along the girdle's axis
+        across = [(x * ax + y * ay + z * az) / size for x, y, z in diff[2 + 2 * k: 4 + 2 * k]]
         if across[0] < -SWAP_MARGIN_M and across[1] < -SWAP_MARGIN_M:
             if not traded:
                 joints, conf = joints.copy(), conf.copy()

@@ -74,6 +74,9 @@ _FORGOTTEN = math.exp(-4.0)
 EVIDENCE_LEAD = 5.0
 EVIDENCE_MARGIN = 3.0
 _KNOWN = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
+#: per reported known state: the other two, in code order
+_OTHERS = {c: tuple(k for k in _KNOWN if k != c) for c in _KNOWN}
+_NEVER = float("-inf")
 
 
 class HandVoter:
@@ -85,7 +88,7 @@ class HandVoter:
     """
 
     __slots__ = ("memory_s", "hold_s", "evidence", "reports", "reported", "_candidate",
-                 "_last_t", "_pending", "_counted", "_lead", "_margin", "_since")
+                 "_last_t", "_pending", "_fresh", "_counted", "_lead", "_margin", "_since")
 
     def __init__(self, memory_s: float, hold_s: float, evidence: bool = True) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
@@ -103,6 +106,9 @@ class HandVoter:
         #: counted (key -> (t, state, weight)), the time of each sensor's last counted one,
         #: and per state code the lead, the margin and when the lead's run began (-1: none)
         self._pending: tuple[dict, dict] = ({}, {})
+        #: per hand: the sensors whose pending report changed since the last count (only
+        #: they can have a report not counted yet)
+        self._fresh: tuple[set, set] = (set(), set())
         self._counted: tuple[dict, dict] = ({}, {})
         self._lead = ([0.0] * 5, [0.0] * 5)
         self._margin = ([0.0] * 5, [0.0] * 5)
@@ -114,6 +120,7 @@ class HandVoter:
         pending = self._pending[hand].get(key)
         if pending is None or t >= pending[0]:
             self._pending[hand][key] = (t, int(state), weight)
+            self._fresh[hand].add(key)
         entry = self.reports[hand].get(key)
         if entry is None:
             shares = [0.0] * 5
@@ -138,6 +145,8 @@ class HandVoter:
         """A sensor view left this person: its reports no longer vote."""
         for reports in (*self.reports, *self._pending, *self._counted):
             reports.pop(key, None)
+        for fresh in self._fresh:
+            fresh.discard(key)
 
     def vote(self, hand: int, t: float) -> HandState:
         """The winning state of ``hand`` at ``t`` (rules in the module docstring)."""
@@ -206,9 +215,13 @@ class HandVoter:
     def _evidence(self, hand: int, t: float) -> HandState | None:
         """Count the reports not counted yet into ``hand``'s evidence; the state they make a
         clear case for at ``t`` (module docstring), or None."""
-        pending, counted = self._pending[hand], self._counted[hand]
-        new = [(rt, state, w, key) for key, (rt, state, w) in pending.items()
-               if rt > counted.get(key, float("-inf"))]
+        pending, counted, fresh = self._pending[hand], self._counted[hand], self._fresh[hand]
+        if not fresh:
+            new = []
+        else:
+            new = [(rt, state, w, key) for key in fresh
+                   for rt, state, w in (pending[key],) if rt > counted.get(key, _NEVER)]
+            fresh.clear()
         current = self.reported[hand]
         if current is None or current < HandState.OPEN:
             for rt, _, _, key in new:
@@ -228,9 +241,13 @@ class HandVoter:
                     since[c] = rt         # a run begins
                 elif lead[c] + step < -1e-9:
                     since[c] = -1.0       # held at 0 (the sum under its lowest): the run is over
-                lead[c] = max(0.0, lead[c] + step)
-                margin[c] = max(0.0, margin[c] + (w if state == c else -w))
-        best = max((c for c in _KNOWN if c != current), key=lambda c: lead[c])
+                v = lead[c] + step
+                lead[c] = v if v > 0.0 else 0.0                  # max(0, v), cheaper
+                v = margin[c] + (w if state == c else -w)
+                margin[c] = v if v > 0.0 else 0.0
+        # the first of the two other known states with the largest lead
+        c1, c2 = _OTHERS[current]
+        best = c2 if lead[c2] > lead[c1] else c1
         if lead[best] >= EVIDENCE_LEAD and margin[best] >= EVIDENCE_MARGIN and \
                 since[best] >= 0.0 and t - since[best] >= self.hold_s - 1e-9:
             return HandState(best)

@@ -46,19 +46,17 @@ benchmarks use them, with the outlier gate:
 
 from __future__ import annotations
 
-import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..settings import KalmanSettings
+from .imm import _MU_FLOOR, M, fused_update
 
 __all__ = ["KalmanSettings", "FilterState", "JointKalman", "transition", "mix", "predict",
            "update", "gate_distance", "combine", "step", "initial_mu", "measurement_variance"]
 
-M = 2  # modes: 0 quiet, 1 fast
-_MU_FLOOR = 1e-300
 
 
 def initial_mu(s: KalmanSettings) -> np.ndarray:
@@ -196,34 +194,54 @@ class FilterState:
     t: np.ndarray
     held_z: np.ndarray
     held_t: np.ndarray
+    #: (block, x, P, mu): ``x``, ``P`` and ``mu`` as views of one (6, M, N, 3) array [x; P; mu]
+    #: (what ``step`` leaves), so that the next step reads it without gathering the three;
+    #: used only while they are still these very arrays
+    block: tuple | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def empty(cls, n: int) -> "FilterState":
-        return cls(np.full((2, M, n, 3), np.nan), np.full((3, M, n, 3), np.nan),
-                   np.full((M, n, 3), np.nan), np.full(n, np.nan), np.full((n, 3), np.nan),
-                   np.full(n, np.nan))
+        return cls.of_block(np.full((6, M, n, 3), np.nan), np.full(n, np.nan),
+                            np.full((n, 3), np.nan), np.full(n, np.nan))
+
+    @classmethod
+    def of_block(cls, block: np.ndarray, t: np.ndarray, held_z: np.ndarray,
+                 held_t: np.ndarray) -> "FilterState":
+        """A state whose x, P and mu are views of ``block`` (6, M, N, 3)."""
+        x, P, mu = block[0:2], block[2:5], block[5]
+        return cls(x, P, mu, t, held_z, held_t, (block, x, P, mu))
+
+    def stacked(self) -> np.ndarray:
+        """(6, M, N, 3) [x; P; mu]: the block itself when x, P and mu still are its views,
+        else a new array."""
+        b = self.block
+        if b is not None and b[1] is self.x and b[2] is self.P and b[3] is self.mu:
+            return b[0]
+        return np.concatenate((self.x, self.P, self.mu[None]))
+
+    def shallow(self) -> "FilterState":
+        """A new state object sharing this one's arrays (``step`` replaces, never writes)."""
+        return FilterState(self.x, self.P, self.mu, self.t, self.held_z, self.held_t,
+                           self.block)
 
     @property
     def n(self) -> int:
         return len(self.t)
 
     def copy(self) -> "FilterState":
-        return FilterState(self.x.copy(), self.P.copy(), self.mu.copy(), self.t.copy(),
-                           self.held_z.copy(), self.held_t.copy())
+        return FilterState.of_block(self.stacked().copy(), self.t.copy(), self.held_z.copy(),
+                                    self.held_t.copy())
 
     @classmethod
     def concat(cls, states: list["FilterState"]) -> "FilterState":
         """One state of all the rows of ``states``, in order (new arrays; with one state, its
         arrays themselves: ``step`` never writes into a state's arrays)."""
         if len(states) == 1:
-            s = states[0]
-            return cls(s.x, s.P, s.mu, s.t, s.held_z, s.held_t)
-        return cls(np.concatenate([s.x for s in states], axis=2),
-                   np.concatenate([s.P for s in states], axis=2),
-                   np.concatenate([s.mu for s in states], axis=1),
-                   np.concatenate([s.t for s in states]),
-                   np.concatenate([s.held_z for s in states]),
-                   np.concatenate([s.held_t for s in states]))
+            return states[0].shallow()
+        return cls.of_block(np.concatenate([s.stacked() for s in states], axis=2),
+                            np.concatenate([s.t for s in states]),
+                            np.concatenate([s.held_z for s in states]),
+                            np.concatenate([s.held_t for s in states]))
 
     def rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as a new state (copies)."""
@@ -232,9 +250,8 @@ class FilterState:
     def view_rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as views into this state's arrays (no copy: for a state that
         will not be changed again)."""
-        return FilterState(self.x[:, :, start:stop], self.P[:, :, start:stop],
-                           self.mu[:, start:stop], self.t[start:stop], self.held_z[start:stop],
-                           self.held_t[start:stop])
+        return FilterState.of_block(self.stacked()[:, :, start:stop], self.t[start:stop],
+                                    self.held_z[start:stop], self.held_t[start:stop])
 
     def assign(self, other: "FilterState", mask: np.ndarray | None = None) -> None:
         """Take ``other``'s rows (all, or where ``mask`` (N,) is true) in place."""
@@ -282,14 +299,6 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
         return _step(state, t, z, r, s, q_scale)
 
 
-@functools.lru_cache(maxsize=16)
-def _mode_noise(quiet: float, fast: float) -> np.ndarray:
-    """(M,) the modes' acceleration variances (read-only: shared by every step)."""
-    q = np.array([quiet, fast])
-    q.setflags(write=False)
-    return q
-
-
 def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
           s: KalmanSettings, q_scale: np.ndarray | None) -> np.ndarray:
     """``step``, inside one ``np.errstate`` (entering one costs as much as a few array
@@ -297,39 +306,44 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
-    t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
-    valid = (r > 0) & np.isfinite(r) & np.isfinite(z.sum(axis=1)) & np.isfinite(t)
-    outcome = np.zeros(n, dtype=np.int8)
-    init = ~np.isnan(state.t)
+    t = np.asarray(t, dtype=float)
+    if t.shape != (n,):
+        t = np.broadcast_to(t, (n,))
+    # r <= 0, r = inf, NaN anywhere: not measured (0 * inf and 0 * NaN are NaN)
+    valid = np.isfinite(z[:, 0] + z[:, 1] + z[:, 2] + t + 0.0 * r) & (r > 0)
+    init = state.t == state.t                                # not NaN: has a state
     upd = valid & init
-    fresh = valid & ~init
-    if upd.any():
+    # (np.count_nonzero, not .any() / .all(): a numpy reduction costs several elementwise
+    # operations; the step is made of small operations, so their count is its cost; the
+    # usual step -- every row measured, known and accepted -- skips the masks it needs not)
+    n_upd = np.count_nonzero(upd)
+    fresh = valid & ~init if n_upd < np.count_nonzero(valid) else None
+    outcome = None
+    if n_upd:
         # every row is computed (rows without a measurement, or without a state, give NaN
         # or junk) and only the measured ones are kept: one pass of whole-array operations
         # is cheaper than gathering and scattering the rows
-        dt = np.where(upd, np.maximum(t - state.t, 0.0), 0.0)
-        q = _mode_noise(s.quiet_noise, s.fast_noise)
-        if q_scale is not None:
-            q = q[:, None] * np.asarray(q_scale, dtype=float)[None]
+        S = state.stacked()
+        dt = np.maximum(t - state.t, 0.0)
+        if n_upd < n:
+            dt = np.where(upd, dt, 0.0)
         gate2 = s.gate_sigma ** 2
-        x0, P0, cbar = mix(state.x, state.P, state.mu, *transition(dt, s))
-        xp, Pp = predict(x0, P0, dt, q)
-        d2 = gate_distance(xp, Pp, cbar, z, r)
-        # beyond the gate the variance grows with the distance: r d^2 / gate^2
-        xu, Pu, muu = update(xp, Pp, cbar, z, r * np.maximum(d2 / gate2, 1.0))
-        use = upd & (d2 <= s.reject_sigma ** 2)
-        outcome = np.where(upd, np.where(d2 > gate2, DOWNWEIGHTED, ACCEPTED),
-                           NOT_MEASURED).astype(np.int8)
-        if use.all():
-            state.x, state.P, state.mu = xu, Pu, muu
-            state.t = np.maximum(t, state.t)
+        new, d2 = fused_update(S, dt, z, r, s, q_scale, gate2)
+        use = d2 <= s.reject_sigma ** 2
+        outcome = np.add(d2 > gate2, ACCEPTED, dtype=np.int8)   # DOWNWEIGHTED = ACCEPTED + 1
+        if n_upd < n:
+            use &= upd
+            outcome[~upd] = NOT_MEASURED
+        if np.count_nonzero(use) == n:
+            keep = FilterState.of_block(new, np.maximum(t, state.t), state.held_z,
+                                        np.full(n, np.nan))
         else:
-            state.x = np.where(use[:, None], xu, state.x)
-            state.P = np.where(use[:, None], Pu, state.P)
-            state.mu = np.where(use[:, None], muu, state.mu)
-            state.t = np.where(use, np.maximum(t, state.t), state.t)
-        state.held_t = np.where(use, np.nan, state.held_t)
-        bad = np.flatnonzero(upd & ~use)
+            keep = FilterState.of_block(np.where(use[:, None], new, S),
+                                        np.where(use, np.maximum(t, state.t), state.t),
+                                        state.held_z, np.where(use, np.nan, state.held_t))
+        state.x, state.P, state.mu, state.t, state.held_t, state.block = (
+            keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
+        bad = np.flatnonzero(upd & ~use) if np.count_nonzero(use) < n_upd else ()
         if len(bad):
             again = bad[~np.isnan(state.held_t[bad])]
             first = bad[np.isnan(state.held_t[bad])]
@@ -339,7 +353,9 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
             if len(again):
                 _restart(state, again, z[again], t[again], r[again], s)
                 outcome[again] = RESTARTED
-    if fresh.any():
+    if outcome is None:
+        outcome = np.zeros(n, dtype=np.int8)
+    if fresh is not None and np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
     return outcome
@@ -364,11 +380,13 @@ def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r
         P[2] = (2.0 * r / (dt * dt))[None, :, None]
         mu = np.broadcast_to(np.array([_MU_FLOOR, 1.0])[:, None, None], (M, k, 3))
     # copies first: the arrays may be shared with a snapshot (see ``step``)
-    state.x, state.P, state.mu = state.x.copy(), state.P.copy(), state.mu.copy()
-    state.t, state.held_t = state.t.copy(), state.held_t.copy()
-    state.x[:, :, rows], state.P[:, :, rows], state.mu[:, rows] = x, P, mu
-    state.t[rows] = t
-    state.held_t[rows] = np.nan
+    new = FilterState.of_block(state.stacked().copy(), state.t.copy(), state.held_z,
+                               state.held_t.copy())
+    new.x[:, :, rows], new.P[:, :, rows], new.mu[:, rows] = x, P, mu
+    new.t[rows] = t
+    new.held_t[rows] = np.nan
+    state.x, state.P, state.mu, state.t, state.held_t, state.block = (
+        new.x, new.P, new.mu, new.t, new.held_t, new.block)
 
 
 def _restart(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,

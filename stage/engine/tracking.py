@@ -136,7 +136,10 @@ class Person:
         that jumps with what happens to be occluded.
         """
         on_torso = (conf[_TORSO_IDX] > 0) & self.known[_TORSO_IDX]
-        if on_torso.any():
+        n = np.count_nonzero(on_torso)                 # (not .any(): a reduction costs more)
+        if n == len(_TORSO_IDX):
+            idx = _TORSO_IDX
+        elif n:
             idx = _TORSO_IDX[on_torso]
         else:
             idx = np.flatnonzero((conf > 0) & self.known)
@@ -144,9 +147,12 @@ class Person:
                 return None
         dt = min(max(t - self.t, 0.0), 0.5)
         diff = joints[idx] - self.joints[idx] - self.velocity[idx] * dt
+        diff *= diff
         # sum / count is what .mean() computes, without its Python-level wrapper (this runs
-        # for every view and candidate person)
-        return float(np.sqrt((diff * diff).sum(axis=1)).sum() / len(idx))
+        # for every view and candidate person); the columns added as .sum(axis=1) does
+        d2 = diff[:, 0] + diff[:, 1]
+        d2 += diff[:, 2]
+        return float(np.sqrt(d2, out=d2).sum() / len(idx))
 
     def sensors(self) -> tuple[str, ...]:
         return tuple(sorted({tr.client for tr in self.tracks}))
@@ -179,8 +185,9 @@ class Tracker:
         fs = self.fusion
         if track.person is not None:
             person = self.persons[track.person]
-            d = person.distance(track.joints, track.conf, t)
-            if d is None or d <= fs.release_m or len(person.tracks) == 1:
+            # a person's only view stays with it: no distance needed (this runs per view)
+            d = None if len(person.tracks) == 1 else person.distance(track.joints, track.conf, t)
+            if d is None or d <= fs.release_m:
                 track.far_frames = 0
                 return person
             track.far_frames += 1

@@ -29,12 +29,14 @@ import numpy as np
 from pythonosc import osc_message
 from pythonosc.parsing import ntp
 
-from ..joints import JOINT_INDEX, JOINTS, N_JOINTS, HandState, parse_hand, parse_hand_state
+from ..joints import JOINT_INDEX, N_JOINTS, parse_hand, parse_hand_state
 # The message types and the encoders live in their own modules; they are re-exported
 # here because ``protocol`` is the wire API's one import for views, clients and tests.
 from .encode import (_pad, encode_bundle, encode_client_joints, encode_message,  # noqa: F401
                      encode_view_hand_state, encode_view_joints, encode_view_lost_user,
                      encode_view_new_user)
+from .fastdecode import (_fast_hand_state,  # noqa: F401
+                         _fast_joint_coordinates, canonical_head, canonical_joints_batch)
 from .messages import (DROP_REASONS, MAX_COORD_M, MAX_TEXT, MAX_USER_ID,  # noqa: F401
                        ClientMessage, Decoded, FloorPlane, HandStateMsg, HealthQuery,
                        Inbound, JointCoordinates, LostUser, Message, NewUser, RegisterDevice,
@@ -56,7 +58,10 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
     out = Decoded()
     try:
         if data.startswith(b"#bundle\0"):
-            _walk_bundle(data, out, source)
+            canonical: list = []
+            _walk_bundle(data, out, source, canonical)
+            if canonical:
+                _decode_canonical(canonical, out, source)
         elif osc_message.OscMessage.dgram_is_message(data):
             _decode_element(data, None, out, source)
         else:
@@ -83,12 +88,15 @@ def decode_records(records: Iterable[tuple[float, bytes, float | None]], drops: 
             yield arrival, capture, msg, timetag
 
 
-def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None:
+def _walk_bundle(data: bytes, out: Decoded, source: str, canonical: list,
+                 depth: int = 0) -> None:
     """Walk a bundle strictly: every element's size must fit, or the whole datagram is malformed.
 
     python-osc's OscBundle slices past the end of a truncated element and
     skips unknown content with a log line; on a stage a truncated datagram
-    must count as one drop instead.
+    must count as one drop instead. Skeletons that may be canonical (``fastdecode``) keep
+    their place in ``out.messages`` and are listed in ``canonical`` (place, element, client,
+    user, offset of the joints), to be decoded together by ``_decode_canonical``.
     """
     if len(data) < 16 or depth > 8:
         raise ValueError("truncated or too deeply nested bundle")
@@ -105,9 +113,14 @@ def _walk_bundle(data: bytes, out: Decoded, source: str, depth: int = 0) -> None
         element = data[index:index + size]
         index += size
         if element.startswith(b"#bundle\0"):
-            _walk_bundle(element, out, source, depth + 1)
+            _walk_bundle(element, out, source, canonical, depth + 1)
         elif element.startswith(b"/"):
-            _decode_element(element, timetag, out, source)
+            head = canonical_head(element)
+            if head is not None:
+                canonical.append((len(out.messages), element, *head))
+                out.messages.append((None, timetag))  # type: ignore[arg-type]
+            else:
+                _decode_element(element, timetag, out, source)
         else:
             raise ValueError("bundle element is neither a message nor a bundle")
 
@@ -153,154 +166,33 @@ def _parse_message(data: bytes) -> osc_message.OscMessage:
     return msg
 
 
+def _decode_canonical(canonical: list, out: Decoded, source: str) -> None:
+    """Fill in the places ``_walk_bundle`` kept for possibly canonical skeletons: all checked
+    and converted at once; one that is not (other names, an invalid value) is decoded alone,
+    as any other element, and its place takes what that gives (a message, or nothing and a
+    drop)."""
+    ok, joints, conf = canonical_joints_batch([e[pos:] for _, e, _, _, pos in canonical])
+    redo = False
+    for k, (place, element, client, user, _) in enumerate(canonical):
+        timetag = out.messages[place][1]
+        if ok[k]:
+            out.messages[place] = (JointCoordinates(client, user, joints[k], conf[k]), timetag)
+            continue
+        alone = Decoded()
+        _decode_element(element, timetag, alone, source)
+        out.drops.extend(alone.drops)
+        out.messages[place] = alone.messages[0] if alone.messages else None  # type: ignore
+        redo = redo or not alone.messages
+    if redo:
+        out.messages[:] = [m for m in out.messages if m is not None]
+
+
 def _decode_element(data: bytes, timetag: float | None, out: Decoded, source: str) -> None:
     fast = _fast_joint_coordinates(data) or _fast_hand_state(data)
     if fast is not None:
         out.messages.append((fast, timetag))
     else:
         _decode_message(_parse_message(data), timetag, out, source)
-
-
-_HS_ADDRESS = b"/handState\0\0"
-_HS_TAGS = b",siss\0\0\0"
-_HS_HANDS = {b"left": 0, b"right": 1}
-_HS_STATES = {name.encode(): state for state, name in
-              ((s, s.wire_name) for s in HandState)}
-
-
-def _fast_hand_state(data: bytes) -> HandStateMsg | None:
-    """``/handState clientID userID hand state`` with string client, hand and state.
-
-    Two per person per sensor frame; like the joint fast path, anything else
-    goes to the general decoder.
-    """
-    if not data.startswith(_HS_ADDRESS) or data[12:20] != _HS_TAGS:
-        return None
-    try:
-        end = data.index(b"\0", 20)
-        client = data[20:end].decode("utf-8")
-        pos = 20 + ((end - 20 + 4) & ~3)
-        user = _INT.unpack_from(data, pos)[0]
-        pos += 4
-        end = data.index(b"\0", pos)
-        hand = _HS_HANDS.get(data[pos:end])
-        pos += (end - pos + 4) & ~3
-        end = data.index(b"\0", pos)
-        state = _HS_STATES.get(data[pos:end])
-        pos += (end - pos + 4) & ~3
-    except (ValueError, UnicodeDecodeError, struct.error):
-        return None
-    if (hand is None or state is None or pos != len(data) or not client or len(client) > 64
-            or not 0 <= user <= MAX_USER_ID):
-        return None
-    return HandStateMsg(client, user, hand, state)
-
-
-_JC_ADDRESS = b"/jointCoordinates\0\0\0"
-_JC_BODIES = {b"sffff" * k: k for k in range(1, N_JOINTS + 1)}
-_JOINT_BY_BYTES = {name.encode(): i for i, name in enumerate(JOINTS)}
-_INT = struct.Struct(">i")
-
-
-def _canonical_layout() -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    """Where the names and the values sit when all 25 joints come in ``JOINTS`` order (what
-    Kinect clients send): total length, byte offsets of the padded names, the names' bytes,
-    and byte offsets of the 25 x 4 float32 values."""
-    name_idx, names, value_idx = [], [], []
-    pos = 0
-    for name in JOINTS:
-        padded = name.encode() + b"\0" * (4 - len(name) % 4)
-        name_idx.extend(range(pos, pos + len(padded)))
-        names.extend(padded)
-        pos += len(padded)
-        value_idx.extend(range(pos, pos + 16))
-        pos += 16
-    return (pos, np.array(name_idx), np.frombuffer(bytes(names), dtype=np.uint8),
-            np.array(value_idx))
-
-
-_CANON_LEN, _CANON_NAME_IDX, _CANON_NAMES, _CANON_VALUE_IDX = _canonical_layout()
-
-
-def _canonical_joints(data: bytes, pos: int):
-    """The joints of a ``/jointCoordinates`` whose 25 joints from ``pos`` on are in ``JOINTS``
-    order: ((25, 3), (25,)); False if the values are invalid (the general path names the
-    drop); None if the layout is another one. A few numpy operations instead of a Python
-    loop over the joints: this is most of the decoding cost of a frame."""
-    buf = np.frombuffer(data, dtype=np.uint8, offset=pos)
-    if not np.array_equal(buf[_CANON_NAME_IDX], _CANON_NAMES):
-        return None
-    values = buf[_CANON_VALUE_IDX].view(">f4").reshape(N_JOINTS, 4).astype(float)
-    xyz, c = values[:, :3], values[:, 3]
-    if not (np.isfinite(values).all() and (np.abs(xyz) <= MAX_COORD_M).all()
-            and ((c >= 0.0) & (c <= 1.0)).all()):
-        return False
-    return np.ascontiguousarray(xyz), values[:, 3].copy()
-
-
-def _fast_joint_coordinates(data: bytes) -> JointCoordinates | None:
-    """The hot path: a well-formed ``/jointCoordinates`` in its usual types.
-
-    Every sensor frame of every person goes through here (over a thousand a
-    second with six Kinects and six people), and the general parser spends
-    most of its time per argument. This reads the common layout ``,si`` or
-    ``,ii`` + ``sffff`` per joint directly and validates in numpy. Anything
-    unusual or invalid returns None, and the general path decodes it and
-    names the drop reason, so both paths accept exactly the same messages.
-    """
-    if not data.startswith(_JC_ADDRESS):
-        return None
-    pos = len(_JC_ADDRESS)
-    end = data.find(b"\0", pos)
-    tags = data[pos:end]
-    pos += (end - pos + 4) & ~3
-    k = _JC_BODIES.get(tags[3:])
-    if k is None or tags[:3] not in (b",si", b",ii"):
-        return None
-    try:
-        if tags[1] == 0x73:  # 's'
-            end = data.index(b"\0", pos)
-            client = data[pos:end].decode("utf-8")
-            pos += (end - pos + 4) & ~3
-            if not client or len(client) > 64:
-                return None
-        else:
-            client = str(_INT.unpack_from(data, pos)[0])
-            pos += 4
-        user = _INT.unpack_from(data, pos)[0]
-        pos += 4
-        if not 0 <= user <= MAX_USER_ID:
-            return None
-        if k == N_JOINTS and len(data) - pos == _CANON_LEN:
-            canon = _canonical_joints(data, pos)
-            if canon is not None:
-                return None if canon is False else JointCoordinates(client, user, *canon)
-        index = [0] * k
-        blocks = []
-        find = data.find
-        for n in range(k):
-            end = find(b"\0", pos)
-            j = _JOINT_BY_BYTES.get(data[pos:end])
-            if j is None:
-                return None
-            index[n] = j
-            pos += (end - pos + 4) & ~3
-            blocks.append(data[pos:pos + 16])
-            pos += 16
-    except (ValueError, UnicodeDecodeError, struct.error):
-        return None
-    if pos != len(data) or len(set(index)) != k:
-        return None
-    values = np.frombuffer(b"".join(blocks), dtype=">f4").reshape(k, 4).astype(float)
-    xyz, c = values[:, :3], values[:, 3]
-    if not (np.isfinite(values).all() and (np.abs(xyz) <= MAX_COORD_M).all()
-            and ((c >= 0.0) & (c <= 1.0)).all()):
-        return None
-    joints = np.zeros((N_JOINTS, 3))
-    conf = np.zeros(N_JOINTS)
-    joints[index] = xyz
-    conf[index] = c
-    return JointCoordinates(client, user, joints, conf)
 
 
 def _decode_message(msg: osc_message.OscMessage, timetag: float | None, out: Decoded,

@@ -1,0 +1,125 @@
+"""Two trees' engines in one process, fed the same datagrams, alternating datagram by datagram.
+
+On a shared machine the CPU a datagram costs moves with other processes' load (caches,
+the other hyperthread), so two runs minutes apart differ by 20-50 %. Here both engines
+(``stage/`` of tree A and of tree B, imported side by side as two packages) see every
+datagram in turn -- A then B, then B then A -- so each pair is measured under the same load;
+the figure is the median over datagrams of B's CPU / A's CPU (``time.thread_time`` around
+``handle_datagram`` + ``tick``), with each side's p50/p90. The input is
+``bench_engine_inproc``'s: P people, each seen by S simulated Kinects, every sensor every
+person every frame. The first fifth of the datagrams (persons being found) is left out.
+
+Both trees' final fused joints are compared (``identical``): a change meant to give the same
+floats shows here if it does not.
+
+Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
+     [--quick]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+class NullTransport:
+    def send(self, data: bytes, address: tuple[str, int]) -> None:
+        pass
+
+
+def load(tree: str, name: str, root: Path) -> dict:
+    """``tree``'s stage package imported as ``name`` (a copy under ``root``)."""
+    shutil.copytree(Path(tree) / "stage", root / name)
+    return {m: importlib.import_module(f"{name}.{m}")
+            for m in ("engine.engine", "clock", "rig", "sensors.protocol", "sensors.sim")}
+
+
+def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: int = 0):
+    """bench_engine_inproc's input, built with one tree's simulator and encoders."""
+    sim, proto = mods["sensors.sim"], mods["sensors.protocol"]
+    rng = np.random.default_rng(seed)
+    poses = sim.ring_poses(n_sensors, radius=4.5)
+    kinects = [sim.VirtualKinect(p, sim.KinectModel(far=7.0), rng) for p in poses]
+    grid = [(x, z) for z in (-0.75, 0.75) for x in (-1.5, 0.0, 1.5)][:n_people]
+    out = []
+    for f in range(int(seconds * 30)):
+        for s in range(n_sensors):
+            msgs = []
+            for u in range(n_people):
+                truth = sim.standing_pose(grid[u], 0.3 * u + 0.02 * f, 0.5 + 0.3 * np.sin(f / 10))
+                joints, conf = kinects[s].observe(truth, user=u)
+                msgs += [proto.encode_client_joints(f"s{s}", u, joints, conf),
+                         proto.encode_message("/handState", f"s{s}", u, "left", "open"),
+                         proto.encode_message("/handState", f"s{s}", u, "right", "closed")]
+            out.append((f / 30 + s / (30 * n_sensors), proto.encode_bundle(msgs, None)))
+    return poses, out
+
+
+def engine(mods: dict, poses):
+    rig_mod = mods["rig"]
+    rig = rig_mod.Rig(reference="s0", views=[("127.0.0.1", 9)])
+    rig.stage_frame = poses[0].to_stage
+    inverse = np.linalg.inv(poses[0].to_stage)
+    for k, p in enumerate(poses):
+        rig_mod.set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
+    clock = mods["clock"].ManualClock(0.0)
+    return mods["engine.engine"].Engine(rig, clock, NullTransport()), clock
+
+
+def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float) -> dict:
+    poses, data = datagrams(a, n_sensors, n_people, seconds)
+    (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses)
+    ta: list[float] = []
+    tb: list[float] = []
+    for k, (t, d) in enumerate(data):
+        pair = [(ea, ca, ta), (eb, cb, tb)]
+        for e, c, acc in (pair if k % 2 == 0 else pair[::-1]):
+            c.set(t)
+            c0 = time.thread_time()
+            e.handle_datagram(d)
+            e.tick()
+            acc.append(time.thread_time() - c0)
+    skip = len(data) // 5
+    us_a, us_b = np.array(ta[skip:]) * 1e6, np.array(tb[skip:]) * 1e6
+    same = len(ea.persons) == len(eb.persons) and all(
+        np.array_equal(pa.joints, pb.joints) for pa, pb in zip(ea.persons.values(),
+                                                              eb.persons.values()))
+    return {"config": f"{n_sensors}x{n_people}", "datagrams": len(us_a),
+            "a_p50": float(np.percentile(us_a, 50)), "a_p90": float(np.percentile(us_a, 90)),
+            "b_p50": float(np.percentile(us_b, 50)), "b_p90": float(np.percentile(us_b, 90)),
+            "ratio": float(np.median(us_b / us_a)), "identical": same}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tree_a")
+    parser.add_argument("tree_b")
+    parser.add_argument("--configs", default="1x1,3x3,6x6")
+    parser.add_argument("--seconds", type=float, default=6.0)
+    parser.add_argument("--quick", action="store_true", help="1 s of show per config")
+    args = parser.parse_args()
+    seconds = 1.0 if args.quick else args.seconds
+    with tempfile.TemporaryDirectory() as tmp:
+        sys.path.insert(0, tmp)
+        a = load(args.tree_a, "stage_a", Path(tmp))
+        b = load(args.tree_b, "stage_b", Path(tmp))
+        print(f"A = {args.tree_a}, B = {args.tree_b}; CPU per datagram (thread_time), us; "
+              f"{seconds:g} s of show per config; load {open('/proc/loadavg').read().split()[0]}")
+        print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
+              f"{'median B/A':>10}  final joints identical")
+        for config in args.configs.split(","):
+            r = run(a, b, *map(int, config.split("x")), seconds)
+            print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
+                  f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
