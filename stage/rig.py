@@ -45,6 +45,7 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       fast_to_quiet_per_s: 3.2
       measurement_noise: 1e-4      # variance of a confidence-1 joint up to 1 m away, m^2
       noise_per_m: 0.004           # added to its s.d. per metre beyond
+      inferred_sd_m: 0.10          # an inferred joint (conf 0.5) is a guess this far off, m
       initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
       gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
       reject_sigma: 10.0           # beyond this it is not used
@@ -296,8 +297,8 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
 
 
 #: settings for which 0 means something (off, none): every other number must be > 0
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance",
-                 "foot_velocity_memory_s", "hand_velocity_memory_s"}
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "inferred_sd_m", "views_s",
+                 "bone_tolerance", "foot_velocity_memory_s", "hand_velocity_memory_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

@@ -13,7 +13,8 @@ from ..joints import JOINT_INDEX, TORSO
 
 
 def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
-                     bias_var: float, chi2: float) -> np.ndarray:
+                     bias_var: float, chi2: float, tracked: np.ndarray | None = None,
+                     ) -> np.ndarray:
     """Which of G views of one instant to use, joint by joint: the largest set that agrees.
 
     z: (G, J, 3) metres, stage space; r: (G, J) per-axis variance, NaN or inf where the
@@ -27,7 +28,10 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     agreement wins -- every agreeing view is a vote, the prior half a vote (it breaks a
     tie between two views, but two views outvote it), remaining ties go to the more
     certain side -- and the views that agree with it are used. A joint seen by one view
-    only is always used (the filter's gate judges it). Returns used: (G, J) bool.
+    only is always used (the filter's gate judges it). ``tracked`` (G, J) bool, optional:
+    the views that track each joint (confidence 1); where any view tracks a joint, only a
+    tracking view can win it, so views that merely infer it (guesses, and a prior that
+    was fed them) never outvote a view that sees it. Returns used: (G, J) bool.
     """
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -47,6 +51,9 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     # tie-break by the information of the agreeing views, scaled under half a vote
     support = (agree * info[None]).sum(axis=1)
     votes = votes + 0.25 * support / np.maximum(support.max(axis=0), 1e-300)[None]
+    if tracked is not None:
+        guess = seen & ~tracked & (seen & tracked).any(axis=0)[None]
+        votes = np.where(guess, -0.5, votes)
     votes = np.where(seen, votes, -1.0)
     best = np.argmax(votes, axis=0)                               # (J,)
     used = agree[best, :, np.arange(z.shape[1])].T               # (G, J)
