@@ -37,6 +37,8 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       rejoin_m: 0.75               # ...back this close to where they were lost...
       rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
       unswap_limbs: true           # trade back a view's swapped left/right arm or leg
+      hold_back_inferred: true     # joints no sensor has tracked yet are not reported
+      carry_untracked: true        # joints only inferred now follow their parent joint
     smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
       enabled: true                # false: each joint is its latest accepted measurement
       quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2

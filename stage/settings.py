@@ -98,6 +98,12 @@ class FusionSettings:
     unswap_limbs: bool = True    # trade back a view's left and right arm (leg) when both its
                                  # elbow and wrist (knee and ankle) lie on the wrong side of the
                                  # shoulders' (hips') axis (``fusion.unswap_limbs``)
+    hold_back_inferred: bool = True  # a joint no sensor has tracked since the person was
+                                 # found is not reported (confidence 0) while sensors only
+                                 # infer it: a guess 10-30 cm off is not a position
+    carry_untracked: bool = True  # a joint every sensor only infers now is reported at its
+                                 # parent joint plus the offset it had when last tracked, as
+                                 # inferred (``fusion.carry_untracked``)
 
     def __post_init__(self) -> None:
         if self.hand_vote not in ("plain", "confidence"):

@@ -132,3 +132,45 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
             conf[tl], conf[tr] = conf[tr], conf[tl]
             traded |= 1 << k
     return joints, conf, traded
+
+
+def _levels() -> list[tuple[np.ndarray, np.ndarray]]:
+    """``BONES`` grouped by depth in the joint tree: [(parents, children)], root first."""
+    from .forecast import BONES
+    depth = {BONES[0][0]: 0}
+    for a, b in BONES:
+        depth[b] = depth[a] + 1
+    out = []
+    for d in range(1, max(depth.values()) + 1):
+        pairs = [(a, b) for a, b in BONES if depth[b] == d]
+        out.append((np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])))
+    return out
+
+
+_LEVELS = _levels()
+
+
+def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray,
+                    offsets: np.ndarray) -> np.ndarray:
+    """Joints that no sensor tracks now, carried by their parent joint (in place).
+
+    joints (25, 3) m, a fused body; reported (25,) bool, the joints it reports; tracked
+    (25,) bool, those some sensor tracks now (confidence 1); offsets (25, 3) each joint's
+    offset from its parent (``forecast.BONES``) the last time it was tracked, NaN before
+    that: updated in place for tracked joints whose parent is reported. A reported joint
+    that is not tracked (every sensor only infers it: a guess 10-30 cm off, and the filter
+    fed by guesses drifts with the velocity it had) is placed at its parent plus that
+    offset, parents first, so a hidden wrist and hand follow the elbow as they were last
+    seen. Returns (25,) bool: the joints so placed.
+    """
+    carried = np.zeros(len(joints), dtype=bool)
+    for parents, children in _LEVELS:
+        both = reported[children] & reported[parents]
+        keep = both & tracked[children]
+        offsets[children[keep]] = joints[children[keep]] - joints[parents[keep]]
+        move = both & ~tracked[children] & np.isfinite(offsets[children, 0])
+        if move.any():
+            c = children[move]
+            joints[c] = joints[parents[move]] + offsets[c]
+            carried[c] = True
+    return carried
