@@ -148,6 +148,8 @@ def _levels() -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 _LEVELS = _levels()
+_PARENTS = np.concatenate([a for a, _ in _LEVELS])
+_CHILDREN = np.concatenate([b for _, b in _LEVELS])
 
 
 def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray,
@@ -164,6 +166,11 @@ def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarra
     seen. Returns (25,) bool: the joints so placed.
     """
     carried = np.zeros(len(joints), dtype=bool)
+    if not (reported & ~tracked & ~np.isnan(offsets[:, 0])).any():
+        # nothing to carry (the usual case): no joint moves, so every level at once
+        keep = reported[_CHILDREN] & reported[_PARENTS] & tracked[_CHILDREN]
+        offsets[_CHILDREN[keep]] = joints[_CHILDREN[keep]] - joints[_PARENTS[keep]]
+        return carried
     for parents, children in _LEVELS:
         both = reported[children] & reported[parents]
         keep = both & tracked[children]
