@@ -166,11 +166,15 @@ def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarra
     seen. Returns (25,) bool: the joints so placed.
     """
     carried = np.zeros(len(joints), dtype=bool)
-    if not (reported & ~tracked & ~np.isnan(offsets[:, 0])).any():
-        # nothing to carry (the usual case): no joint moves, so every level at once
-        keep = reported[_CHILDREN] & reported[_PARENTS] & tracked[_CHILDREN]
-        offsets[_CHILDREN[keep]] = joints[_CHILDREN[keep]] - joints[_PARENTS[keep]]
-        return carried
+    both = reported[_CHILDREN] & reported[_PARENTS]
+    move = both & ~tracked[_CHILDREN] & ~np.isnan(offsets[_CHILDREN, 0])
+    # children in tree order, so a parent is placed before its children (a few joints)
+    for child, parent in zip(_CHILDREN[move].tolist(), _PARENTS[move].tolist()):
+        joints[child] = joints[parent] + offsets[child]
+        carried[child] = True
+    keep = both & tracked[_CHILDREN]
+    offsets[_CHILDREN[keep]] = joints[_CHILDREN[keep]] - joints[_PARENTS[keep]]
+    return carried
     for parents, children in _LEVELS:
         both = reported[children] & reported[parents]
         keep = both & tracked[children]
