@@ -46,8 +46,8 @@ class KalmanSettings:
     measurement_noise: float = 1e-4
     # ...and more further away (the simulator's Kinect model assumes 4 mm per metre)
     noise_per_m: float = 0.004
-    # Kinect inferred joints are guesses: 10-30 cm off (the issue 11 measurement on N-UCLA,
-    # the simulator's realistic model), i.e. about 12 cm per axis; 10 cm counts an inferred
+    # Kinect inferred joints are guesses: 10-30 cm off (issue 11 on real Kinects; the
+    # simulator's realistic model), i.e. about 12 cm per axis; 10 cm counts an inferred
     # joint ~1/100 of a tracked one, so a second sensor that tracks it, or the filter's
     # prediction, carries it (docs/smoothing.md)
     inferred_sd_m: float = 0.10
