@@ -6,6 +6,7 @@ beside the real ones.
     python bench/bench_healing_sim.py --quick    # seed 1
     python bench/bench_healing_sim.py --real bench/data/nucla --cache OPT.json
     python bench/bench_healing_sim.py --json
+    python bench/bench_healing_sim.py --set fusion.carry_untracked=false   # A/B one setting
 
 Two shows, each run twice per seed (quiet, and with the bump) on an injected clock:
 
@@ -32,6 +33,12 @@ alarms in the quiet run, and the fused output's error against the truth THROUGHO
 - phases: before the bump, detecting (bump -> suspect event), healing (suspect ->
   calibrated/restored), after; per phase the median and the max over frames of the frame
   error (one dancer, so "over people" is that one person); and per second the max;
+- the same frames split by the fused confidence, beside that figure (never instead of it):
+  the error over the joints reported as tracked (conf 1: some sensor tracks it now) and
+  over those reported as inferred (0 < conf < 1: every sensor only infers it), how many
+  joints the body reports per frame (median, min: a joint held back is not reported) and
+  the share of frames reporting an inferred joint. The Must-show figure stays the error
+  over every reported joint: a split alone could hide a bad joint by calling it inferred;
 - the reference, in the same run: each sensor's own view placed with its TRUE pose (the
   best single sensor, judged by its median over the quiet run), the same error measure;
   and the clean model.
@@ -53,6 +60,7 @@ import sys
 from importlib import resources
 
 import numpy as np
+import yaml
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -64,12 +72,15 @@ from stage.clock import ManualClock  # noqa: E402
 from stage.engine.engine import Engine  # noqa: E402
 from stage.sensors import sim as sim_mod  # noqa: E402
 from stage.sensors.protocol import encode_client_joints  # noqa: E402
+from stage.settings import FusionSettings, KalmanSettings  # noqa: E402
 from stage.testing import simdata  # noqa: E402
 from stage.yamlio import loads_marked  # noqa: E402
 
 PHASES = ("before", "detecting", "healing", "after")
-#: --no-unswap: the fusion without ``FusionSettings.unswap_limbs`` (the before of that change)
+#: --no-unswap: the fusion without ``FusionSettings.unswap_limbs`` (the before of that change);
+#: --set fusion.KEY=VALUE / smoothing.KEY=VALUE: any rig setting, for A/B runs of one change
 FUSION: dict = {}
+SMOOTHING: dict = {}
 
 
 def frame_error(joints: np.ndarray, conf: np.ndarray, truth: np.ndarray) -> float:
@@ -78,6 +89,17 @@ def frame_error(joints: np.ndarray, conf: np.ndarray, truth: np.ndarray) -> floa
     if not seen.any():
         return float("nan")
     return float(np.linalg.norm(joints[seen] - truth[seen], axis=1).mean())
+
+
+def frame_split(joints: np.ndarray, conf: np.ndarray, truth: np.ndarray) -> tuple:
+    """(tracked error m, inferred error m, joints reported, of them inferred): the frame
+    error split by the fused confidence (1: some sensor tracks the joint; 0 < c < 1: the
+    body reports it as inferred); NaN where the body reports no such joint."""
+    d = np.linalg.norm(joints - truth, axis=1)
+    tracked, inferred = conf >= 1.0, (conf > 0) & (conf < 1.0)
+    return (float(d[tracked].mean()) if tracked.any() else float("nan"),
+            float(d[inferred].mean()) if inferred.any() else float("nan"),
+            int((conf > 0).sum()), int(inferred.sum()))
 
 
 class Show:
@@ -101,6 +123,15 @@ class Show:
                 out.append((t, frame_error(joints, conf, truth)))
         return out
 
+    def split(self) -> list[tuple]:
+        """``frame_split`` per fused body."""
+        out = []
+        for _, bt, joints, conf, _ in self.fused:
+            truth = self.truth(bt - self.delay_s)
+            if truth is not None:
+                out.append(frame_split(joints, conf, truth))
+        return out
+
 
 def default_show(preset: str, seed: int, bump: bool) -> Show:
     text = (resources.files("stage.sensors.sim") / "scenarios" / "default.yaml").read_text()
@@ -111,6 +142,7 @@ def default_show(preset: str, seed: int, bump: bool) -> Show:
     sim = sim_mod.Simulator(scenario, seed=seed)
     rig = sim.rig(calibrated=True)
     rig.fusion = dataclasses.replace(rig.fusion, **FUSION)
+    rig.smoothing = dataclasses.replace(rig.smoothing, **SMOOTHING)
     clocks = sim.sensor_clocks()[rig.reference]
 
     def truth(t):
@@ -155,6 +187,7 @@ def ring_show(preset: str, seed: int, bump: bool) -> Show:
     clock = ManualClock(0.0)
     rig = exact_ring_rig(poses)
     rig.fusion = dataclasses.replace(rig.fusion, **FUSION)
+    rig.smoothing = dataclasses.replace(rig.smoothing, **SMOOTHING)
     engine = Engine(rig, clock)
 
     def listen(frame):
@@ -221,6 +254,7 @@ def episode(make, preset: str, seed: int) -> dict:
     ref = {round(t, 4): e for t, e in quiet_errs}
     diffs = [abs(e - ref[round(t, 4)]) for t, e in errs if at <= t <= healed_t
              and round(t, 4) in ref]
+    split = bumped.split()
     singles = {sid: _stats(e for _, e in rows) for sid, rows in quiet.singles.items()}
     best = min(singles, key=lambda s: singles[s]["median_mm"])
     best_rows = quiet.singles[best]
@@ -234,6 +268,11 @@ def episode(make, preset: str, seed: int) -> dict:
         "phases": phases,
         "per_second": per_second,
         "quiet": _stats(e for _, e in quiet_errs),
+        "all": _stats(e for _, e in errs),
+        "tracked": _stats(x[0] for x in split),
+        "inferred": _stats(x[1] for x in split),
+        "reported": [int(np.median([x[2] for x in split])), int(min(x[2] for x in split))],
+        "with_inferred": float(np.mean([x[3] > 0 for x in split])),
         "bumped_vs_quiet_max_mm": 1000 * max(diffs) if diffs else float("nan"),
         "best_single": {"sensor": best, **singles[best],
                         "phases": {name: _stats(e for t, e in best_rows if lo <= t < hi)
@@ -291,10 +330,22 @@ def main() -> int:
                         "optimum cache (read, and extended)")
     parser.add_argument("--no-unswap", action="store_true",
                         help="fuse without trading back swapped limbs (the earlier fusion)")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="a rig setting for both shows, e.g. fusion.carry_untracked=false "
+                             "or smoothing.inferred_sd_m=0 (repeatable)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     if args.no_unswap:
         FUSION["unswap_limbs"] = False
+    for item in args.set:
+        key, _, value = item.partition("=")
+        section, _, name = key.partition(".")
+        if section not in ("fusion", "smoothing") or not name or not value:
+            parser.error(f"--set {item!r}: expected fusion.KEY=VALUE or smoothing.KEY=VALUE")
+        cls = FusionSettings if section == "fusion" else KalmanSettings
+        if name not in {f.name for f in dataclasses.fields(cls)}:
+            parser.error(f"--set {item!r}: {section} has no setting {name!r}")
+        (FUSION if section == "fusion" else SMOOTHING)[name] = yaml.safe_load(value)
     seeds = [1] if args.quick else [int(s) for s in args.seeds.split(",")]
     load0 = os.getloadavg()[0]
     report: dict = {}
@@ -318,6 +369,8 @@ def main() -> int:
 def print_report(report: dict, residuals: dict, seeds: list[int], load) -> None:
     print(f"self-healing on the simulator, a 10 degree bump, seeds {seeds} "
           f"(load {load[0]:.1f} -> {load[1]:.1f})")
+    if FUSION or SMOOTHING:
+        print(f"  rig settings changed: fusion {FUSION}, smoothing {SMOOTHING}")
     print(f"  {'show/model':<15}{'detected s':>11}{'healed s':>10}{'false':>7}"
           f"{'delay ms (best fit)':>22}{'bumped-quiet mm':>17}")
     for key, runs in report.items():
@@ -347,6 +400,20 @@ def print_report(report: dict, residuals: dict, seeds: list[int], load) -> None:
         single = min(runs, key=lambda r: -r["best_single"]["max_mm"])["best_single"]
         print(f"  {key:<15}" + "".join(cells) + quiet
               + f"{single['median_mm']:>7.0f} /{single['max_mm']:>5.0f} {single['sensor']}")
+    print("  the same frames split by the fused confidence (bumped run, median / max over frames, "
+          "worst seed): all reported joints (the Must-show figure), tracked joints (conf 1), "
+          "inferred joints (0 < conf < 1); joints reported per frame, median (min); frames "
+          "reporting an inferred joint")
+    for key, runs in report.items():
+        cells = []
+        for k in ("all", "tracked", "inferred"):
+            med = max(r[k]["median_mm"] for r in runs)
+            mx = max(r[k]["max_mm"] for r in runs)
+            cells.append(f"{med:>7.0f} /{mx:>5.0f}")
+        rep = min(runs, key=lambda r: r["reported"][1])["reported"]
+        share = 100 * max(r["with_inferred"] for r in runs)
+        print(f"  {key:<15}" + "".join(cells)
+              + f"{min(r['reported'][0] for r in runs):>6} ({rep[1]}){share:>7.1f} %")
     print("  per second, max frame error mm (worst seed), bumped run:")
     for key, runs in report.items():
         n = len(runs[0]["per_second"])

@@ -37,6 +37,8 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       rejoin_m: 0.75               # ...back this close to where they were lost...
       rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
       unswap_limbs: true           # trade back a view's swapped left/right arm or leg
+      hold_back_inferred: true     # joints no sensor has tracked yet are not reported
+      carry_untracked: true        # joints only inferred now follow their parent joint
     smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
       enabled: true                # false: each joint is its latest accepted measurement
       quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2
@@ -45,6 +47,7 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       fast_to_quiet_per_s: 3.2
       measurement_noise: 1e-4      # variance of a confidence-1 joint up to 1 m away, m^2
       noise_per_m: 0.004           # added to its s.d. per metre beyond
+      inferred_sd_m: 0.10          # an inferred joint (conf 0.5) is a guess this far off, m
       initial_velocity_var: 1.0    # (m/s)^2, a newly seen joint
       gate_sigma: 2.5              # beyond this Mahalanobis distance a joint counts less
       reject_sigma: 10.0           # beyond this it is not used
@@ -296,8 +299,8 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
 
 
 #: settings for which 0 means something (off, none): every other number must be > 0
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "views_s", "bone_tolerance",
-                 "foot_velocity_memory_s", "hand_velocity_memory_s"}
+_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "inferred_sd_m", "views_s",
+                 "bone_tolerance", "foot_velocity_memory_s", "hand_velocity_memory_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

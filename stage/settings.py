@@ -24,6 +24,10 @@ class KalmanSettings:
     measurement_noise: variance of one axis of a confidence-1 joint at most 1 m from
         its sensor, m^2; ``noise_per_m`` (m per m) is added to its s.d. per metre beyond,
         and a joint of confidence c has variance / c.
+    inferred_sd_m: how far off (s.d. per axis, m) a joint the sensor only infers
+        (confidence 0.5, Kinect convention) may be: a guess, not a measurement, so
+        ``(1/c - 1) * inferred_sd_m^2`` is added to the variance of a joint of confidence
+        c < 1 (nothing to a tracked joint; 0 turns it off).
     initial_velocity_var: variance of the (unknown, taken as 0) velocity of a newly
         seen joint, (m/s)^2.
     gate_sigma: beyond this Mahalanobis distance from the prediction a joint's
@@ -42,6 +46,11 @@ class KalmanSettings:
     measurement_noise: float = 1e-4
     # ...and more further away (the simulator's Kinect model assumes 4 mm per metre)
     noise_per_m: float = 0.004
+    # Kinect inferred joints are guesses: 10-30 cm off (issue 11 on real Kinects; the
+    # simulator's realistic model), i.e. about 12 cm per axis; 10 cm counts an inferred
+    # joint ~1/100 of a tracked one, so a second sensor that tracks it, or the filter's
+    # prediction, carries it (docs/smoothing.md)
+    inferred_sd_m: float = 0.10
     # Joints of a performer rarely exceed ~1-2 m/s when first seen; 1 (m/s)^2 lets the
     # velocity converge within a few frames.
     initial_velocity_var: float = 1.0
@@ -53,7 +62,7 @@ class KalmanSettings:
             value = getattr(self, f.name)
             if (isinstance(value, bool) or not isinstance(value, Real)
                     or not math.isfinite(value) or value < 0
-                    or (value == 0 and f.name != "noise_per_m")):
+                    or (value == 0 and f.name not in ("noise_per_m", "inferred_sd_m"))):
                 raise ConfigError(f"kalman {f.name} must be a finite number > 0, got {value!r}")
         if self.reject_sigma < self.gate_sigma:
             raise ConfigError("kalman reject_sigma must be at least gate_sigma")
@@ -89,6 +98,12 @@ class FusionSettings:
     unswap_limbs: bool = True    # trade back a view's left and right arm (leg) when both its
                                  # elbow and wrist (knee and ankle) lie on the wrong side of the
                                  # shoulders' (hips') axis (``fusion.unswap_limbs``)
+    hold_back_inferred: bool = True  # a joint no sensor has tracked since the person was
+                                 # found is not reported (confidence 0) while sensors only
+                                 # infer it: a guess 10-30 cm off is not a position
+    carry_untracked: bool = True  # a joint every sensor only infers now is reported at its
+                                 # parent joint plus the offset it had when last tracked, as
+                                 # inferred (``fusion.carry_untracked``)
 
     def __post_init__(self) -> None:
         if self.hand_vote not in ("plain", "confidence"):

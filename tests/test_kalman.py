@@ -430,9 +430,14 @@ def test_state_rows_concatenate_and_split_back():
 
 
 def test_measurement_variance_grows_with_distance_and_falls_with_confidence():
-    s = KalmanSettings(measurement_noise=1e-4, noise_per_m=0.004)
+    # inferred_sd_m 0: the confidence rule alone (variance / c), as before issue 11 stop 22
+    s = KalmanSettings(measurement_noise=1e-4, noise_per_m=0.004, inferred_sd_m=0.0)
     r = measurement_variance(np.array([1.0, 1.0, 0.5]), np.array([0.8, 3.5, 3.5]), s)
     np.testing.assert_allclose(r, [1e-4, 0.02 ** 2, 2 * 0.02 ** 2])
+    # the default adds (1/c - 1) * (10 cm)^2: an inferred joint is a guess (that change was
+    # asked for: guesses 10-30 cm off pulled the fused body; tests/test_fusion_inferred.py)
+    r = measurement_variance(np.array([1.0, 0.5]), 3.5, KalmanSettings())
+    np.testing.assert_allclose(r, [0.02 ** 2, 2 * 0.02 ** 2 + 0.1 ** 2])
 
 
 @pytest.mark.parametrize("field", ["quiet_noise", "fast_noise", "measurement_noise",

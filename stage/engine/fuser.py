@@ -249,7 +249,8 @@ class Fuser:
         z = np.array([v.joints for v in views])
         r = np.array([v.r for v in views])
         gate2 = self.s.gate_sigma ** 2
-        return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2)
+        tracked = np.array([v.conf >= 1.0 for v in views])
+        return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2, tracked)
 
     def _replay(self, body: BodyFilter, view: View) -> None:
         """Insert ``view`` in capture order and fold in again from the instant it joins."""

@@ -15,7 +15,8 @@ from ..joints import JOINT_INDEX, TORSO
 
 
 def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
-                     bias_var: float, chi2: float) -> np.ndarray:
+                     bias_var: float, chi2: float, tracked: np.ndarray | None = None,
+                     ) -> np.ndarray:
     """Which of G views of one instant to use, joint by joint: the largest set that agrees.
 
     z: (G, J, 3) metres, stage space; r: (G, J) per-axis variance, NaN or inf where the
@@ -29,7 +30,10 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     agreement wins -- every agreeing view is a vote, the prior half a vote (it breaks a
     tie between two views, but two views outvote it), remaining ties go to the more
     certain side -- and the views that agree with it are used. A joint seen by one view
-    only is always used (the filter's gate judges it). Returns used: (G, J) bool.
+    only is always used (the filter's gate judges it). ``tracked`` (G, J) bool, optional:
+    the views that track each joint (confidence 1); where any view tracks a joint, only a
+    tracking view can win it, so views that merely infer it (guesses, and a prior that
+    was fed them) never outvote a view that sees it. Returns used: (G, J) bool.
     """
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -49,6 +53,9 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     # tie-break by the information of the agreeing views, scaled under half a vote
     support = (agree * info[None]).sum(axis=1)
     votes = votes + 0.25 * support / np.maximum(support.max(axis=0), 1e-300)[None]
+    if tracked is not None:
+        guess = seen & ~tracked & (seen & tracked).any(axis=0)[None]
+        votes = np.where(guess, -0.5, votes)
     votes = np.where(seen, votes, -1.0)
     best = np.argmax(votes, axis=0)                               # (J,)
     used = agree[best, :, np.arange(z.shape[1])].T               # (G, J)
@@ -132,3 +139,56 @@ def unswap_limbs(joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.n
             conf[tl], conf[tr] = conf[tr], conf[tl]
             traded |= 1 << k
     return joints, conf, traded
+
+
+def _levels() -> list[tuple[np.ndarray, np.ndarray]]:
+    """``BONES`` grouped by depth in the joint tree: [(parents, children)], root first."""
+    from .forecast import BONES
+    depth = {BONES[0][0]: 0}
+    for a, b in BONES:
+        depth[b] = depth[a] + 1
+    out = []
+    for d in range(1, max(depth.values()) + 1):
+        pairs = [(a, b) for a, b in BONES if depth[b] == d]
+        out.append((np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])))
+    return out
+
+
+_LEVELS = _levels()
+_PARENTS = np.concatenate([a for a, _ in _LEVELS])
+_CHILDREN = np.concatenate([b for _, b in _LEVELS])
+
+
+def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray,
+                    offsets: np.ndarray) -> np.ndarray:
+    """Joints that no sensor tracks now, carried by their parent joint (in place).
+
+    joints (25, 3) m, a fused body; reported (25,) bool, the joints it reports; tracked
+    (25,) bool, those some sensor tracks now (confidence 1); offsets (25, 3) each joint's
+    offset from its parent (``forecast.BONES``) the last time it was tracked, NaN before
+    that: updated in place for tracked joints whose parent is reported. A reported joint
+    that is not tracked (every sensor only infers it: a guess 10-30 cm off, and the filter
+    fed by guesses drifts with the velocity it had) is placed at its parent plus that
+    offset, parents first, so a hidden wrist and hand follow the elbow as they were last
+    seen. Returns (25,) bool: the joints so placed.
+    """
+    carried = np.zeros(len(joints), dtype=bool)
+    both = reported[_CHILDREN] & reported[_PARENTS]
+    move = both & ~tracked[_CHILDREN] & ~np.isnan(offsets[_CHILDREN, 0])
+    # children in tree order, so a parent is placed before its children (a few joints)
+    for child, parent in zip(_CHILDREN[move].tolist(), _PARENTS[move].tolist()):
+        joints[child] = joints[parent] + offsets[child]
+        carried[child] = True
+    keep = both & tracked[_CHILDREN]
+    offsets[_CHILDREN[keep]] = joints[_CHILDREN[keep]] - joints[_PARENTS[keep]]
+    return carried
+    for parents, children in _LEVELS:
+        both = reported[children] & reported[parents]
+        keep = both & tracked[children]
+        offsets[children[keep]] = joints[children[keep]] - joints[parents[keep]]
+        move = both & ~tracked[children] & np.isfinite(offsets[children, 0])
+        if move.any():
+            c = children[move]
+            joints[c] = joints[parents[move]] + offsets[c]
+            carried[c] = True
+    return carried

@@ -28,7 +28,7 @@ from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
-from .fusion import ARM_TRADED, apply_transform, torso_centre, unswap_limbs
+from .fusion import ARM_TRADED, apply_transform, carry_untracked, torso_centre, unswap_limbs
 from .kalman import KalmanSettings, measurement_variance
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
@@ -175,6 +175,8 @@ class People:
         joints = np.where(seen[..., None], pos, np.array([p.joints for p in persons]))
         known = np.array([p.known for p in persons]) | seen
         conf = np.where(seen, np.minimum(conf, 1.0), 0.0)
+        for k, p in enumerate(persons):
+            self._untracked(p, joints[k], conf[k])
         vel = np.where(np.isfinite(vel), vel, 0.0)
         # the centre uses every torso joint ever seen, not just this frame's, so it
         # does not jump when occlusion changes which joints a view reports
@@ -184,6 +186,17 @@ class People:
         for k, p in enumerate(persons):
             p.joints, p.velocity, p.conf, p.known, p.t = joints[k], vel[k], conf[k], known[k], t[k]
             p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
+
+    def _untracked(self, p: Person, joints: np.ndarray, conf: np.ndarray) -> None:
+        """Joints no sensor tracks now (confidence < 1 in every view: inferred, a guess), in
+        place: carried by their parent joint as last tracked (``carry_untracked``), and not
+        reported at all while no sensor has tracked them since ``p`` was found."""
+        now = conf >= 1.0
+        p.tracked |= now
+        if self.rig.fusion.carry_untracked:
+            p.carried = carry_untracked(joints, conf > 0, now, p.hold)
+        if self.rig.fusion.hold_back_inferred:
+            conf[~p.tracked] = 0.0
 
     @staticmethod
     def _recent_conf(person: Person, t: float, stale: float) -> np.ndarray:
@@ -330,8 +343,11 @@ class People:
                     self.output.joints(pid, fc.joints, person.conf, views)
                     continue
                 pos, _ = person.filter.estimate(now)
-                joints = np.where((person.conf > 0)[:, None] & np.isfinite(pos), pos,
-                                  person.joints)
+                reported = person.conf > 0
+                joints = np.where((reported & ~person.carried)[:, None] & np.isfinite(pos),
+                                  pos, person.joints)
+                if person.carried.any():     # carried joints follow their parents' estimate
+                    carry_untracked(joints, reported, ~person.carried, person.hold.copy())
                 self.output.joints(pid, joints, person.conf, views)
 
     def stats(self) -> dict:

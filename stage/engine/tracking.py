@@ -116,6 +116,13 @@ class Person:
     merged: bool = False                    # folded into another person: never comes back
     #: (client, user) -> (capture time, (25,) confidence) of each view's latest frame
     recent: dict = field(default_factory=dict)
+    #: (25,) bool: joints some view has tracked (confidence 1) since the person was found
+    tracked: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
+    #: (25, 3) each joint's offset from its parent joint (``forecast.BONES``) in the output
+    #: the last time a view tracked it; NaN before that
+    hold: np.ndarray = field(default_factory=lambda: np.full((N_JOINTS, 3), np.nan))
+    #: (25,) bool: the joints of the latest output placed by their parent (none tracked them)
+    carried: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
 
     @classmethod
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
