@@ -164,3 +164,21 @@ def test_the_rig_file_turns_each_rule_off(tmp_path):
     path.write_text("fusion:\n  carry_untracked: 2\n")
     with pytest.raises(ConfigError, match="'carry_untracked' must be true or false"):
         load_rig(str(path))
+
+
+def test_a_client_sending_continuous_confidences_is_reported_not_held_back():
+    """The wire accepts any confidence in [0, 1] (docs/osc-api.md): a bridge that sends a
+    landmark's visibility (0.9) tracks its joints; only the inferred level (0.5) and below
+    is a guess. Before this, "tracked" meant exactly 1, so such a client's person was
+    reported with no joint at all."""
+    truth = sim_mod.standing_pose((0.0, 0.0))
+    conf = np.full(25, 0.9)
+    conf[ARM[:2]] = 0.4                                         # low visibility: a guess
+    steps = [(0, truth, conf, np.zeros((25, 3)))]
+    bodies, out = _run({}, steps)
+    (first,) = _after_each_frame(bodies)
+    seen = conf > 0.5
+    assert np.allclose(first.conf[seen], 0.9)                   # (float32 on the wire)
+    assert np.abs(first.joints[seen] - truth[seen]).max() < 1e-6
+    assert np.all(first.conf[ARM[:2]] == 0.0)                   # held back, as a 0.5 would be
+    assert "ElbowRight" in out.of("/jointCoordinates")[0]

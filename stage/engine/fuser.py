@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..joints import N_JOINTS
+from ..joints import INFERRED, N_JOINTS
 from ..settings import FusionSettings, KalmanSettings
 from .fusion import consistent_views
 from .kalman import (ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED, STARTED, FilterState, combine,
@@ -249,7 +249,7 @@ class Fuser:
         z = np.array([v.joints for v in views])
         r = np.array([v.r for v in views])
         gate2 = self.s.gate_sigma ** 2
-        tracked = np.array([v.conf >= 1.0 for v in views])
+        tracked = np.array([v.conf > INFERRED for v in views])   # above the guess level
         return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2, tracked)
 
     def _replay(self, body: BodyFilter, view: View) -> None:

@@ -22,7 +22,7 @@ import numpy as np
 from ..clock import Clock
 from ..errors import ConfigError
 from ..frames import Body, FusedFrame
-from ..joints import JOINT_INDEX, TORSO, HandState
+from ..joints import INFERRED, JOINT_INDEX, TORSO, HandState
 from ..rig import Rig
 from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
@@ -188,10 +188,11 @@ class People:
             p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
 
     def _untracked(self, p: Person, joints: np.ndarray, conf: np.ndarray) -> None:
-        """Joints no sensor tracks now (confidence < 1 in every view: inferred, a guess), in
+        """Joints no sensor tracks now (confidence at most ``INFERRED`` in every view: a guess;
+        Kinect sends 0.5, a client with continuous confidences anything up to it), in
         place: carried by their parent joint as last tracked (``carry_untracked``), and not
         reported at all while no sensor has tracked them since ``p`` was found."""
-        now = conf >= 1.0
+        now = conf > INFERRED
         p.tracked |= now
         if self.rig.fusion.carry_untracked:
             p.carried = carry_untracked(joints, conf > 0, now, p.hold)
