@@ -31,7 +31,7 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     tie between two views, but two views outvote it), remaining ties go to the more
     certain side -- and the views that agree with it are used. A joint seen by one view
     only is always used (the filter's gate judges it). ``tracked`` (G, J) bool, optional:
-    the views that track each joint (confidence 1); where any view tracks a joint, only a
+    the views that track each joint (confidence above the inferred level); where any view tracks a joint, only a
     tracking view can win it, so views that merely infer it (guesses, and a prior that
     was fed them) never outvote a view that sees it. Returns used: (G, J) bool.
     """
@@ -164,7 +164,7 @@ def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarra
     """Joints that no sensor tracks now, carried by their parent joint (in place).
 
     joints (25, 3) m, a fused body; reported (25,) bool, the joints it reports; tracked
-    (25,) bool, those some sensor tracks now (confidence 1); offsets (25, 3) each joint's
+    (25,) bool, those some sensor tracks now (confidence above the inferred level); offsets (25, 3) each joint's
     offset from its parent (``forecast.BONES``) the last time it was tracked, NaN before
     that: updated in place for tracked joints whose parent is reported. A reported joint
     that is not tracked (every sensor only infers it: a guess 10-30 cm off, and the filter
@@ -181,14 +181,4 @@ def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarra
         carried[child] = True
     keep = both & tracked[_CHILDREN]
     offsets[_CHILDREN[keep]] = joints[_CHILDREN[keep]] - joints[_PARENTS[keep]]
-    return carried
-    for parents, children in _LEVELS:
-        both = reported[children] & reported[parents]
-        keep = both & tracked[children]
-        offsets[children[keep]] = joints[children[keep]] - joints[parents[keep]]
-        move = both & ~tracked[children] & np.isfinite(offsets[children, 0])
-        if move.any():
-            c = children[move]
-            joints[c] = joints[parents[move]] + offsets[c]
-            carried[c] = True
     return carried

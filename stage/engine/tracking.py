@@ -116,7 +116,8 @@ class Person:
     merged: bool = False                    # folded into another person: never comes back
     #: (client, user) -> (capture time, (25,) confidence) of each view's latest frame
     recent: dict = field(default_factory=dict)
-    #: (25,) bool: joints some view has tracked (confidence 1) since the person was found
+    #: (25,) bool: joints some view has tracked (confidence above the inferred level) since
+    #: the person was found
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
     #: (25, 3) each joint's offset from its parent joint (``forecast.BONES``) in the output
     #: the last time a view tracked it; NaN before that
