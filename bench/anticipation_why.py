@@ -7,9 +7,11 @@ the truth (the motion capture, in engine time) did around it:
 
 - **a, contradicted**: fired on a prediction the measurements never made (the runtime
   counted it contradicted) and the truth did not cross either;
-- **b, second firing**: the truth's crossing it belongs to was already matched by an
-  earlier firing of the same trigger and joint (the truth has not fallen back behind
-  the border by the hysteresis since): one movement fired twice;
+- **b, second firing**: the truth's crossing it belongs to was matched by another
+  firing of the same trigger and joint: an earlier one (the truth has not fallen back
+  behind the border by the hysteresis since), or a later one (the crossing lies within
+  200 ms before to 300 ms after this firing, and no free crossing does): one movement
+  fired twice;
 - **c, noise**: the measurements crossed (a measured firing, or an anticipated one the
   measurements then confirmed) where the truth did not: sensor noise, which the
   no-forecast reference has too;
@@ -97,14 +99,19 @@ def classify(firings: list[tuple], contradicted: set, truth: dict, series: tuple
             # the last true crossing at or before the firing (+ the early window)
             prev = [j for j, c in enumerate(crossings) if c <= tf + after]
             last = prev[-1] if prev else None
-            free = [c for j, c in enumerate(crossings)
-                    if j not in taken and tf - NEAR_AFTER <= c <= tf + NEAR_BEFORE]
+            near_c = [(j, c) for j, c in enumerate(crossings)
+                      if tf - NEAR_AFTER <= c <= tf + NEAR_BEFORE]
+            free = [c for j, c in near_c if j not in taken]
+            took = [c for j, c in near_c if j in taken]
             if last is not None and last in taken and \
                     not (d[(grid > crossings[last]) & (grid < tf)] < -hyst).any():
                 rec["class"], rec["crossing_dt"] = "b", tf - crossings[last]
             elif free:
                 c = min(free, key=lambda c: abs(c - tf))
                 rec["class"], rec["crossing_dt"] = "d", tf - c
+            elif took:       # a crossing just after it, which a later firing took
+                c = min(took, key=lambda c: abs(c - tf))
+                rec["class"], rec["crossing_dt"] = "b", tf - c
             elif rec["contradicted"]:
                 rec["class"], rec["crossing_dt"] = "a", None
             else:

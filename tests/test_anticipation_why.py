@@ -69,6 +69,16 @@ def test_a_second_rise_is_not_a_second_firing():
     assert [r["class"] for r in out] == ["c"]
 
 
+def test_a_firing_whose_crossing_a_later_firing_took_is_a_second_firing():
+    """150 ms before the crossing (outside the window), and the measured firing 60 ms after
+    it took the crossing: the same movement fired twice (b), not a window miss (d)."""
+    t, d, crossings = one_rise()
+    out = why.classify([("hand", "HandRight", 1.85, 0.05), ("hand", "HandRight", 2.06, 0.0)],
+                       set(), {KEY: crossings}, series(t, d), HYST, BEFORE, AFTER, SETTLE)
+    assert [(r["t"], r["class"]) for r in out] == [(1.85, "b")]
+    assert abs(out[0]["crossing_dt"] + 0.15) < 1e-9
+
+
 def test_window_misses():
     """A firing 150 ms before a true crossing nothing else took is outside the window
     (false) but belongs to it: class d, with its distance to the crossing."""
