@@ -33,6 +33,7 @@ engine time minus the true crossing's time (engine clock = simulation clock).
     python bench/bench_anticipation.py            # 3 takes x 10 seeds, plot in docs/
     python bench/bench_anticipation.py --quick    # one take, one seed, no plot
     python bench/bench_anticipation.py --seeds 21-40 --plot ''   # a fresh set of seeds
+    python bench/bench_anticipation.py --seeds 3 --plot '' --why  # every false trigger, classified
 """
 
 from __future__ import annotations
