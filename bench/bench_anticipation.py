@@ -391,7 +391,11 @@ def main() -> None:
     if args.why:
         anatomy(results)
     if args.json:
-        Path(args.json).write_text(json.dumps({label(k): v for k, v in table.items()}, indent=1))
+        out = {label(k): v for k, v in table.items()}
+        if args.why:    # every classified false trigger, for the team's own cuts
+            out["why"] = {label(k): [rec for r in results for rec in r[k]["why"]]
+                          for k in ANATOMY}
+        Path(args.json).write_text(json.dumps(out, indent=1))
     if not args.quick and args.plot:
         plot(table, settings, args.plot)
         print(f"plot: {args.plot}")
