@@ -33,6 +33,7 @@ engine time minus the true crossing's time (engine clock = simulation clock).
     python bench/bench_anticipation.py            # 3 takes x 10 seeds, plot in docs/
     python bench/bench_anticipation.py --quick    # one take, one seed, no plot
     python bench/bench_anticipation.py --seeds 21-40 --plot ''   # a fresh set of seeds
+    python bench/bench_anticipation.py --seeds 3 --plot '' --why  # every false trigger, classified
 """
 
 from __future__ import annotations
@@ -50,12 +51,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+import anticipation_why as why  # noqa: E402
 from benchlib import machine_busy_s  # noqa: E402
 
 from stage.app.offline import feed  # noqa: E402
 from stage.clock import ManualClock  # noqa: E402
 from stage.engine import Engine  # noqa: E402
-from stage.events import TriggerFired  # noqa: E402
+from stage.events import TriggerContradicted, TriggerFired  # noqa: E402
 from stage.joints import JOINT_INDEX as J  # noqa: E402
 from stage.piece.loader import loads_piece  # noqa: E402
 from stage.piece.runtime import PieceRuntime, RecordingSink  # noqa: E402
@@ -73,6 +75,8 @@ BEFORE, AFTER = 0.2, 0.1     # a true crossing matches a firing from 200 ms befo
 #: the bare s.d. bound (no probability, no trend): how anticipation fired before the joint
 #: groups' defaults, printed beside them in the same run
 BARE = "min_p: 0, trend: -10"
+#: the settings ``--why`` classifies the false triggers of (the reference first)
+ANATOMY = (("none", 0.0), ("anticipate", 0.05))
 SETTLE = 0.8                 # s: crossings before the engine has seen the dancer are not counted
 
 SCENARIO = """
@@ -140,23 +144,49 @@ def schmitt_up(t: np.ndarray, d: np.ndarray) -> list[float]:
     return out
 
 
-def true_crossings(sim: Simulator, duration: float) -> dict[tuple[str, str], list[float]]:
+def truth_series(sim: Simulator, duration: float) -> tuple[np.ndarray, dict]:
+    """The motion capture at 120 Hz: (times, (trigger, joint) -> how far past the border,
+    m, > 0 past it; the zones' the depth into the nearest band)."""
     t = np.arange(0.0, duration, 1.0 / 120.0)
     joints = np.array([sim.truth(float(x))["dancer"][0] for x in t])
-    out: dict[tuple[str, str], list[float]] = {}
+    out: dict[tuple[str, str], np.ndarray] = {}
     for side in ("Left", "Right"):
-        out[("hand", "Hand" + side)] = schmitt_up(t, joints[:, J["Hand" + side], 1]
-                                                  - joints[:, J["Head"], 1])
-        out[("foot", "Foot" + side)] = schmitt_up(t, joints[:, J["Foot" + side], 1] - FOOT_Y)
+        out[("hand", "Hand" + side)] = joints[:, J["Hand" + side], 1] - joints[:, J["Head"], 1]
+        out[("foot", "Foot" + side)] = joints[:, J["Foot" + side], 1] - FOOT_Y
     z = joints[:, TORSO, 2].mean(axis=1)
-    for name, (z0, z1) in BANDS.items():
-        # inside > 0: the distance into the band from its nearer border
-        inside = np.minimum(z - z0, z1 - z)
-        out.setdefault(("zone", "body"), []).extend(schmitt_up(t, inside))
+    # inside > 0: the distance into a band from its nearer border
+    inside = [np.minimum(z - z0, z1 - z) for z0, z1 in BANDS.values()]
+    out[("zone", "body")] = np.max(inside, axis=0)
+    return t, {**out, "bands": inside}
+
+
+def measured_margins(frames: list) -> tuple[np.ndarray, dict]:
+    """The fused (measured) bodies' margins, as ``truth_series``: (engine times, (trigger,
+    joint) -> m past the border), NaN where the joint was not seen."""
+    t = np.array([f[0] for f in frames])
+    out: dict = {}
+    for side in ("Left", "Right"):
+        h, f, head = J["Hand" + side], J["Foot" + side], J["Head"]
+        seen = np.array([b.conf[h] > 0 and b.conf[head] > 0 for _, b in frames], bool)
+        out[("hand", "Hand" + side)] = np.where(seen, [b.joints[h, 1] - b.joints[head, 1]
+                                                       for _, b in frames], np.nan)
+        seen = np.array([b.conf[f] > 0 for _, b in frames], bool)
+        out[("foot", "Foot" + side)] = np.where(seen, [b.joints[f, 1] - FOOT_Y
+                                                       for _, b in frames], np.nan)
+    z = np.array([b.position[2] for _, b in frames])
+    out[("zone", "body")] = np.max([np.minimum(z - z0, z1 - z) for z0, z1 in BANDS.values()],
+                                   axis=0) if len(z) else z
+    return t, out
+
+
+def true_crossings(series: tuple[np.ndarray, dict]) -> dict[tuple[str, str], list[float]]:
+    t, d = series
+    out = {k: schmitt_up(t, v) for k, v in d.items() if k not in (("zone", "body"), "bands")}
+    out[("zone", "body")] = [c for inside in d["bands"] for c in schmitt_up(t, inside)]
     return {k: sorted(c for c in v if c >= SETTLE) for k, v in out.items()}
 
 
-def score(firings: list[tuple[str, str, float]], truth: dict) -> dict[str, dict]:
+def score(firings: list[tuple], truth: dict) -> dict[str, dict]:
     """Per trigger: delays of matched firings, false triggers, misses."""
     out = {}
     for trig in ("hand", "foot", "zone"):
@@ -165,17 +195,12 @@ def score(firings: list[tuple[str, str, float]], truth: dict) -> dict[str, dict]
             if tname != trig:
                 continue
             n_true += len(crossings)
-            used = [False] * len(crossings)
-            for _, _, tf in sorted(f for f in firings if f[0] == trig and f[1] == joint):
-                if tf < SETTLE:
-                    continue
-                k = next((i for i, c in enumerate(crossings)
-                          if not used[i] and c - AFTER <= tf <= c + BEFORE), None)
+            mine = sorted(f for f in firings if f[0] == trig and f[1] == joint)
+            for f, k in zip(mine, why.match(mine, crossings, BEFORE, AFTER, SETTLE)):
                 if k is None:
                     false += 1
-                else:
-                    used[k] = True
-                    delays.append(tf - crossings[k])
+                elif k >= 0:
+                    delays.append(f[2] - crossings[k])
         out[trig] = {"true": n_true, "delays": delays, "false": false,
                      "missed": n_true - len(delays)}
     return out
@@ -201,7 +226,9 @@ def sim_engine(take: str, seed: int, delay: float, kinect: str = "",
 
 
 def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str = "",
-        forecast: str = "") -> dict:
+        forecast: str = "", anatomy: tuple = ()) -> dict:
+    """One take and seed through every setting; ``anatomy``: the settings whose false
+    triggers are classified (``anticipation_why``)."""
     sim, clock, engine, duration = sim_engine(take, seed, delay, kinect, forecast)
     runtimes = {}
     for mode, h, *extra in settings:
@@ -212,12 +239,24 @@ def run(take: str, seed: int, delay: float, settings: list[tuple], kinect: str =
             engine.people.want_forecast(horizon)
         engine.listeners.append(rt)
         runtimes[(mode, h, *extra)] = (rt, sink)
+    measured: list = []
+    if anatomy:
+        engine.listeners.append(lambda frame: measured.extend(
+            (frame.t, b) for b in frame.bodies.values()))
     feed(engine, clock, sim.stream(duration), end=duration)
-    truth = true_crossings(sim, duration)
+    series = truth_series(sim, duration)
+    truth = true_crossings(series)
     out = {}
     for key, (rt, sink) in runtimes.items():
-        fired = [(e.trigger, e.joint, e.t) for e in sink.events if isinstance(e, TriggerFired)]
+        fired = [(e.trigger, e.joint, e.t, e.anticipated) for e in sink.events
+                 if isinstance(e, TriggerFired)]
         out[key] = {"score": score(fired, truth), "counts": dict(rt.counts)}
+        if key in anatomy:
+            told = {(e.trigger, e.joint, e.fired) for e in sink.events
+                    if isinstance(e, TriggerContradicted)}
+            out[key]["why"] = [dict(r, seed=seed, take=take) for r in why.classify(
+                fired, told, truth, series, HYST, BEFORE, AFTER, SETTLE,
+                measured_margins(measured))]
     out["forecast_stats"] = engine.people.forecast_stats()
     out["seed"] = seed
     return out
@@ -271,10 +310,18 @@ def print_table(title: str, table: dict, settings: list[tuple]) -> None:
             r0, c = ref[t], table[key][t]
             gain, limit = r0["p50_ms"] - c["p50_ms"], r0["false"] * 1.1
             ok = gain >= 30 and c["false"] <= limit
-            parts.append(f"{t} {gain:.1f} ms, false {c['false']}/{r0['false']} "
-                         f"{'yes' if ok else 'NO'}")
+            parts.append(f"{t} {gain:.1f} ms (p50 {c['p50_ms']:.1f} after the truth), false "
+                         f"{c['false']}/{r0['false']} {'yes' if ok else 'NO'}")
         print(f"goal at {label(key)} (>= 30 ms earlier, false <= 1.1 x without): "
               + "; ".join(parts))
+
+
+def seed_group(lo: int, hi: int) -> str:
+    """What a group of seeds was used for (docs/anticipation.md, "Seeds"): the name of the
+    group its last seed falls in."""
+    return ("tuning" if hi <= 3 else "checking (held back while tuning)" if hi <= 5 else
+            "check (never tuned on)" if hi <= 20 else "fresh check" if hi <= 40 else
+            "fresh (run once per candidate)")
 
 
 def main() -> None:
@@ -300,6 +347,9 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], metavar="KEYS",
                     help="also anticipate 50 ms with these anticipate keys, e.g. "
                          f"'min_p: 0.9, trend: 0.5' (repeatable; default: '{BARE}')")
+    ap.add_argument("--why", action="store_true",
+                    help="classify every false trigger of none and anticipate 50 ms (contradicted "
+                         "prediction, second firing, noise, window; bench/anticipation_why.py)")
     args = ap.parse_args()
     takes = TAKES[:1] if args.quick else TAKES
     first, _, last = args.seeds.partition("-")
@@ -312,7 +362,8 @@ def main() -> None:
     results, sd = [], {}
     for take in takes:
         for seed in seeds:
-            r = run(take, seed, args.delay, settings, args.kinect, args.forecast)
+            r = run(take, seed, args.delay, settings, args.kinect, args.forecast,
+                    ANATOMY if args.why else ())
             results.append(r)
             for h, v in r["forecast_stats"]["sd_mm"].items():
                 sd.setdefault(h, []).append(v)
@@ -325,13 +376,11 @@ def main() -> None:
     print("delay = firing minus true crossing (ms, matched firings); false = firings with no "
           "true crossing 200 ms before to 100 ms after; earlier = p50 of none minus p50")
     ends = [int(x) for x in args.groups.split(",") if int(x) < seeds[-1]] + [seeds[-1]]
-    what = ("tuning", "checking (held back while tuning)",
-            "fresh (never tuned on)", "fresh (never looked at)")
     lo = 1
-    for k, hi in enumerate(ends):
+    for hi in ends:
         part = [r for r in results if max(lo, seeds[0]) <= r["seed"] <= hi]
         if part and len(part) < len(results):
-            print_table(f"{what[min(k, 3)]} seeds {max(lo, seeds[0])}-{hi}",
+            print_table(f"{seed_group(max(lo, seeds[0]), hi)} seeds {max(lo, seeds[0])}-{hi}",
                         summarise(part, settings), settings)
         lo = hi + 1
     print_table(f"all seeds {seeds[0]}-{seeds[-1]}", table, settings)
@@ -339,11 +388,32 @@ def main() -> None:
         print(f"{label(key)} runtime counts: {table[key]['counts']}")
     print("mean forecast s.d. of seen joints, last frame of each run (mm): "
           + ", ".join(f"{h} s: {np.mean(v):.1f}" for h, v in sorted(sd.items())))
+    if args.why:
+        anatomy(results)
     if args.json:
-        Path(args.json).write_text(json.dumps({label(k): v for k, v in table.items()}, indent=1))
+        out = {label(k): v for k, v in table.items()}
+        if args.why:    # every classified false trigger, for the team's own cuts
+            out["why"] = {label(k): [rec for r in results for rec in r[k]["why"]]
+                          for k in ANATOMY}
+        Path(args.json).write_text(json.dumps(out, indent=1))
     if not args.quick and args.plot:
         plot(table, settings, args.plot)
         print(f"plot: {args.plot}")
+
+
+def anatomy(results: list[dict]) -> None:
+    """Print the classified false triggers of ``ANATOMY``'s settings (bench/anticipation_why.py),
+    the forecast's marked ``NEW`` where the reference has none of the same joint near it."""
+    print("\n" + why.__doc__.split("\n\n", 1)[1].split("\n\nEach record")[0])
+    ref = [rec for r in results for rec in r[ANATOMY[0]]["why"]]
+    for key in ANATOMY[1:]:
+        mine = []
+        for r in results:
+            part = r[key]["why"]
+            why.mark_shared(part, r[ANATOMY[0]]["why"])
+            mine += part
+        why.report(label(key), mine)
+    why.report(label(ANATOMY[0]), ref)
 
 
 def plot(table: dict, settings: list, path: str) -> None:

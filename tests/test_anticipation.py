@@ -375,6 +375,64 @@ def test_a_confirmed_crossing_restarts_the_cooldown_as_the_measured_firing_would
     assert [e.t for e in fired(sink)] == [0.033, 0.45]
 
 
+def test_a_predicted_crossing_fires_only_while_the_measured_trigger_is_armed():
+    """One movement, one firing: the predicted and the measured detector share the
+    trigger's arming. A prediction that falls back by the hysteresis and crosses again
+    while the measured hand is still up is the same movement (or the prediction's
+    noise), not a new crossing; once the measured hand is back behind the border by the
+    hysteresis, the next predicted crossing fires. (Before, the re-crossing fired again
+    and, never measured, was contradicted: bench_anticipation --why's class b.)"""
+    rt, sink = runtime("anticipate: {ahead: 0.05, max_sd: 0.05}\n        cooldown: 0")
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01),   # fires, predicted
+                     (0.1, 1.95, 2.0, 0.01),                            # measured: confirmed
+                     (0.2, 1.95, 1.8, 0.01),                            # prediction falls back
+                     (0.3, 1.95, 1.95, 0.01), (0.5, 1.95, 1.95, 0.01)])  # and crosses again
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.033, 0.05)]
+    assert rt.counts["contradicted"] == 0 and rt.counts["confirmed"] == 1
+    # the measured hand comes down past the hysteresis: the trigger is armed again
+    feed_frames(rt, [(0.6, 1.7, 1.7, 0.01), (0.7, 1.8, 1.95, 0.01)])
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.033, 0.05), (0.7, 0.05)]
+
+
+def test_a_crossing_measured_in_the_frame_it_is_predicted_fires_as_measured():
+    # the measurement crosses in the same frame as the prediction: nothing was anticipated
+    rt, sink = runtime()
+    feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.85, 0.01), (0.067, 1.95, 2.1, 0.01),
+                     (0.1, 1.97, 2.1, 0.01)])
+    assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.067, 0.0)]
+    assert rt.counts["anticipated"] == 0 and rt.counts["confirmed"] == 0
+
+
+def test_detectors_say_whether_a_joint_is_armed():
+    from stage.piece.model import BODY
+    from stage.piece.triggers import Person, detector_for
+    trig = loads_piece(PIECE.format(top="", anticipate="")).sections[0].triggers[0]
+    det, key = detector_for(trig), (1, J["HandLeft"])
+    assert det.armed(key) is None                       # not seen yet
+    out = []
+    for t, y in ((0.0, 1.0), (0.1, 1.95), (0.2, 1.87), (0.3, 1.84)):
+        det.frame(t, [Person(body(y, t), 0.5, 0.0)], out)
+        # up at 0.1 (fired), still within the hysteresis at 0.2, behind it at 0.3
+        assert det.armed(key) is {0.0: True, 0.1: False, 0.2: False, 0.3: True}[t]
+    zone = loads_piece(ZONE_PIECE).sections[0].triggers
+    for trig, armed in zip(zone, (True, False)):   # outside the zone: it can enter, not leave
+        det = detector_for(trig)
+        det.frame(0.0, [Person(body(1.0, 0.0), 0.5, 0.0)], out)
+        assert det.armed((1, BODY)) is armed
+
+
+ZONE_PIECE = """
+piece: z
+zones:
+  far: {shape: box, min: [5, 0, 5], max: [6, 2, 6]}
+sections:
+  - name: s
+    triggers:
+      - {name: in, enters: far, do: [{note: C4}]}
+      - {name: out, leaves: far, do: [{note: C4}]}
+"""
+
+
 def test_no_prediction_fires_from_a_frame_where_the_measured_joint_jumped():
     # 0.8 m in 33 ms: more than a hand's 12 m/s plus 0.25 m (a sensor's limb swap, the
     # tracker re-finding a person elsewhere): that frame's predicted crossing waits; the

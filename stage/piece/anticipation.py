@@ -5,8 +5,9 @@ engine predicts it ``ahead`` s past its capture time (``FusedFrame.forecasts``).
 predicted crossing waits, re-checked each frame, until it is sure enough (``sure``:
 the joint's predicted s.d. at most ``max_sd``, the Gaussian probability of being past
 the border at least ``min_p``, the measured approach at least ``trend``; the last two
-default by joint group, ``GROUP_DEFAULTS``), then fires; the measured crossing then only
-confirms it (the runtime drops that firing); one the measurements have not made
+default by joint group, ``GROUP_DEFAULTS``) and the measured detector is armed for the
+joint (one arming for both: one movement fires once), then fires; the measured crossing
+then only confirms it (the runtime drops that firing); one the measurements have not made
 ``within`` s after the predicted moment is contradicted: counted, told as a
 ``TriggerContradicted`` event, and its notes cut short where the trigger asks.
 These functions run on the runtime's thread, as part of ``PieceRuntime``.
@@ -160,9 +161,10 @@ def jumped(now: Person | None, before: Person | None, j: int) -> bool:
 
 
 def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person]) -> None:
-    """Fire ``run`` on crossings predicted ahead once they are sure enough (``sure``): a
-    predicted crossing waits, re-checked each frame, until it is, until the prediction
-    falls back behind the border by the hysteresis, or until the measurements fire it."""
+    """Fire ``run`` on crossings predicted ahead once they are sure enough (``sure``) and
+    the measured detector is armed for the joint: a predicted crossing waits, re-checked
+    each frame, until it is, until the prediction falls back behind the border by the
+    hysteresis, or until the measurements fire it."""
     a, trig = run.trigger.anticipate, run.trigger
     ahead = persons_ahead(rt, a.ahead)
     predicted: list[Firing] = []
@@ -183,6 +185,10 @@ def anticipate(rt: PieceRuntime, run: _TriggerRun, t: float, chosen: list[Person
         if m[0] < -trig.hysteresis or t - wait[0] > a.ahead:
             # the prediction went back, or the measurements have had the time to catch up
             del run.waiting[key]
+            continue
+        if run.detector.armed(key) is False:
+            # the measured joint is still past the border (or crossed in this very frame):
+            # the predicted crossing is the movement the measurements have, not a new one
             continue
         if not sure(a, trig, p, now.get(pid), j) or jumped(now.get(pid), rt.before.get(pid), j):
             if wait[0] == t:

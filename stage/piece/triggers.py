@@ -105,9 +105,22 @@ class Detector:
         """Append this frame's firings for ``persons`` (already filtered by performer)."""
         raise NotImplementedError
 
+    def armed(self, key: tuple[int, int]) -> bool | None:
+        """Whether (person, joint) ``key`` can fire on its next crossing (it is behind the
+        border, by the hysteresis since it last fired); None where the detector has no
+        such state or has not seen the joint yet."""
+        return None
+
 
 class ZoneDetector(Detector):
     """enters / leaves / dwells. State: [committed, raw, raw_since, entered_at, dwelled]."""
+
+    def armed(self, key):
+        st = self.states.get(key)
+        kind = self.t.kind
+        if st is None or kind == "dwells":
+            return None
+        return (not st[0]) if kind == "enters" else st[0]
 
     def frame(self, t, persons, out):
         trig, zone, states = self.t, self.t.zone, self.states
@@ -171,6 +184,10 @@ class SpeedDetector(Detector):
 
 class HeightDetector(Detector):
     """rises_above / falls_below a height or another joint. State: [armed, since]."""
+
+    def armed(self, key):
+        st = self.states.get(key)
+        return None if st is None else st[0]
 
     def frame(self, t, persons, out):
         trig, states = self.t, self.states
