@@ -443,6 +443,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         if s.heal and t1 > t0:
             self._monitor(now, t0, t1, views, states, epochs)
             self._monitored_to = t1
+            self._yield()
         self._track_lags(now, views, states, epochs)
         self._collect(now, views, states, epochs)
         with self._lock:

@@ -23,6 +23,9 @@ from ..errors import StageError
 
 log = logging.getLogger("stage.calibration")
 
+#: the longest a yielding worker waits for the engine thread to be idle, s
+YIELD_MAX_S = 0.05
+
 
 class EngineWorker:
     name = "stage-worker"
@@ -84,8 +87,16 @@ class EngineWorker:
                           "decided again")
 
     def _yield(self) -> None:
-        """Worker: let the engine thread have the GIL between chunks of work."""
+        """Worker, between chunks of work: wait (at most ``YIELD_MAX_S``) while the engine
+        thread has datagrams queued or in hand, then let it have the GIL.
+
+        Measured (bench_engine.py --trace, aligned 6 x 6): while a poll ran, each engine
+        batch waited p50 1.0 / p90 3.5 ms for the GIL against 0.07 / 0.8 ms otherwise,
+        because a thread that gives up the GIL for a send gets it back only after the
+        worker's next switch interval (5 ms). Parked here, the worker does not take it.
+        The bound keeps the calibrator going when the engine is never idle."""
         if self.threaded:
+            self.engine.idle.wait(YIELD_MAX_S)
             time.sleep(0)
 
     def _run(self) -> None:
