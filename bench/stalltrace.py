@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 SAMPLE_S = 0.010
+PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 # ------------------------------------------------------------------ the traced server
@@ -142,14 +143,16 @@ def _start_sampler(prefix: str, pids: list[int]):
 
 def sample(argv: list[str]) -> int:
     """``stalltrace.py _sample PREFIX PID...``: every SAMPLE_S, each thread's schedstat
-    (CPU ns, run-queue wait ns) of each PID, and the machine's busy ticks, until SIGTERM.
-    Rows: t, pid, tid, cpu_ns, wait_ns (pid 0, tid 0: the machine, cpu = busy ticks)."""
+    (CPU ns, run-queue wait ns) of each PID, the machine's busy ticks, and each second the
+    first PID's resident memory, until SIGTERM. Rows: t, pid, tid, cpu_ns, wait_ns (pid 0,
+    tid 0: the machine, cpu = busy ticks; tid -1: resident bytes in cpu)."""
     prefix, pids = argv[0], [int(p) for p in argv[1:]]
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     rows = array.array("d")
     mono, listdir = time.monotonic, os.listdir
     next_t = mono()
+    n = 0
     while not stop.is_set():
         t = mono()
         for pid in pids:
@@ -167,6 +170,13 @@ def sample(argv: list[str]) -> int:
         with open("/proc/stat") as f:
             v = [int(x) for x in f.readline().split()[1:]]
         rows.extend((t, 0, 0, sum(v[:8]) - v[3] - v[4], 0))
+        if n % 100 == 0:   # each second: the server's resident memory (tid -1, bytes)
+            try:
+                with open(f"/proc/{pids[0]}/statm") as f:
+                    rows.extend((t, pids[0], -1, int(f.read().split()[1]) * PAGE, 0))
+            except (FileNotFoundError, ProcessLookupError):
+                pass
+        n += 1
         next_t += SAMPLE_S
         stop.wait(max(0.0, next_t - mono()))
     np.save(f"{prefix}.sched.npy", np.array(rows).reshape(-1, 5))
@@ -244,7 +254,14 @@ def analyze(prefix: str, worst: int = 8, tail_ms: float = 20.0) -> None:
     if sched is None:
         return
     server_pid = meta["pid"]
-    owner = {int(r[2]): int(r[1]) for r in sched if r[2]}
+    owner = {int(r[2]): int(r[1]) for r in sched if r[2] > 0}
+    rss = sched[sched[:, 2] == -1]
+    if len(rss) > 1:
+        ok = (rss[:, 0] >= lt[0]) & (rss[:, 0] <= lt[-1])
+        r = rss[ok] if ok.sum() > 1 else rss
+        slope = np.polyfit(r[:, 0] - r[0, 0], r[:, 3] / 2**20, 1)[0] * 60 if len(r) > 2 else 0.0
+        print(f"  server RSS over the window: {r[0, 3] / 2**20:.1f} -> {r[-1, 3] / 2**20:.1f} MiB "
+              f"(max {r[:, 3].max() / 2**20:.1f}; fitted slope {slope:+.2f} MiB/min)")
     label = {tid: (names.get(tid, str(tid)) if pid == server_pid else f"bench:{tid}")
              for tid, pid in owner.items()}
     _bins(lt, lv, gc_t, gc_d, sched, label, tail_ms)
