@@ -3,10 +3,11 @@
 A collection of the oldest generation walks every container object the collector
 tracks and stops every thread meanwhile: the engine fuses nothing while it runs.
 Measured on ``stage serve`` with the live calibrator (``bench/bench_engine.py
---trace``, aligned 6 sensors x 6 people): about 58 000 tracked objects after a
-minute, two thirds of them built at start-up and alive until the end (the
-modules' functions and classes, the rig, the piece); one such collection took
-70-85 ms on the shared 2-core machine, and it fell in the worst wait of the run.
+--trace``, aligned 6 sensors x 6 people): about 61 000 tracked objects after a
+minute, 36 000 of them built at start-up and alive until the end (the modules'
+functions and classes, the rig, the piece); one such collection, about once a
+minute, took 19-85 ms on the shared 2-core machine (70 ms of the worst wait of
+one run). With start-up's objects frozen, 3-14 ms (one of six 48 ms).
 Start-up objects are never garbage while the show runs, so walking them again
 and again finds nothing: ``freeze_start_up`` moves them into the collector's
 permanent generation once the show has started. Objects made later are collected

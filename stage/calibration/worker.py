@@ -91,7 +91,7 @@ class EngineWorker:
         thread has datagrams queued or in hand, then let it have the GIL.
 
         Measured (bench_engine.py --trace, aligned 6 x 6): while a poll ran, each engine
-        batch waited p50 1.0 / p90 3.5 ms for the GIL against 0.07 / 0.8 ms otherwise,
+        batch waited p50 0.5-1.0 / p90 2.9-4.8 ms for the GIL, 0.06 / 0.6-1.9 ms otherwise,
         because a thread that gives up the GIL for a send gets it back only after the
         worker's next switch interval (5 ms). Parked here, the worker does not take it.
         The bound keeps the calibrator going when the engine is never idle; ``wait=False``
