@@ -432,6 +432,7 @@ class Options:
     server_cmd: list[str] | None = None  # another server command; gets --port P --rig R
     src: Path = REPO                     # where the servers import stage from
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
+    trace: str | None = None             # a directory: run the traced server (stalltrace.py)
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
@@ -448,8 +449,15 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     rig.save(rig_path)
     log_path = os.path.join(tmp.name, "server.log")
     fingerprint = source_fingerprint(opt.src)
+    trace_prefix = None
+    if opt.trace and not opt.relay:
+        trace_prefix = os.path.join(opt.trace, f"{'aligned' if opt.aligned else 'spread'}-"
+                                    f"{sensors}x{people}")
     if opt.server_cmd:
         cmd = opt.server_cmd + ["--port", str(port), "--rig", rig_path]
+    elif trace_prefix:
+        cmd = [sys.executable, str(Path(__file__).with_name("stalltrace.py")), "_serve",
+               trace_prefix, "--port", str(port), "--rig", rig_path]
     elif opt.relay:
         cmd = [sys.executable, os.path.abspath(__file__), "_relay-serve", "--port", str(port),
                "--rig", rig_path]
@@ -486,8 +494,13 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
         t1, cpu1, me1, all1 = time.monotonic(), proc_cpu_s(proc.pid), proc_cpu_s(), machine_busy_s()
         threads1 = thread_cpu_s(proc.pid)
         stats1 = query_stats(ctl, target)
+        if trace_prefix:   # the heap census, after the window so that its pause is not in it
+            proc.send_signal(signal.SIGUSR1)
         gen.join()
         time.sleep(0.1)
+        if trace_prefix:
+            np.save(f"{trace_prefix}.gen.npy",
+                    np.stack([gen.sent_at[:gen.n], gen.late[:gen.n]], axis=1))
         if stats0 is None or stats1 is None:
             raise RuntimeError("no answer to /stage/stats during the run")
     finally:
@@ -873,6 +886,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--live", action="store_true",
                         help="run the servers from the working tree instead of a snapshot of "
                              "stage/ taken at the start")
+    parser.add_argument("--trace", metavar="DIR",
+                        help="run a traced server (bench/stalltrace.py: garbage collections, "
+                             "each latency sample, every thread's CPU each 10 ms, the tracked "
+                             "heap) and keep the traces in DIR; `python bench/stalltrace.py DIR` "
+                             "prints who held the engine off")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = parser.parse_args(argv)
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
@@ -883,6 +901,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         os.makedirs(args.profile, exist_ok=True)
         args.profile = os.path.abspath(args.profile)
+    if args.trace:
+        os.makedirs(args.trace, exist_ok=True)
+        args.trace = os.path.abspath(args.trace)
     snapshot_dir = None if args.live else tempfile.TemporaryDirectory(prefix="stage-bench-src-")
     src = REPO if snapshot_dir is None else snapshot_sources(snapshot_dir.name)
 
@@ -904,7 +925,8 @@ def main(argv: list[str] | None = None) -> int:
     for mode in modes:
         aligned = mode == "aligned"
         engine_opt = Options(args.warmup, args.duration, aligned, args.profile,
-                             server_cmd=server_cmd, src=src, wait_idle=args.wait_idle)
+                             server_cmd=server_cmd, src=src, wait_idle=args.wait_idle,
+                             trace=args.trace)
         relay_opt = Options(args.warmup, args.duration, aligned, None, relay=True, src=src,
                             wait_idle=args.wait_idle)
         for sensors, people in args.configs:

@@ -150,3 +150,17 @@ def test_evenly_spreads_pairs_over_the_recording():
     assert len(few) == 50
     assert few.t[0] == pairs.t[0] and few.t[-1] == pairs.t[-1]
     assert pairs.evenly(0) is pairs
+
+
+def test_a_paused_lag_search_finds_the_same_lag_and_pauses_between_lags():
+    # the live worker gives way to the engine between candidate lags (pause); the search
+    # itself must not change
+    _, s = _streams(offset=0.37, phase=0.011, duration=8.0)
+    calls = []
+    plain = find_lag(s["kinect-a"], s["kinect-b"])
+    paused = find_lag(s["kinect-a"], s["kinect-b"], pause=lambda: calls.append(1))
+    assert paused.lag_s == plain.lag_s and paused.pairs == plain.pairs
+    np.testing.assert_array_equal(paused.lags, plain.lags)
+    np.testing.assert_array_equal(paused.residual, plain.residual)
+    # after each lag paired and each lag scored: at least twice per lag tried
+    assert len(calls) >= 2 * len(plain.lags)

@@ -34,6 +34,7 @@ class ShowOptions:
     rig_data: Rig | None = None     # a rig object instead of reading ``rig``
     create_rig: bool = False        # a missing ``rig`` file is started empty (calibrate --live)
     self_healing: bool = True       # calibrate uncalibrated sensors, re-calibrate bumped ones
+    freeze_heap: bool = False       # live: start-up's objects out of the collector's walks
     calibration: LiveSettings | None = None
     # the piece
     piece: str | None = None

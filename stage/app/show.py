@@ -45,6 +45,7 @@ from . import offline as offline_mod
 from .options import ShowOptions
 from .report import Performance, ScoreSink
 from .health import HealthMonitor
+from .heap import freeze_start_up, thaw
 from .server import Server
 from .status_line import StatusLine
 
@@ -167,6 +168,7 @@ class Show:
         self.clock: Clock | None = None
         self._closers: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
+        self._frozen = 0     # objects frozen at start-up (stage.app.heap), 0: none
         self._started_at = 0.0
         self._state = "new"
         self._fed = 0
@@ -268,6 +270,10 @@ class Show:
                 self._build_offline()
             else:
                 self._start_live()
+                if self.opts.freeze_heap:
+                    self._frozen = freeze_start_up()
+                    log.debug("%d start-up objects set aside from garbage collection",
+                              self._frozen)
         except BaseException:
             self._abandon()
             raise
@@ -422,6 +428,9 @@ class Show:
         if self.narrator is not None:
             self.narrator.print_pending()
         self._close_files()
+        if self._frozen:
+            thaw()
+            self._frozen = 0
         if self.score is not None and self.score.events:
             from .score import draw_score
             try:

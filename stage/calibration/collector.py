@@ -105,8 +105,8 @@ class Collector:
             if tracking:  # and it moves only by two frames or more (_update_lag): a finer
                 # grid than half a frame around the best one decides nothing
                 return find_lag(ref, other, min(s.max_lag_s, s.track_lag_s), fine_steps=2,
-                                min_pairs=s.min_pairs)
-            return find_lag(ref, other, s.max_lag_s, min_pairs=s.min_pairs)
+                                min_pairs=s.min_pairs, pause=self._yield)
+            return find_lag(ref, other, s.max_lag_s, min_pairs=s.min_pairs, pause=self._yield)
         except CalibrationError:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
 
@@ -264,8 +264,8 @@ class Collector:
                         # made on the loops before the loop was seen (their frames wrapped)
                     st.loop_folded = folded is not None
             try:
-                return find_lag(a, b, max_lag, min_pairs=s.min_pairs,
-                                single_window_s=0.0)  # _buffered kept one person's frames
+                return find_lag(a, b, max_lag, min_pairs=s.min_pairs, single_window_s=0.0,
+                                pause=self._yield)  # _buffered kept one person's frames
             except CalibrationError:
                 continue
         return None

@@ -244,7 +244,9 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
                         group.append((frame, st))
                 if group:
                     self._check_jumps(group)
-            self._yield()
+            # behind by more than an eighth of the inbox (seconds of frames): catch up
+            # rather than wait for the engine to be idle
+            self._yield(wait=len(self._inbox) < self._inbox_max // 8)
 
     def _ingest(self, frame: SensorFrame, track: object, person: int | None,
                 reference: str | None) -> None:
@@ -443,6 +445,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         if s.heal and t1 > t0:
             self._monitor(now, t0, t1, views, states, epochs)
             self._monitored_to = t1
+            self._yield()
         self._track_lags(now, views, states, epochs)
         self._collect(now, views, states, epochs)
         with self._lock:

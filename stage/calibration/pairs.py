@@ -9,6 +9,7 @@ tracked the joint; their weight is the product of the two confidences.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -197,7 +198,8 @@ def robust_residual(ps: PairSet, rounds: int = 2) -> float:
 def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float | None = None,
              fine_steps: int = 10, max_frames: int = 400, min_pairs: int = 10,
              min_overlap: float = 0.6, prefer_zero: float = 0.02, smooth_frames: int = 5,
-             single_window_s: float = 0.5) -> LagSearch:
+             single_window_s: float = 0.5, pause: Callable[[], None] | None = None
+             ) -> LagSearch:
     """The clock offset of ``other`` against ``ref`` with the best robust fit.
 
     For each candidate lag in [-max_lag_s, max_lag_s], one frame apart, the
@@ -214,7 +216,9 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
     better by more than ``prefer_zero`` (2 %). ``max_frames`` reference
     frames, spread over the stream, keep the search fast. ``single_window_s``: as
     ``pair_streams``'s (0: the caller kept only frames with one person in view; its user
-    ids then only cut runs).
+    ids then only cut runs). ``pause``, if given, is called after each lag is paired and
+    after each is scored (a live worker gives way to the engine there; the result does not
+    depend on it).
     """
     usable = np.flatnonzero(ref.finite() & ref.single_user(single_window_s))
     if len(usable) > max_frames:
@@ -234,6 +238,8 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
         lag = float(round(lag, 9))
         if lag not in paired:
             paired[lag] = pair_streams(r, other, lag, single_window_s=single_window_s)
+            if pause is not None:
+                pause()
         return paired[lag]
 
     coarse = np.arange(-max_lag_s, max_lag_s + step / 2, step)
@@ -250,6 +256,8 @@ def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float |
         if lag not in scores:
             ps = pairs_at(lag)
             scores[lag] = robust_residual(ps) if len(ps) >= need else float("nan")
+            if pause is not None:
+                pause()
         return scores[lag]
 
     errs = np.array([score(lag) for lag in coarse])

@@ -23,6 +23,9 @@ from ..errors import StageError
 
 log = logging.getLogger("stage.calibration")
 
+#: the longest a yielding worker waits for the engine thread to be idle, s
+YIELD_MAX_S = 0.05
+
 
 class EngineWorker:
     name = "stage-worker"
@@ -83,9 +86,19 @@ class EngineWorker:
                 log.error("engine queue full: a calibration change was lost; it will be "
                           "decided again")
 
-    def _yield(self) -> None:
-        """Worker: let the engine thread have the GIL between chunks of work."""
+    def _yield(self, wait: bool = True) -> None:
+        """Worker, between chunks of work: wait (at most ``YIELD_MAX_S``) while the engine
+        thread has datagrams queued or in hand, then let it have the GIL.
+
+        Measured (bench_engine.py --trace, aligned 6 x 6): while a poll ran, each engine
+        batch waited p50 0.5-1.0 / p90 2.9-4.8 ms for the GIL, 0.06 / 0.6-1.9 ms otherwise,
+        because a thread that gives up the GIL for a send gets it back only after the
+        worker's next switch interval (5 ms). Parked here, the worker does not take it.
+        The bound keeps the calibrator going when the engine is never idle; ``wait=False``
+        only lets the engine have the GIL (a worker that must catch up)."""
         if self.threaded:
+            if wait:
+                self.engine.idle.wait(YIELD_MAX_S)
             time.sleep(0)
 
     def _run(self) -> None:

@@ -82,5 +82,7 @@ def show_options(args: argparse.Namespace, **fields) -> "ShowOptions":
                   fused=args.fused, status_line=getattr(args, "status", False),
                   alert_command=getattr(args, "alert_command", None),
                   alert_osc=None if osc is None else f"{osc[0]}:{osc[1]}",
-                  alert_after_s=getattr(args, "alert_after", None))
+                  alert_after_s=getattr(args, "alert_after", None),
+                  # a command owns its process: start-up's objects can be set aside
+                  freeze_heap=True)
     return ShowOptions(**{**common, **fields})

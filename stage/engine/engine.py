@@ -92,6 +92,12 @@ class Engine:
         #: the fusion path: persons, their filters and hand votes, emission to views
         self.people = People(self.rig, self.clock, self.output, self.listeners, self.drops,
                              self.latency, self.counts)
+        #: set while the live engine thread waits with nothing queued (and while it is not
+        #: running at all); a receiver clears it with each datagram it queues. The live
+        #: calibrator's worker waits for it between chunks of its searches, so that it does
+        #: not compete for the GIL while the engine has datagrams to fuse (EngineWorker._yield)
+        self.idle = threading.Event()
+        self.idle.set()
         self._stats_replies: list[tuple[str, int]] = []
         self._health_replies: list[tuple[str, int]] = []
         self._latency_marks: dict[tuple[str, int], int] = {}   # stats asker -> latency.count
@@ -137,6 +143,7 @@ class Engine:
     # ------------------------------------------------------------ input
     def submit(self, item: Inbound) -> bool:
         """Thread-safe enqueue from a receiver; a full queue counts a drop."""
+        self.idle.clear()
         try:
             self.queue.put_nowait(item)
             return True
@@ -151,6 +158,7 @@ class Engine:
         a drop per message."""
         if not items:
             return True
+        self.idle.clear()
         try:
             self.queue.put_nowait(items)
             return True
@@ -387,7 +395,12 @@ class Engine:
             if due is not None:  # a view that asked for a fixed rate
                 timeout = min(timeout, max(due - self.clock.now(), 0.0))
             try:
-                first = self.queue.get(timeout=timeout)
+                try:
+                    first = self.queue.get_nowait()
+                except queue.Empty:
+                    self.idle.set()   # nothing to do: the calibrator may run
+                    first = self.queue.get(timeout=timeout)
+                self.idle.clear()
                 batch = self._take(list(first) if isinstance(first, list) else [first],
                                    limit=512)
             except queue.Empty:
