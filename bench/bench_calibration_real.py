@@ -64,6 +64,19 @@ def run_stage(args: list[str]) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
+def copied(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether view ``b`` is a copy of view ``a``: at least half of the shorter view's frames
+    appear bit-identical in the other. Whole copies (same length) and copied stretches
+    alike: in a08_s01_e01 71 of v2's 91 frames are v1's frames 0-70, and in a09_s01_e02 61 of
+    v2's 67 are v1's 0-60 (the brute-force optimum's median residual there is 1e-16 m); the
+    bench used to count only whole copies, and called the product's flag a failure."""
+    if a.shape[1:] != b.shape[1:] or not len(a) or not len(b):
+        return False
+    seen = {f.tobytes() for f in a}
+    same = sum(f.tobytes() in seen for f in b)
+    return same >= max(5, 0.5 * min(len(a), len(b)))
+
+
 def pair_transform(sensors: dict, a: str, b: str) -> tuple[np.ndarray, float] | None:
     """(b -> a transform, b's lag against a) from the calibrate JSON's per-sensor entries."""
     sa, sb = sensors.get(a), sensors.get(b)
@@ -110,7 +123,7 @@ def triple(sample: str, paths: list[str], tmp: str, hypotheses: int) -> dict:
     copies = {}
     for i in range(3):
         for k in range(i + 1, 3):
-            if views[i].shape == views[k].shape and np.array_equal(views[i], views[k]):
+            if copied(views[i], views[k]):
                 copies[ids[k]] = ids[i]
     flagged = {s: e.get("identical_to") for s, e in sensors.items() if e.get("identical_to")}
     placed = {s for s, e in sensors.items() if e.get("matrix") is not None}

@@ -75,32 +75,35 @@ class Uncertainty:
 
 
 def pose_units(other: np.ndarray, ref: np.ndarray, weight: np.ndarray,
-               step_m: float = POSE_STEP_M) -> np.ndarray:
+               matrix: np.ndarray | None = None, step_m: float = POSE_STEP_M) -> np.ndarray:
     """Each frame's pose (n,) int, for frames of both sides (n, J, 3) with weights (n, J):
     greedily, a frame joins the nearest kept pose it is within ``step_m`` of, else starts a
-    new one; -1 for a frame with no joint seen. The distance between two frames is the
-    MEDIAN over the joints seen in both of how far each joint moved, taken in each sensor's
-    own space, and the smaller of the two: a new pose is one BOTH sensors see the body
-    move to. One sensor's glitch (a limb swapped, an inferred joint guessed elsewhere) moves
-    a few joints in one view only, so it does not make a person standing still look like
-    many poses (with the mean over one view, the simulator's realistic model turned 20 s
-    of a person standing still into 11 "poses")."""
+    new one; -1 for a frame with no joint seen. The distance between two frames is the mean
+    over the joints of how far each moved, taken in each sensor's own space, the smaller of
+    the two (a new pose is one BOTH sensors see), and, given the fit ``matrix`` (other ->
+    ref), only over the joints both frames have among the fit's inliers (at or below the
+    weighted median joint distance: the half the fit rests on). A limb swapped or a joint
+    guessed elsewhere is an outlier of the fit, so it makes no new pose even when both
+    sensors err at once (feet together: both swap the legs), while an arm raised where both
+    sensors see it does. With the mean over one view's joints, the simulator's realistic
+    model turned 20 s of a person standing still into 11 "poses"."""
+    seen = weight > 0
+    if matrix is not None and seen.any():
+        r = np.linalg.norm(other @ matrix[:3, :3].T + matrix[:3, 3] - ref, axis=-1)
+        seen = seen & (r <= weighted_median(r, weight))
     kept: list[int] = []
     unit = np.full(len(other), -1)
-    seen = weight > 0
     for k in range(len(other)):
         if not seen[k].any():
             continue
         if kept:
             both = seen[kept] & seen[k]
+            n = both.sum(axis=1)
             dist = np.full(len(kept), np.inf)
             for side in (other, ref):
                 d = np.linalg.norm(side[kept] - side[k], axis=-1)
-                d = np.where(both, d, np.nan)
-                ok = both.any(axis=1)
-                med = np.full(len(kept), np.inf)
-                med[ok] = np.nanmedian(d[ok], axis=1)
-                dist = np.minimum(dist, med)
+                dist = np.minimum(dist, np.where(n > 0, (d * both).sum(axis=1) /
+                                                 np.maximum(n, 1), np.inf))
             near = np.flatnonzero(dist < step_m)
             if len(near):
                 unit[k] = int(near[np.argmin(dist[near])])
@@ -142,7 +145,7 @@ def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
     if by == "frame":
         unit = np.where((w > 0).any(axis=1), np.cumsum((w > 0).any(axis=1)) - 1, -1)
     else:
-        unit = pose_units(p, q, w)
+        unit = pose_units(p, q, w, matrix)
     k = int(unit.max()) + 1 if len(unit) else 0
     if k < MIN_UNITS:
         return Uncertainty(float("inf"), float("inf"), k, 0, edge_m)
