@@ -11,8 +11,9 @@ stands that way; a swapped limb stays swapped while the limbs overlap. Frames of
 one pose share their errors, so 300 frames of a person standing still say what
 one frame says (a frame bootstrap would call that fit exact, and a closed-form
 covariance from the joints' residuals would too). The units resampled are
-therefore the DISTINCT POSES of ``coverage`` (frames grouped by the pose they
-are within ``POSE_STEP_M`` of, in the sensor's own space): each resample draws
+therefore INDEPENDENT POSES (``pose_units``: frames grouped by the pose they are
+within ``POSE_STEP_M`` of, as both sensors see it, on the fit's inlier joints, so
+a sensor's glitch makes no new pose): each resample draws
 that many poses with replacement, with all their frames, and refits by
 concentration steps from the fit (the rigid method's last stage, so each refit
 is the same estimator near the same optimum). From ``k`` poses the spread is
@@ -22,10 +23,15 @@ a spread over one or two independent units says nothing about the next one.
 
 Reported (``Uncertainty``): the rms over resamples of the rotation angle between
 each refit and the fit (degrees), and of the displacement each refit gives the
-point at the stage's far edge (metres): ``far_m`` from the sensor towards the
+point at the stage's far edge (metres): ``edge_m`` from the sensor towards the
 pairs' centre, where the rotation's error is multiplied by the longest lever a
 performer can stand at. Both are compared with one tolerance, offline and live
 (``coverage.Gates``: ``max_rot_deg``, ``max_far_m``).
+
+The spread is the fit's PRECISION, not its accuracy: an error common to every
+pose (a view-dependent bias) moves no resample. On the simulator, whose truth is
+known, the true rotation error of 1.5-s fits is 3.5 times the spread (median), so
+the spread may only refuse a fit, never vouch for one (docs/calibration.md).
 """
 
 from __future__ import annotations
