@@ -174,3 +174,15 @@ def test_live_a_dancer_is_calibrated_with_its_spread_in_the_note(tmp_path):
     assert "spread +-" in engine.sensor_notes["s1"]["reason"]
     err = transform_error(done[0].matrix, invert(poses[0].to_stage) @ poses[1].to_stage)
     assert err["rot_deg"] < 1.5
+
+
+def test_live_a_sensor_whose_lag_never_settles_says_it_waits_for_one(tmp_path):
+    """As a11_s06_e03's v3 live: enough pairs, but no lag search is sure, so no fit is ever
+    tried; the note said only "collecting pairs with ..." (with 300/300 pairs)."""
+    engine, cal, _ = _live(tmp_path, lambda t: 2.0)        # frozen: every lag looks alike
+    assert not [e for e in cal.events if e.sensor == "s1" and e.kind in ("calibrated",
+                                                                          "rejected")]
+    note = engine.sensor_notes["s1"]
+    assert note["state"] == "uncalibrated"
+    assert note["waiting"].startswith("for a sure lag: no fit is tried")
+    assert "last search's confidence 0." in note["waiting"]

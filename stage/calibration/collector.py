@@ -124,6 +124,7 @@ class Collector:
             return
         s = self.settings
         st.lag_searched = now
+        st.lag_last = search.confidence
         tracking = st.state == "ok"
         # a sensor being re-calibrated after it was suspected had a lag that held while it
         # agreed: a bump moves a sensor, not its clock, so its lag moves only on the grounds a
