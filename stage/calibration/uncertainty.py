@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import rotation_angle_deg
+from ..geometry import nearest_rotation, rotation_angle_deg
 from .coverage import POSE_STEP_M
 from .fitness import kabsch, weighted_median
 from .pairs import PairSet
@@ -148,6 +148,13 @@ def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
     resamples single frames instead (for comparison only: it takes frames of one pose for
     independent evidence)."""
     p, q, w = pairs.other, pairs.ref, pairs.weight
+    # the spread is the rigid estimator's, near this fit: another method's transform (the
+    # regression's is affine) is first taken to its nearest rigid one and concentrated
+    rigid = np.eye(4)
+    rigid[:3, :3], rigid[:3, 3] = nearest_rotation(matrix[:3, :3]), matrix[:3, 3]
+    if (w > 0).sum() >= 3:
+        rigid = _concentrate(p, q, w, rigid)
+    matrix = rigid
     if by == "frame":
         unit = np.where((w > 0).any(axis=1), np.cumsum((w > 0).any(axis=1)) - 1, -1)
     else:
