@@ -269,7 +269,10 @@ def _live(args: argparse.Namespace) -> int:
     from ..calibration.live import LiveSettings
     _load_rig(args.rig)  # a rig file that cannot be written fails now, with one line
     pairs = args.pairs or DEFAULT_PAIRS.get(args.method, 300)
-    settings = LiveSettings(method=args.method, pairs=pairs)
+    if args.tolerance_deg < 0 or args.tolerance_cm < 0:
+        raise ConfigError("--tolerance-deg and --tolerance-cm must be 0 (not judged) or more")
+    settings = LiveSettings(method=args.method, pairs=pairs, max_rot_deg=args.tolerance_deg,
+                            max_far_m=args.tolerance_cm / 100, edge_m=args.edge_m)
     opts = ShowOptions(rig=args.rig, create_rig=True, host=args.host, port=args.port,
                        calibration=settings, plugins=False)
     with StopSignals() as signals:
