@@ -98,6 +98,7 @@ def test_plot_writes_a_png(recorded, tmp_path):
     (["calibrate", "{rec}", "--lag", "soon"], "--lag must be"),
     (["calibrate", "{rec}", "--reference", "kinect-z"], "sent no skeletons"),
     (["calibrate", "{rec}", "--rig", "/no/such/folder/rig.yaml"], "does not exist"),
+    (["calibrate", "{rec}", "--tolerance-deg", "-1"], "must be 0 (not judged) or more"),
 ])
 def test_bad_input_is_one_line_and_exit_2(recorded, capsys, argv, message):
     argv = [a.replace("{rec}", recorded[0]) for a in argv]

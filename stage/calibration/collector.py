@@ -31,6 +31,7 @@ from .methods import CalibrationResult, calibrate
 from .pairs import LagSearch, find_lag
 from .loops import fold_loops, loop_period
 from .streams import Stream
+from .uncertainty import Uncertainty, fit_uncertainty
 
 log = logging.getLogger("stage.calibration")
 
@@ -41,7 +42,7 @@ class Collector:
     def _gates(self) -> Gates:
         s = self.settings
         return Gates(s.min_pairs, s.min_poses, s.min_fitness, s.poor_fitness,
-                     s.min_lag_confidence)
+                     s.min_lag_confidence, s.max_rot_deg, s.max_far_m, s.edge_m)
 
     # ------------------------------------------------------------ lags
     def _lag_due(self, st: SensorState, now: float) -> bool:
@@ -123,6 +124,7 @@ class Collector:
             return
         s = self.settings
         st.lag_searched = now
+        st.lag_last = search.confidence
         tracking = st.state == "ok"
         # a sensor being re-calibrated after it was suspected had a lag that held while it
         # agreed: a bump moves a sensor, not its clock, so its lag moves only on the grounds a
@@ -369,12 +371,15 @@ class Collector:
         keys = [k for k in self._window.keys() if k[0] in ok and k[1] in ok]
         return self._window.median(keys) if keys else float("nan")
 
-    def _judge_fit(self, st: SensorState, result: CalibrationResult) -> str | None:
+    def _judge_fit(self, st: SensorState, result: CalibrationResult,
+                   spread: Uncertainty | None = None) -> str | None:
         """Why a fit is not accepted, or None (caller holds the lock)."""
         s = self.settings
         gates = self._gates()
         why = gates.too_little(result.pairs, len(st.poses)) or gates.too_poor(
             result.fitness, result.median_m, st.lag_confidence if s.lag_search else None)
+        if why is None and spread is not None:
+            why = gates.too_uncertain(spread)
         if why is not None:
             return why
         if result.fitness >= s.accept_above:
@@ -402,6 +407,9 @@ class Collector:
             error = None
         except CalibrationError as exc:
             result, error = None, str(exc)
+        spread = None  # how well the pairs determine the fit (the same tolerance as offline)
+        if result is not None and self._gates().judges_uncertainty:
+            spread = fit_uncertainty(pairs, result.matrix, s.edge_m)
         with self._lock:
             st.busy = False
             if st.epoch != epoch:
@@ -409,7 +417,7 @@ class Collector:
             if st.state == "recalibrating":
                 st.state = "suspect"
             was = st.state
-            why = error if result is None else self._judge_fit(st, result)
+            why = error if result is None else self._judge_fit(st, result, spread)
             if result is not None and why is None:
                 m = result.matrix
                 st.state, st.transform, st.last_good = "ok", m, m
@@ -423,6 +431,8 @@ class Collector:
                 st.reason = (f"{verb} by {result.method}: median joint distance "
                              f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm),"
                              f" fitness {result.fitness:.2f}, {result.pairs} pairs")
+                if spread is not None:
+                    st.reason += f", spread {spread.text()}"
                 if st.lag_s:
                     st.reason += f", lag {st.lag_s:+.3f} s"
                 st.last_attempt = st.reason

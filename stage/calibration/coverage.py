@@ -104,6 +104,11 @@ class Gates:
     min_fitness: float = 0.5      # good: a median joint distance of 8.9 cm or less
     poor_fitness: float = 0.1     # poor but usable: 26.6 cm or less, with clear timing
     min_lag_confidence: float = 0.15
+    # how well the pairs must determine the fit (``uncertainty``: the spread of the fit over
+    # a bootstrap of its independent poses); 0 switches a tolerance off
+    max_rot_deg: float = 2.0      # rms rotation spread, degrees
+    max_far_m: float = 0.05       # rms spread of a point ``edge_m`` from the sensor
+    edge_m: float = 4.5           # the stage's far edge: a Kinect's tracking range
 
     def too_little(self, pairs: int, poses: int) -> str | None:
         """Why these pairs are not enough, or None."""
@@ -133,6 +138,29 @@ class Gates:
                     f"{fitness:.2f} < {self.min_fitness:g}, more than {good:.1f} cm) and the "
                     f"timing does not confirm it ({timing})")
         return None
+
+    @property
+    def judges_uncertainty(self) -> bool:
+        return self.max_rot_deg > 0 or self.max_far_m > 0
+
+    def tolerance_text(self) -> str:
+        parts = []
+        if self.max_rot_deg > 0:
+            parts.append(f"{self.max_rot_deg:g} deg")
+        if self.max_far_m > 0:
+            parts.append(f"{self.max_far_m * 100:g} cm at {self.edge_m:g} m from the sensor")
+        return ", ".join(parts) or "none"
+
+    def too_uncertain(self, spread) -> str | None:
+        """Why a fit is not determined well enough by its pairs, or None. ``spread``: an
+        ``uncertainty.Uncertainty`` (rot_deg, far_m: inf when it cannot be measured)."""
+        if not self.judges_uncertainty:
+            return None
+        over = ((self.max_rot_deg > 0 and not spread.rot_deg <= self.max_rot_deg)
+                or (self.max_far_m > 0 and not spread.far_m <= self.max_far_m))
+        if not over:
+            return None
+        return (f"fit undetermined: {spread.text()}; tolerance {self.tolerance_text()}")
 
     def is_poor(self, fitness: float) -> bool:
         return fitness < self.min_fitness

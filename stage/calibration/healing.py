@@ -373,6 +373,15 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
                                 "distinct poses")
         if st.last_attempt is not None and st.state != "ok":
             note["last_attempt"] = st.last_attempt
+        s = self.settings
+        if (st.state != "ok" and s.lag_search and not st.lag_settled and st.lag_last is not None
+                and st.sensor != self._reference and st.pairs is not None
+                and len(st.pairs) >= s.min_pairs):
+            # no fit is tried before two lag searches agree: say so, not only "collecting"
+            note["waiting"] = (f"for a sure lag: no fit is tried until a lag search is sure "
+                               f"(last search's confidence {st.lag_last:.2f}; a new sensor's "
+                               f"lag moves at {s.lag_move_confidence:g}) and a second one "
+                               "agrees; a take whose timing its frames cannot fix never is")
         if st.lag_confidence is not None:
             note["lag_s"] = round(st.lag_s, 4)
         return note

@@ -68,6 +68,9 @@ class LiveSettings:
     min_fitness: float = Gates.min_fitness
     poor_fitness: float = Gates.poor_fitness
     min_lag_confidence: float = Gates.min_lag_confidence
+    max_rot_deg: float = Gates.max_rot_deg   # the fit's spread over its independent poses:
+    max_far_m: float = Gates.max_far_m       # the same tolerance as offline (0: off)
+    edge_m: float = Gates.edge_m
     lag_search: bool = True
     max_lag_s: float = 1.0
     lag_every_s: float = 10.0     # re-search a calibrated sensor's lag this often (0: never)

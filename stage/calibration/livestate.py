@@ -68,6 +68,8 @@ class SensorState:
     loop_s: float | None = None         # the period of a source that loops a take (s)
     loop_folded: bool = False           # its lag was searched on one pass of the take
     last_attempt: str | None = None     # the last calibration attempt's outcome, in words
+    lag_last: float | None = None       # the confidence of the last lag search (a sensor to
+                                        # calibrate: why it may still wait for a sure lag)
 
     def reset_pairs(self) -> None:
         self.pairs = None

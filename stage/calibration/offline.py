@@ -23,6 +23,7 @@ from .graph import Edge, SensorGraph
 from .methods import DEFAULT_PAIRS, calibrate
 from .pairs import LagSearch, PairSet, find_lag, pair_streams
 from .streams import Stream, find_identical_streams
+from .uncertainty import Uncertainty, fit_uncertainty
 
 log = logging.getLogger("stage.calibration")
 
@@ -50,6 +51,7 @@ class SensorCalibration:
     identical_to: str | None = None
     median_m: float | None = None
     refined: dict[str, float] | None = None   # what refinement changed: rot_deg, trans_mm
+    uncertainty: dict[str, Any] | None = None  # the spread of the overlaps along its path
 
     def as_json(self) -> dict[str, Any]:
         return {"matrix": None if self.matrix is None else
@@ -58,8 +60,8 @@ class SensorCalibration:
                 "rms_m": None if self.rms_m is None else round(self.rms_m, 5),
                 "fitness": None if self.fitness is None else round(self.fitness, 4),
                 "pairs": self.pairs, "method": self.method, "lag_s": round(self.lag_s, 4),
-                "path": self.path, "refined": self.refined, "error": self.error,
-                "identical_to": self.identical_to}
+                "path": self.path, "refined": self.refined, "uncertainty": self.uncertainty,
+                "error": self.error, "identical_to": self.identical_to}
 
 
 @dataclass
@@ -79,6 +81,7 @@ class Overlap:
     used: bool = False
     reason: str | None = None       # why not used
     matrix: np.ndarray | None = None  # the pairwise fit, b's space -> a's
+    uncertainty: Uncertainty | None = None  # the fit's spread over its independent poses
 
     def as_json(self) -> dict[str, Any]:
         def r(v, n=5):
@@ -87,7 +90,8 @@ class Overlap:
                 "spread_m": r(self.spread_m, 3), "lag_s": r(self.lag_s, 4),
                 "lag_confidence": r(self.lag_confidence, 3), "median_m": r(self.median_m),
                 "rms_m": r(self.rms_m), "fitness": r(self.fitness, 4), "used": self.used,
-                "reason": self.reason, "matrix": None if self.matrix is None else
+                "reason": self.reason, "uncertainty": None if self.uncertainty is None
+                else self.uncertainty.as_json(), "matrix": None if self.matrix is None else
                 [[round(float(v), 6) for v in row] for row in self.matrix]}
 
 
@@ -178,7 +182,8 @@ def calibrate_streams(streams: dict[str, Stream], reference: str | None = None,
                                    f"{why}")
                 warnings.append(f"{s} is not calibrated: {why}")
         else:
-            rig.sensors[s] = _summary(s, transforms, composed[s], paths[s], graph, method)
+            rig.sensors[s] = _summary(s, transforms, composed[s], paths[s], graph, method,
+                                      rig.overlaps)
     return rig
 
 
@@ -303,6 +308,8 @@ def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max
     o.poses, o.spread_m = count_poses(ps.other, ps.weight)
     o.reason = gates.too_little(o.paired, o.poses)
     if o.reason is not None:
+        if o.paired >= gates.min_pairs and gates.judges_uncertainty:
+            o.reason += _spread_note(ps.evenly(n_pairs), method, options, gates, o)
         if o.paired:
             say(f"{b.sensor} and {a.sensor}: {o.reason}; not used")
         return None
@@ -325,19 +332,39 @@ def _edge(a: Stream, b: Stream, method: str, n_pairs: int, lag: str | float, max
             f"({o.poses} distinct poses), lag {lag_s:+.3f} s, median joint distance "
             f"{result.median_m * 1000:.0f} mm (rms {result.rms_m * 1000:.0f} mm), fitness "
             f"{result.fitness:.3f}")
+    o.uncertainty = fit_uncertainty(used, result.matrix, gates.edge_m)
     o.reason = gates.too_poor(result.fitness, result.median_m, o.lag_confidence)
     if o.reason is not None:
         rig.warnings.append(f"{text}: {o.reason}; not used (were they watching different "
                             "people at the same time?)")
         return None
+    o.reason = gates.too_uncertain(o.uncertainty)
+    if o.reason is not None:
+        rig.warnings.append(f"{text}: {o.reason}; not used (a longer take, or one where the "
+                            "person moves about more, would determine it)")
+        return None
     o.used = True
-    say(text)
+    say(f"{text}, spread {o.uncertainty.text()}")
     if gates.is_poor(result.fitness):
         rig.warnings.append(f"{b.sensor} -> {a.sensor}: a poor fit (median joint distance "
                             f"{result.median_m * 100:.1f} cm), used because the lag search "
                             f"found its timing clear (confidence {o.lag_confidence:.2f}); a "
                             "longer take with more movement would calibrate better")
     return Edge(a.sensor, b.sensor, result, used)
+
+
+def _spread_note(used: PairSet, method: str, options: dict[str, Any], gates: Gates,
+                 o: Overlap) -> str:
+    """For an overlap refused for its poses: what its fit's spread would have been (so the
+    refusal says how undetermined the fit is, not only that a count fell short)."""
+    try:
+        result = calibrate(used, method, **options)
+    except CalibrationError:
+        return ""
+    o.uncertainty = fit_uncertainty(used, result.matrix, gates.edge_m)
+    o.median_m, o.rms_m, o.fitness = result.median_m, result.rms_m, result.fitness
+    return (f" (a fit on them: median joint distance {result.median_m * 100:.1f} cm, "
+            f"{o.uncertainty.text()}; tolerance {gates.tolerance_text()})")
 
 
 #: overlaps of at most this many paired frames get their lag refined with the fit itself
@@ -385,8 +412,26 @@ def _refine_lag(a: Stream, b: Stream, lag_s: float, ps: PairSet, used: PairSet,
     return lag_s, ps, used, result
 
 
+def _path_uncertainty(path: list[str], overlaps: list[Overlap]) -> dict[str, Any] | None:
+    """The spread of a sensor's chain: its overlaps' spreads added in quadrature (as if
+    independent; each overlap's far-edge point is its own sensor's), with the overlaps."""
+    found = []
+    for near, far in zip(path, path[1:]):
+        o = next((o for o in overlaps if {o.a, o.b} == {near, far}), None)
+        if o is None or o.uncertainty is None:
+            return None
+        found.append(o.uncertainty)
+    if not found:
+        return None
+    rot = float(np.sqrt(sum(u.rot_deg ** 2 for u in found)))
+    far_m = float(np.sqrt(sum(u.far_m ** 2 for u in found)))
+    return {"rot_deg": round(rot, 3) if np.isfinite(rot) else None,
+            "far_m": round(far_m, 4) if np.isfinite(far_m) else None,
+            "edge_m": found[0].edge_m, "overlaps": len(found)}
+
+
 def _summary(s: str, transforms: dict[str, np.ndarray], composed: np.ndarray, path: list[str],
-             graph: SensorGraph, method: str) -> SensorCalibration:
+             graph: SensorGraph, method: str, overlaps: list[Overlap]) -> SensorCalibration:
     """Score a sensor's final transform over every overlap it has with placed sensors."""
     ds, ws = [], []
     for e in graph.edges:
@@ -410,7 +455,8 @@ def _summary(s: str, transforms: dict[str, np.ndarray], composed: np.ndarray, pa
                    "trans_mm": round(change["trans_mm"], 1)}
     name = method if refined is None else f"{method}, refined"
     return SensorCalibration(s, transforms[s], rms, float(fitness_from_median(median)), pairs,
-                             name, lag, path, median_m=median, refined=refined)
+                             name, lag, path, median_m=median, refined=refined,
+                             uncertainty=_path_uncertainty(path, overlaps))
 
 
 def _distances(e: Edge, transforms: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -74,6 +74,15 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
     p.add_argument("--min-poses", type=int, default=Gates.min_poses, metavar="N",
                    help=f"... showing N distinct poses, 5 cm apart (default {Gates.min_poses}: a "
                         "person standing still says little however long the take)")
+    p.add_argument("--tolerance-deg", type=float, default=Gates.max_rot_deg, metavar="D",
+                   help="refuse a fit whose rotation spreads more than D degrees (rms) over a "
+                        "bootstrap of its independent poses (default "
+                        f"{Gates.max_rot_deg:g}; 0: not judged)")
+    p.add_argument("--tolerance-cm", type=float, default=Gates.max_far_m * 100, metavar="C",
+                   help="... or that moves a point at the stage's far edge (--edge-m from the "
+                        f"sensor) more than C cm (default {Gates.max_far_m * 100:g}; 0: not judged)")
+    p.add_argument("--edge-m", type=_positive, default=Gates.edge_m, metavar="M",
+                   help=f"the stage's far edge, metres from a sensor (default {Gates.edge_m:g})")
     p.add_argument("--no-refine", action="store_true",
                    help="keep the composed chains (no joint refinement over all overlaps)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GA and RANSAC (default 0)")
@@ -127,8 +136,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     # a CalibrationError (the data give no transform) leaves as a run-time failure, exit 1
     if not 0 <= args.poor_fitness <= args.min_fitness:
         raise ConfigError("--poor-fitness must be from 0 to --min-fitness")
+    if args.tolerance_deg < 0 or args.tolerance_cm < 0:
+        raise ConfigError("--tolerance-deg and --tolerance-cm must be 0 (not judged) or more")
     gates = Gates(args.min_pairs, args.min_poses, args.min_fitness, args.poor_fitness,
-                  args.min_lag_confidence)
+                  args.min_lag_confidence, args.tolerance_deg, args.tolerance_cm / 100,
+                  args.edge_m)
     result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
                                args.max_lag, refine=not args.no_refine, options=options,
                                progress=lambda text: log.info("%s", text), gates=gates)
@@ -141,7 +153,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         plot_calibration(args.plot, result, streams, seed=args.seed)
         log.info("wrote %s", args.plot)
     if args.json:
-        print(dumps(_as_json(result, args.method, drops)))
+        print(dumps(_as_json(result, args.method, drops, gates)))
     else:
         _print_table(result)
     missing = [s for s, c in result.sensors.items() if c.matrix is None]
@@ -200,11 +212,19 @@ ABOUT = {
                   "after the joint refinement: rms (m) over every joint pair, and the mean "
                   "over overlaps of each one's median (m); kept only when the latter drops",
     "overlaps": "every pair of sensors: paired frames, distinct poses, lag and its confidence, "
-                "the pairwise fit, and why it was not used",
+                "the pairwise fit, its uncertainty, and why it was not used",
+    "uncertainty": "how well the pairs determine the fit: the rms spread of the fit over a "
+                   "bootstrap of its independent poses (poses both sensors see the body move "
+                   "to), as rotation (rot_deg) and as the displacement of a point edge_m from "
+                   "the sensor (far_m); null when fewer than 3 poses leave it undetermined; a "
+                   "sensor's: its chain's overlaps in quadrature. Precision, not accuracy: a "
+                   "bias common to every pose does not show in it",
 }
 
 
-def _as_json(result: RigCalibration, method: str, drops: dict[str, int]) -> dict[str, Any]:
+def _as_json(result: RigCalibration, method: str, drops: dict[str, int],
+             gates: Gates | None = None) -> dict[str, Any]:
+    g = gates or Gates()
     return {"reference": result.reference, "method": method,
             "sensors": {sid: c.as_json() for sid, c in result.sensors.items()},
             "refinement": None if result.refinement is None else
@@ -215,20 +235,28 @@ def _as_json(result: RigCalibration, method: str, drops: dict[str, int]) -> dict
              "kept": result.refinement["kept"],
              "iterations": result.refinement["iterations"]},
             "overlaps": [o.as_json() for o in result.overlaps],
+            "tolerance": {"rot_deg": g.max_rot_deg or None, "far_m": g.max_far_m or None,
+                          "edge_m": g.edge_m},
             "warnings": result.warnings, "drops": drops, "about": ABOUT}
 
 
 def _print_table(result: RigCalibration) -> None:
     print(f"reference: {result.reference}")
     print(f"{'sensor':<16} {'method':<16} {'median mm':>9} {'rms mm':>7} {'fitness':>7} "
-          f"{'pairs':>6} {'lag s':>7}  path")
+          f"{'pairs':>6} {'lag s':>7} {'+-deg':>6} {'+-cm':>5}  path")
     for sid, c in result.sensors.items():
         if c.matrix is None:
             print(f"{sid:<16} {'-':<16} {'':>9} {'':>7} {'':>7} {'':>6} {'':>7}  {c.error}")
             continue
+        u = c.uncertainty or {}
+        deg = "-" if u.get("rot_deg") is None else f"{u['rot_deg']:.2f}"
+        cm = "-" if u.get("far_m") is None else f"{u['far_m'] * 100:.1f}"
         print(f"{sid:<16} {c.method:<16} {(c.median_m or 0) * 1000:9.1f} {c.rms_m * 1000:7.1f} "
-              f"{c.fitness:7.3f} {c.pairs:6d} {c.lag_s:+7.3f}  {' -> '.join(c.path[::-1])}")
-    print("median/rms: joint distances to the overlapping sensors with the final transforms")
+              f"{c.fitness:7.3f} {c.pairs:6d} {c.lag_s:+7.3f} {deg:>6} {cm:>5}  "
+              f"{' -> '.join(c.path[::-1])}")
+    print("median/rms: joint distances to the overlapping sensors with the final transforms; "
+          "+-deg/+-cm: how far the fit spreads over a bootstrap of its independent poses "
+          "(the cm at the stage's far edge)")
     if result.refinement:
         r = result.refinement
         print(f"joint refinement: rms disagreement over every overlap {np.sqrt(r['before']) * 1000:.1f}"
@@ -241,7 +269,10 @@ def _live(args: argparse.Namespace) -> int:
     from ..calibration.live import LiveSettings
     _load_rig(args.rig)  # a rig file that cannot be written fails now, with one line
     pairs = args.pairs or DEFAULT_PAIRS.get(args.method, 300)
-    settings = LiveSettings(method=args.method, pairs=pairs)
+    if args.tolerance_deg < 0 or args.tolerance_cm < 0:
+        raise ConfigError("--tolerance-deg and --tolerance-cm must be 0 (not judged) or more")
+    settings = LiveSettings(method=args.method, pairs=pairs, max_rot_deg=args.tolerance_deg,
+                            max_far_m=args.tolerance_cm / 100, edge_m=args.edge_m)
     opts = ShowOptions(rig=args.rig, create_rig=True, host=args.host, port=args.port,
                        calibration=settings, plugins=False)
     with StopSignals() as signals:
