@@ -118,6 +118,18 @@ def test_the_bootstrap_is_deterministic_and_needs_three_independent_poses():
     assert lone.units == 1 and not lone.determined and lone.resamples == 0
 
 
+
+def test_a_live_worker_may_pause_the_bootstrap_without_changing_it():
+    """The live calibrator gives the engine the GIL between refits (``pause``): called
+    after every tenth refit, and the spread is the same as without it."""
+    sim = Simulator(simdata.two_sensors(), seed=1)
+    streams = simdata.streams(sim, 6.0)
+    ps = pair_streams(streams["kinect-a"], streams["kinect-b"])
+    fit = calibrate(ps, "rigid")
+    calls = []
+    paused = fit_uncertainty(ps, fit.matrix, pause=lambda: calls.append(1))
+    assert paused == fit_uncertainty(ps, fit.matrix) and len(calls) == 9
+
 # ------------------------------------------------------------------ live
 _DANCER = demo_scenario(1).performers[0]
 

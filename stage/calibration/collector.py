@@ -409,7 +409,7 @@ class Collector:
             result, error = None, str(exc)
         spread = None  # how well the pairs determine the fit (the same tolerance as offline)
         if result is not None and self._gates().judges_uncertainty:
-            spread = fit_uncertainty(pairs, result.matrix, s.edge_m)
+            spread = fit_uncertainty(pairs, result.matrix, s.edge_m, pause=self._yield)
         with self._lock:
             st.busy = False
             if st.epoch != epoch:

@@ -37,6 +37,7 @@ the spread may only refuse a fit, never vouch for one (docs/calibration.md).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -142,11 +143,13 @@ def _concentrate(p, q, w0, m, steps: int = 10) -> np.ndarray:
 
 
 def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
-                    resamples: int = 100, seed: int = 0, by: str = "pose") -> Uncertainty:
+                    resamples: int = 100, seed: int = 0, by: str = "pose",
+                    pause: Callable[[], None] | None = None) -> Uncertainty:
     """The spread of the rigid fit ``matrix`` (other -> ref) of ``pairs`` over a bootstrap
     of its distinct poses (module docstring). Deterministic for a seed. ``by="frame"``
     resamples single frames instead (for comparison only: it takes frames of one pose for
-    independent evidence)."""
+    independent evidence). ``pause``, if given, is called after every tenth refit (a live
+    worker gives way to the engine there; the result does not depend on it)."""
     p, q, w = pairs.other, pairs.ref, pairs.weight
     # the spread is the rigid estimator's, near this fit: another method's transform (the
     # regression's is affine) is first taken to its nearest rigid one and concentrated
@@ -169,7 +172,9 @@ def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
     far_fit = matrix[:3, :3] @ far + matrix[:3, 3]
     rng = np.random.default_rng(seed)
     angles, shifts = [], []
-    for _ in range(resamples):
+    for i in range(resamples):
+        if pause is not None and i and i % 10 == 0:
+            pause()
         draw = np.bincount(rng.integers(k, size=k), minlength=k)
         mult = np.where(unit >= 0, draw[np.maximum(unit, 0)], 0)
         wb = w * mult[:, None]
