@@ -36,18 +36,21 @@ the spread may only refuse a fit, never vouch for one (docs/calibration.md).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
 
 from ..geometry import nearest_rotation, rotation_angle_deg
 from .coverage import POSE_STEP_M
-from .fitness import kabsch, weighted_median
+from .fitness import weighted_median
+from .methods.rigid import concentration_steps
 from .pairs import PairSet
 
 #: fewer independent poses than this give no estimate of a fit's spread
 MIN_UNITS = 3
+#: concentration steps per refit (each resample starts next to the fit's optimum)
+STEPS = 10
 
 
 @dataclass(frozen=True)
@@ -120,28 +123,6 @@ def pose_units(other: np.ndarray, ref: np.ndarray, weight: np.ndarray,
     return unit
 
 
-def _concentrate(p, q, w0, m, steps: int = 10) -> np.ndarray:
-    """Concentration steps from ``m`` on weights ``w0`` (the rigid method's last stage)."""
-    from .fitness import Moments
-
-    def res(mm):
-        return np.linalg.norm(p @ mm[:3, :3].T + mm[:3, 3] - q, axis=-1)
-
-    r = res(m)
-    best = weighted_median(r, w0)
-    for _ in range(steps):
-        half = w0 * (r <= best)
-        if (half > 0).sum() < 3:
-            break
-        new = kabsch(Moments.of(p, q, half))
-        r_new = res(new)
-        med = weighted_median(r_new, w0)
-        if not med < best - 1e-9:
-            break
-        m, best, r = new, med, r_new
-    return m
-
-
 def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
                     resamples: int = 100, seed: int = 0, by: str = "pose",
                     pause: Callable[[], None] | None = None) -> Uncertainty:
@@ -156,7 +137,7 @@ def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
     rigid = np.eye(4)
     rigid[:3, :3], rigid[:3, 3] = nearest_rotation(matrix[:3, :3]), matrix[:3, 3]
     if (w > 0).sum() >= 3:
-        rigid = _concentrate(p, q, w, rigid)
+        rigid = concentration_steps(pairs, rigid, steps=STEPS)[0]
     matrix = rigid
     if by == "frame":
         unit = np.where((w > 0).any(axis=1), np.cumsum((w > 0).any(axis=1)) - 1, -1)
@@ -180,7 +161,7 @@ def fit_uncertainty(pairs: PairSet, matrix: np.ndarray, edge_m: float = 4.5,
         wb = w * mult[:, None]
         if (wb > 0).sum() < 3:
             continue
-        mb = _concentrate(p, q, wb, matrix)
+        mb = concentration_steps(replace(pairs, weight=wb), matrix, steps=STEPS)[0]
         angles.append(rotation_angle_deg(mb, matrix))
         shifts.append(float(np.linalg.norm(mb[:3, :3] @ far + mb[:3, 3] - far_fit)))
     if not angles:

@@ -48,7 +48,7 @@ def fit_rigid(pairs: PairSet, robust: str = "irls", planar: bool = False, iterat
     transform stops moving) or "ransac" (best of ``ransac_iterations``
     random triples by inlier weight within ``inlier_m``, then IRLS on the
     inliers). ``concentrate`` (robust fits): then concentration steps
-    (``_concentrate``), and the same from the ``starts`` best random joint triples
+    (``concentration_steps``), and the same from the ``starts`` best random joint triples
     (``_other_starts``), the lowest weighted median kept. Returns (matrix, details,
     final weights (N, 25)).
     """
@@ -77,7 +77,7 @@ def fit_rigid(pairs: PairSet, robust: str = "irls", planar: bool = False, iterat
     details["iterations"] = iterations_done
     details["cauchy_c_m"] = c
     if concentrate:
-        m, steps, half = _concentrate(pairs, m, planar)
+        m, steps, half = concentration_steps(pairs, m, planar)
         details["concentration_steps"] = steps
         if steps:  # the weights the final transform is the least-squares fit of
             robust_w = half
@@ -130,7 +130,7 @@ def _other_starts(pairs: PairSet, m: np.ndarray, planar: bool, starts: int, seed
         half = w0 * (rk <= weighted_median(rk, w0))
         if (half > 0).sum() < 3:
             continue
-        mk, steps, used = _concentrate(pairs, kabsch(pairs.moments(half), planar), planar)
+        mk, steps, used = concentration_steps(pairs, kabsch(pairs.moments(half), planar), planar)
         if not steps:
             used = half
         medk = weighted_median(np.linalg.norm(p @ mk[:3, :3].T + mk[:3, 3] - q, axis=-1), w0)
@@ -139,7 +139,7 @@ def _other_starts(pairs: PairSet, m: np.ndarray, planar: bool, starts: int, seed
     return best
 
 
-def _concentrate(pairs: PairSet, m: np.ndarray, planar: bool, steps: int = 20,
+def concentration_steps(pairs: PairSet, m: np.ndarray, planar: bool = False, steps: int = 20,
                  ) -> tuple[np.ndarray, int, np.ndarray]:
     """Refit on the joint pairs at or below the weighted median distance, while that median
     drops (each step is a weighted least-squares fit of the better half): (matrix, steps
