@@ -546,11 +546,21 @@ def test_the_trend_asks_for_a_measured_approach():
     feed_frames(rt, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01),
                      (0.067, 1.8, 2.1, 0.01), (0.1, 1.95, 2.1, 0.01)], hand_vy=0.5)
     assert [(e.t, e.anticipated) for e in fired(sink)] == [(0.1, 0.0)]
-    # hands default to a trend of 1 m/s (GROUP_DEFAULTS): the same with plain 'anticipate'
+    # hands default to a trend of 1.5 m/s (GROUP_DEFAULTS): the same with plain 'anticipate'
     rt2, sink2 = runtime("anticipate: 0.05")
     feed_frames(rt2, [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01),
                       (0.067, 1.8, 2.1, 0.01), (0.1, 1.95, 2.1, 0.01)], hand_vy=0.5)
     assert [e.t for e in fired(sink2)] == [0.1]
+    # a hand rising at 1.2 m/s: anticipated with trend 1.0 (the default before stop 24),
+    # left to the measurements by the default 1.5 (slow rises were predicted 100-160 ms early)
+    frames = [(0.0, 1.0, 1.0, 0.01), (0.033, 1.5, 1.95, 0.01), (0.067, 1.8, 2.1, 0.01),
+              (0.1, 1.95, 2.1, 0.01)]
+    rt3, sink3 = runtime("anticipate: {ahead: 0.05, trend: 1.0}")
+    feed_frames(rt3, frames, hand_vy=1.2)
+    assert [(e.t, e.anticipated) for e in fired(sink3)] == [(0.033, 0.05)]
+    rt4, sink4 = runtime("anticipate: 0.05")
+    feed_frames(rt4, frames, hand_vy=1.2)
+    assert [(e.t, e.anticipated) for e in fired(sink4)] == [(0.1, 0.0)]
 
 
 def test_group_defaults_and_what_a_trigger_says():
@@ -564,7 +574,8 @@ def test_group_defaults_and_what_a_trigger_says():
     # feet: 0.94 (issue 15, stop 21: 0.86, chosen on the tuning seeds with the feet's
     # velocity memory, added false feet on the check seeds and was not kept)
     assert rule(bare, J["FootLeft"]) == (0.94, None, 1)
-    assert rule(bare, J["HandLeft"]) == (0.0, 1.0, 1)
+    # hands: a measured approach of 1.5 m/s (stop 24; 1.0 before: see GROUP_DEFAULTS)
+    assert rule(bare, J["HandLeft"]) == (0.0, 1.5, 1)
     assert rule(bare, BODY) == (0.0, None, 1)
     assert rule(Anticipation(0.05, min_p=0.5, trend=0.2, persist=3), J["FootLeft"]) == (
         0.5, 0.2, 3)

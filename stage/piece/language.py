@@ -107,7 +107,8 @@ ANTICIPATE = AnyOf((AHEAD, Obj("Anticipate", {
                        "docs/anticipation.md)."),
     "trend": Field(Number(unit="m/s"),
                    doc="A predicted crossing fires only while the measured joint moves towards "
-                       "the border at least this fast (default: none)."),
+                       "the border at least this fast, m/s (default: the joint group's, "
+                       "docs/anticipation.md)."),
     "persist": Field(Integer(1, 10),
                      doc="A predicted crossing fires only once it has been sure enough on this "
                          "many frames in a row (default: docs/anticipation.md)."),
