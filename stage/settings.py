@@ -27,7 +27,8 @@ class KalmanSettings:
     inferred_sd_m: how far off (s.d. per axis, m) a joint the sensor only infers
         (confidence 0.5, Kinect convention) may be: a guess, not a measurement, so
         ``(1/c - 1) * inferred_sd_m^2`` is added to the variance of a joint of confidence
-        c < 1 (nothing to a tracked joint; 0 turns it off).
+        c <= 0.5 (nothing to a joint above the inferred level, which is tracked, as a
+        continuous 0.9 is; 0 turns it off).
     initial_velocity_var: variance of the (unknown, taken as 0) velocity of a newly
         seen joint, (m/s)^2.
     gate_sigma: beyond this Mahalanobis distance from the prediction a joint's

@@ -474,3 +474,16 @@ def test_smooths_without_lag_at_constant_velocity():
     lag_frames = -np.mean((est - truth)[keep] @ direction) / (speed / fps)
     assert rms_filt < 0.8 * rms_raw, (rms_filt, rms_raw)
     assert abs(lag_frames) < 1.0, lag_frames
+
+
+def test_only_joints_at_or_below_the_inferred_level_get_a_guess_s_variance():
+    s = KalmanSettings()
+    base = s.measurement_noise
+    r = measurement_variance(np.array([1.0, 0.9, 0.6, 0.5, 0.25]), 1.0, s)
+    # tracked, and above the inferred level (a landmark's visibility 0.9): noise / c only
+    np.testing.assert_allclose(r[:3], [base, base / 0.9, base / 0.6])
+    # Kinect's inferred level and below: a guess, (1/c - 1) inferred_sd_m^2 on top
+    np.testing.assert_allclose(r[3:], [base / 0.5 + 1.0 * s.inferred_sd_m ** 2,
+                                       base / 0.25 + 3.0 * s.inferred_sd_m ** 2])
+    # a continuous 0.9 weighs about as much as a tracked joint, not ten times less
+    assert r[1] < 1.2 * r[0]

@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..joints import INFERRED
 from ..settings import KalmanSettings
 from .imm import _MU_FLOOR, M, fused_update
 
@@ -71,15 +72,20 @@ def measurement_variance(conf: np.ndarray, distance: np.ndarray | float,
 
     The s.d. of a confidence-1 joint is ``sqrt(measurement_noise)`` up to 1 m
     and grows by ``noise_per_m`` per metre beyond; a joint of confidence c
-    has c times the inverse variance, plus ``(1/c - 1) inferred_sd_m^2``: an
-    inferred joint (c = 0.5) is the sensor's guess, off by up to tens of
-    centimetres, not a noisier measurement (with the default 10 cm it weighs
-    about 1/100 of a tracked joint near the sensor).
+    has c times the inverse variance, and one at or below the inferred level
+    (c <= 0.5) also ``(1/c - 1) inferred_sd_m^2``: an inferred joint is the
+    sensor's guess, off by up to tens of centimetres, not a noisier
+    measurement (with the default 10 cm it weighs about 1/100 of a tracked
+    joint near the sensor). A joint above the inferred level is tracked (as
+    everywhere in the engine): a client sending continuous confidences (a
+    landmark's visibility, 0.9) gets ``sd^2 / c`` only, not a guess's variance
+    (which made its 0.9 joints ten times as uncertain as 1.0 ones).
     """
     sd = math.sqrt(s.measurement_noise) + s.noise_per_m * np.maximum(
         np.asarray(distance, dtype=float) - 1.0, 0.0)
     conf = np.asarray(conf, dtype=float)
-    return sd * sd / conf + (1.0 / conf - 1.0) * s.inferred_sd_m ** 2
+    guess = np.where(conf <= INFERRED, 1.0 / conf - 1.0, 0.0)
+    return sd * sd / conf + guess * s.inferred_sd_m ** 2
 
 
 def transition(dt: np.ndarray, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
