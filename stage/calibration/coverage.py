@@ -109,6 +109,9 @@ class Gates:
     max_rot_deg: float = 2.0      # rms rotation spread, degrees
     max_far_m: float = 0.05       # rms spread of a point ``edge_m`` from the sensor
     edge_m: float = 4.5           # the stage's far edge: a Kinect's tracking range
+    # three sensors that overlap pairwise: their three fits must compose to within this of no
+    # turn at all (degrees; 0: not judged); see offline._check_loops
+    max_loop_deg: float = 10.0
 
     def too_little(self, pairs: int, poses: int) -> str | None:
         """Why these pairs are not enough, or None."""

@@ -83,6 +83,11 @@ def register(sub: argparse._SubParsersAction) -> dict[str, Callable[[argparse.Na
                         f"sensor) more than C cm (default {Gates.max_far_m * 100:g}; 0: not judged)")
     p.add_argument("--edge-m", type=_positive, default=Gates.edge_m, metavar="M",
                    help=f"the stage's far edge, metres from a sensor (default {Gates.edge_m:g})")
+    p.add_argument("--loop-tolerance-deg", type=float, default=Gates.max_loop_deg,
+                   metavar="D", help="three sensors that overlap pairwise: when their three "
+                   "fits composed round the triangle turn more than D degrees, the one with the "
+                   f"largest median joint distance is not used (default {Gates.max_loop_deg:g}; "
+                   "0: not judged)")
     p.add_argument("--no-refine", action="store_true",
                    help="keep the composed chains (no joint refinement over all overlaps)")
     p.add_argument("--seed", type=int, default=0, help="seed of the GA and RANSAC (default 0)")
@@ -136,11 +141,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     # a CalibrationError (the data give no transform) leaves as a run-time failure, exit 1
     if not 0 <= args.poor_fitness <= args.min_fitness:
         raise ConfigError("--poor-fitness must be from 0 to --min-fitness")
-    if args.tolerance_deg < 0 or args.tolerance_cm < 0:
-        raise ConfigError("--tolerance-deg and --tolerance-cm must be 0 (not judged) or more")
+    if args.tolerance_deg < 0 or args.tolerance_cm < 0 or args.loop_tolerance_deg < 0:
+        raise ConfigError("--tolerance-deg, --tolerance-cm and --loop-tolerance-deg must be 0 "
+                          "(not judged) or more")
     gates = Gates(args.min_pairs, args.min_poses, args.min_fitness, args.poor_fitness,
                   args.min_lag_confidence, args.tolerance_deg, args.tolerance_cm / 100,
-                  args.edge_m)
+                  args.edge_m, args.loop_tolerance_deg)
     result = calibrate_streams(streams, reference, args.method, args.pairs, lag,
                                args.max_lag, refine=not args.no_refine, options=options,
                                progress=lambda text: log.info("%s", text), gates=gates)
@@ -219,6 +225,10 @@ ABOUT = {
                    "the sensor (far_m); null when fewer than 3 poses leave it undetermined; a "
                    "sensor's: its chain's overlaps in quadrature. Precision, not accuracy: a "
                    "bias common to every pose does not show in it",
+    "loops": "every three sensors whose pairs were all fitted: the turn (rot_deg) and the "
+             "displacement of a point edge_m in front of the first (far_m) of their three "
+             "fits composed round the triangle (none for fits that agree); open when over "
+             "the loop tolerance, and which fit was then not used (dropped)",
 }
 
 
@@ -235,8 +245,9 @@ def _as_json(result: RigCalibration, method: str, drops: dict[str, int],
              "kept": result.refinement["kept"],
              "iterations": result.refinement["iterations"]},
             "overlaps": [o.as_json() for o in result.overlaps],
+            "loops": result.loops,
             "tolerance": {"rot_deg": g.max_rot_deg or None, "far_m": g.max_far_m or None,
-                          "edge_m": g.edge_m},
+                          "edge_m": g.edge_m, "loop_deg": g.max_loop_deg or None},
             "warnings": result.warnings, "drops": drops, "about": ABOUT}
 
 
