@@ -440,9 +440,9 @@ def test_the_worker_judges_a_datagram_of_several_people_at_once_and_catches_a_bu
     grouped = []
     check_many = run.cal._gate.check_many
 
-    def spy(sensor, users, t, centres):
+    def spy(sensor, users, t, points, tracked):
         grouped.append(len(users))
-        return check_many(sensor, users, t, centres)
+        return check_many(sensor, users, t, points, tracked)
 
     def run_until(until: float) -> None:
         while run.t < until - 1e-9:
@@ -479,7 +479,7 @@ def test_the_worker_judges_a_datagram_of_several_people_at_once_and_catches_a_bu
 def test_check_many_decides_as_one_view_at_a_time():
     """``JumpGate.check_many`` on one sensor's views of one instant gives the verdicts, the
     links and the velocities of checking them one by one (the distance it reports may
-    differ in the last bit)."""
+    differ in the last bit), whichever torso joints each view tracks."""
     from stage.calibration.gate import JumpGate
 
     rng = np.random.default_rng(7)
@@ -489,18 +489,20 @@ def test_check_many_decides_as_one_view_at_a_time():
         for gate in (one, many):
             for sid in ("a", "b", "c"):
                 gate.trust(sid, sid != "c" or trial % 3 != 0)
-        base = rng.normal(size=(4, 3))
+        base = rng.normal(size=(4, 1, 3)) + rng.normal(scale=0.15, size=(4, 5, 3))
         for step in range(40):
             t = step / 30
             for sid in ("a", "b", "c"):
-                centres = base + 0.01 * step + rng.normal(scale=0.03, size=(4, 3))
+                points = base + 0.01 * step + rng.normal(scale=0.03, size=(4, 5, 3))
+                tracked = rng.random((4, 5)) < 0.85     # a joint now and then untracked...
+                points[~tracked] += 0.4                 # ...where the sensor only guesses it
                 if sid == "b" and step > 20 and trial % 2:
-                    centres = centres + [0.4, 0.0, 0.0]       # bumped
+                    points = points + [0.4, 0.0, 0.0]   # bumped
                 if rng.random() < 0.05:
-                    centres[rng.integers(4)] += 0.5           # one view jumps alone
+                    points[rng.integers(4)] += 0.5      # one view jumps alone
                 users = [int(u) for u in rng.permutation(4)[:rng.integers(1, 5)]]
-                expected = [one.check(sid, u, t, centres[u]) for u in users]
-                got = many.check_many(sid, users, t, centres[users])
+                expected = [one.check(sid, u, t, points[u], tracked[u]) for u in users]
+                got = many.check_many(sid, users, t, points[users], tracked[users])
                 for e, g in zip(expected, got):
                     assert (e is None) == (g is None)
                     if e is not None:
