@@ -382,6 +382,54 @@ def test_simulated_kinects_bumped_mid_show(tmp_path):
     assert all("kinect-b" not in s for t, _, s in bumped if suspect[0].t <= t < done[0].t)
 
 
+#: Liminal's last steps (pieces/liminal.sim.yaml, four Kinects on a 3.2 m ring): the dancer
+#: walks from the centre to (-2.5, 0.5), out of kinect-b's view at its edge and on into
+#: kinect-c's far range, then back in
+_WALK_OUT = """
+name: walk-out
+duration: 7
+sensors:
+  ring: {count: 4, radius: 3.2, height: 1.0, start_angle: 45}
+performers:
+  - name: dancer
+    height: 1.70
+    position: [0.0, 0.0]
+    facing: 90
+    timeline:
+      - {wait: 1}
+      - {walk: [-2.5, 0.5], speed: 1.0}
+      - {walk: [0.0, 0.0], speed: 1.0}
+"""
+
+
+def _walk_out_run(seed: int, events: str = ""):
+    from stage.sensors import sim as sim_mod
+    from stage.yamlio import loads_marked
+    sim = sim_mod.Simulator(sim_mod.parse_scenario(loads_marked(_WALK_OUT + events),
+                                                   "walk-out.yaml"), seed=seed)
+    engine = Engine(sim.rig(calibrated=True), ManualClock(0.0))
+    cal = attach_live(engine, None, threaded=False)
+    feed(engine, engine.clock, sim.stream(7.0), until=7.0)
+    return cal
+
+
+def test_walking_out_of_a_sensors_view_is_not_a_jump():
+    """A body leaving a sensor's view at its edge is tracked a moment longer by the torso
+    joints still inside (kinect-b: at last one hip alone, 17-24 cm below and beside the
+    whole torso's centre, the centre sliding 3 m/s as joints drop out). The jump gate
+    compares two views on the torso joints both track, so healthy sensors are not made
+    suspect (before: kinect-c "jumped 0.34-0.36 m away from kinect-b" on each of these
+    seeds, and at 79 s of `stage play pieces/liminal.yaml --sim --seed 24627`); a real
+    bump of the sensor she walked out of and back into is still caught at once."""
+    for seed in (1, 2, 3):
+        cal = _walk_out_run(seed)
+        assert [e for e in cal.events if e.kind == "suspect"] == [], seed
+    cal = _walk_out_run(1, "events:\n  - {bump: kinect-b, at: 5.0, yaw: 10}\n")
+    suspect = [e for e in cal.events if e.kind == "suspect"]
+    assert [e.sensor for e in suspect] == ["kinect-b"] and "jumped" in suspect[0].detail
+    assert suspect[0].t - 5.0 <= 0.2
+
+
 def test_a_moved_reference_is_recalibrated_and_stage_space_stays_put(tmp_path):
     """The reference turned: the other sensors agree among themselves, so the reference is the
     one left out and re-calibrated; its new placement becomes the rig's stage frame and the
@@ -440,9 +488,9 @@ def test_the_worker_judges_a_datagram_of_several_people_at_once_and_catches_a_bu
     grouped = []
     check_many = run.cal._gate.check_many
 
-    def spy(sensor, users, t, centres):
+    def spy(sensor, users, t, points, tracked):
         grouped.append(len(users))
-        return check_many(sensor, users, t, centres)
+        return check_many(sensor, users, t, points, tracked)
 
     def run_until(until: float) -> None:
         while run.t < until - 1e-9:
@@ -479,7 +527,7 @@ def test_the_worker_judges_a_datagram_of_several_people_at_once_and_catches_a_bu
 def test_check_many_decides_as_one_view_at_a_time():
     """``JumpGate.check_many`` on one sensor's views of one instant gives the verdicts, the
     links and the velocities of checking them one by one (the distance it reports may
-    differ in the last bit)."""
+    differ in the last bit), whichever torso joints each view tracks."""
     from stage.calibration.gate import JumpGate
 
     rng = np.random.default_rng(7)
@@ -489,18 +537,20 @@ def test_check_many_decides_as_one_view_at_a_time():
         for gate in (one, many):
             for sid in ("a", "b", "c"):
                 gate.trust(sid, sid != "c" or trial % 3 != 0)
-        base = rng.normal(size=(4, 3))
+        base = rng.normal(size=(4, 1, 3)) + rng.normal(scale=0.15, size=(4, 5, 3))
         for step in range(40):
             t = step / 30
             for sid in ("a", "b", "c"):
-                centres = base + 0.01 * step + rng.normal(scale=0.03, size=(4, 3))
+                points = base + 0.01 * step + rng.normal(scale=0.03, size=(4, 5, 3))
+                tracked = rng.random((4, 5)) < 0.85     # a joint now and then untracked...
+                points[~tracked] += 0.4                 # ...where the sensor only guesses it
                 if sid == "b" and step > 20 and trial % 2:
-                    centres = centres + [0.4, 0.0, 0.0]       # bumped
+                    points = points + [0.4, 0.0, 0.0]   # bumped
                 if rng.random() < 0.05:
-                    centres[rng.integers(4)] += 0.5           # one view jumps alone
+                    points[rng.integers(4)] += 0.5      # one view jumps alone
                 users = [int(u) for u in rng.permutation(4)[:rng.integers(1, 5)]]
-                expected = [one.check(sid, u, t, centres[u]) for u in users]
-                got = many.check_many(sid, users, t, centres[users])
+                expected = [one.check(sid, u, t, points[u], tracked[u]) for u in users]
+                got = many.check_many(sid, users, t, points[users], tracked[users])
                 for e, g in zip(expected, got):
                     assert (e is None) == (g is None)
                     if e is not None:

@@ -1,8 +1,8 @@
 """The live calibrator's checks of every frame: a bumped sensor, a copied stream.
 
 A ``healing`` part (mixin of ``LiveCalibrator``, whose state it uses). Every
-frame of a trusted sensor puts its view's torso centre, in stage space, into
-the jump gate (``gate.JumpGate``): one view at a time inline (offline, tests:
+frame of a trusted sensor puts its view's tracked torso joints, in stage space,
+into the jump gate (``gate.JumpGate``): one view at a time inline (offline, tests:
 ``threaded=False``); on the worker, one datagram's views at a time (one sensor,
 one capture time: the gate's ``check_many``), the same check with a handful of
 numpy calls per datagram instead of per skeleton. Two sensors sending
@@ -16,10 +16,11 @@ import logging
 import numpy as np
 
 from ..frames import SensorFrame
-from .live import torso_centre
+from ..joints import TORSO
 from .livestate import LiveEvent, SensorState
 
 log = logging.getLogger("stage.calibration")
+_TORSO = np.array(TORSO)
 
 
 class FrameChecks:
@@ -36,12 +37,14 @@ class FrameChecks:
         """
         m = frame.transform
         # tracked torso joints only: a torso the sensor only infers (a person hidden in a
-        # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved
-        c = torso_centre(frame.joints, frame.conf, tracked_only=True)
-        if c is None or m is None:
+        # crowd) is a guess, 10-30 cm off now and then, not evidence that the sensor moved;
+        # the gate compares two views on the joints both track (see gate.JumpGate)
+        tracked = frame.conf[_TORSO] >= 1.0
+        if m is None or not tracked.any():
             return
         sid, user, t = frame.sensor, frame.user, frame.t - st.lag_s  # on stage time
-        jumped = self._gate.check(sid, user, t, m[:3, :3] @ c + m[:3, 3])
+        jumped = self._gate.check(sid, user, t, frame.joints[_TORSO] @ m[:3, :3].T + m[:3, 3],
+                                  tracked)
         if jumped is not None:
             self._jumped(st, user, t, jumped)
 
@@ -55,21 +58,22 @@ class FrameChecks:
         frames = [f for f, _ in group if f.transform is not None]
         if not frames:
             return
-        c = torso_centre(np.array([f.joints for f in frames]), np.array([f.conf for f in frames]),
-                         tracked_only=True)                                 # (k, 3), NaN: none
-        seen = np.flatnonzero(np.isfinite(c[:, 0]))
+        tracked = np.array([f.conf[_TORSO] for f in frames]) >= 1.0        # (k, P)
+        seen = np.flatnonzero(tracked.any(axis=1))
         if not len(seen):
             return
         frames = [frames[k] for k in seen]
-        c = c[seen]
+        tracked = tracked[seen]
+        c = np.array([f.joints[_TORSO] for f in frames])                     # (k, P, 3)
         m = frames[0].transform
         if all(f.transform is m for f in frames):  # frames of one datagram share it
             placed = c @ m[:3, :3].T + m[:3, 3]
         else:
-            placed = np.array([f.transform[:3, :3] @ p + f.transform[:3, 3]
+            placed = np.array([p @ f.transform[:3, :3].T + f.transform[:3, 3]
                                for f, p in zip(frames, c)])
         t = frames[0].t - st.lag_s  # on stage time
-        results = self._gate.check_many(st.sensor, [f.user for f in frames], t, placed)
+        results = self._gate.check_many(st.sensor, [f.user for f in frames], t, placed,
+                                        tracked)
         for frame, jumped in zip(frames, results):
             if st.state != "ok":
                 break  # left out by an earlier view of this datagram: the rest are not judged

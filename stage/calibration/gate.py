@@ -2,13 +2,18 @@
 
 Runs on the engine thread for every frame of a trusted sensor, so it is a
 handful of vector operations over all tracked (sensor, user) views: each
-view's torso centre in stage space, its velocity, and for every pair of
-views the last time they agreed (were within ``agree_m``: the same person
-seen by two sensors). A view that now sits ``gate_m`` or more away from
-views it agreed with within the last ``link_s`` seconds, and agrees with no
-view of any other trusted sensor, has jumped: nobody moves 30 cm in a frame,
-so its sensor moved. The sensor whose frame first shows the disagreement is
-the one that moved (the others' latest frames were consistent a moment ago).
+view's torso joints in stage space and which of them the sensor tracks, its
+velocity, and for every pair of views the last time they agreed (were within
+``agree_m``: the same person seen by two sensors). Two views are compared on
+the torso joints both track, and only when they share ``min_joints`` of them:
+the mean of a different subset of joints is a different point (a body at
+the edge of a sensor's view, tracked by one hip, centres 17-24 cm below and
+beside the full torso's centre), not a jump. A view that now sits ``gate_m``
+or more away from views it agreed with within the last ``link_s`` seconds,
+and agrees with no view of any other trusted sensor, has jumped: nobody moves
+30 cm in a frame, so its sensor moved. The sensor whose frame first shows the
+disagreement is the one that moved (the others' latest frames were consistent
+a moment ago).
 """
 
 from __future__ import annotations
@@ -17,13 +22,16 @@ from collections import OrderedDict
 
 import numpy as np
 
+from ..joints import TORSO
+
 INF = float("inf")
 
 
 class JumpGate:
     def __init__(self, agree_m: float = 0.15, gate_m: float = 0.30, link_s: float = 0.5,
-                 capacity: int = 32) -> None:
+                 capacity: int = 32, points: int = len(TORSO), min_joints: int = 2) -> None:
         self.agree_m, self.gate_m, self.link_s = agree_m, gate_m, link_s
+        self.points, self.min_joints = points, min_joints
         self._index: dict[tuple[str, int], int] = {}
         self._sensors: dict[str, int] = {}
         self._trusted = np.zeros(8, dtype=bool)
@@ -32,13 +40,15 @@ class JumpGate:
     def _alloc(self, capacity: int) -> None:
         old = getattr(self, "_t", None)
         n = 0 if old is None else len(old)
-        t, c, v = np.full(capacity, -INF), np.zeros((capacity, 3)), np.zeros((capacity, 3))
+        t, v = np.full(capacity, -INF), np.zeros((capacity, 3))
+        x, m = np.zeros((capacity, self.points, 3)), np.zeros((capacity, self.points), bool)
         owner = np.full(capacity, -1)
         links = np.full((capacity, capacity), -INF)
         if old is not None:
-            t[:n], c[:n], v[:n], owner[:n] = self._t[:n], self._c[:n], self._v[:n], self._owner[:n]
+            t[:n], x[:n], m[:n], v[:n] = self._t[:n], self._x[:n], self._m[:n], self._v[:n]
+            owner[:n] = self._owner[:n]
             links[:n, :n] = self._links[:n, :n]
-        self._t, self._c, self._v, self._owner, self._links = t, c, v, owner, links
+        self._t, self._x, self._m, self._v, self._owner, self._links = t, x, m, v, owner, links
 
     def _sensor(self, sensor: str) -> int:
         k = self._sensors.get(sensor)
@@ -72,32 +82,90 @@ class JumpGate:
             self._owner[i] = self._sensor(sensor)
         return i
 
-    def check(self, sensor: str, user: int, t: float, centre: np.ndarray,
+    def _record(self, rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray,
+                ) -> None:
+        """Views ``rows`` now at ``points`` (k, P, 3), ``tracked`` (k, P): their velocity
+        from the joints tracked in this frame and their last (a joint that comes or goes
+        is not a movement), then the frame itself."""
+        dt = t - self._t[rows]
+        both = tracked & self._m[rows]                                  # (k, P)
+        count = both.sum(axis=1)
+        moved = (dt > 0) & (dt <= 0.2) & (count > 0)
+        v = np.zeros((len(rows), 3))
+        if moved.any():
+            step = np.where(both[moved, :, None], points[moved] - self._x[rows[moved]], 0.0)
+            v[moved] = step.sum(axis=1) / (count[moved] * dt[moved])[:, None]
+            speed = np.sqrt(np.einsum("ij,ij->i", v, v))
+            fast = speed > 3.0
+            v[fast] *= (3.0 / speed[fast])[:, None]  # a jump is not a velocity
+        self._v[rows] = v
+        self._t[rows] = t
+        self._x[rows] = np.where(tracked[..., None], points, 0.0)
+        self._m[rows] = tracked
+
+    def _distances(self, sensor: str, t: float, points: np.ndarray, tracked: np.ndarray,
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(valid (k, n), d (k, n)): which recorded views each of the k views is compared
+        with (another trusted sensor's, within 0.1 s, ``min_joints`` torso joints tracked
+        by both) and how far apart the two are on those joints (m); None: nothing to
+        compare with."""
+        n = len(self._index)
+        owner = self._owner[:n]
+        dt = t - self._t[:n]
+        valid = (np.abs(dt) <= 0.1) & self._trusted[owner]
+        valid[owner == self._sensors[sensor]] = False
+        if not valid.any():
+            return None
+        common = tracked[:, None, :] & self._m[None, :n]                      # (k, n, P)
+        count = common.sum(axis=2)
+        valid = valid & (count >= self.min_joints)                             # (k, n)
+        if not valid.any():
+            return None
+        step = self._x[None, :n] - points[:, None]                             # (k, n, P, 3)
+        mean = (np.matmul(common[..., None, :].astype(float), step)[..., 0, :]
+                / np.maximum(count, 1)[..., None] + self._v[:n] * dt[:, None])  # (k, n, 3)
+        return valid, np.sqrt(np.einsum("kij,kij->ki", mean, mean))
+
+    def check(self, sensor: str, user: int, t: float, points: np.ndarray, tracked: np.ndarray,
               ) -> tuple[list[str], float] | None:
-        """Record a view's stage-space torso centre (3,) at time t.
+        """Record a view's stage-space torso joints (P, 3) at time t, ``tracked`` (P,) bool:
+        the joints its sensor tracks (the others are never read).
 
         Returns (the sensors it jumped away from, the largest distance m) when
         it disagrees with views it agreed with a moment ago and agrees with
-        none; else None.
+        none; else None. (``check_many`` for one view, with fewer numpy calls: this
+        runs for every frame.)
         """
         i = self._row(sensor, user)
         n = len(self._index)
+        x = np.where(tracked[:, None], points, 0.0)
         dt_self = t - self._t[i]
-        if 0 < dt_self <= 0.2:
-            v = (centre - self._c[i]) / dt_self
+        both = (tracked & self._m[i]).astype(float)
+        k = both.sum()
+        if 0 < dt_self <= 0.2 and k:
+            # from the joints tracked in both frames: a joint that comes or goes is no motion
+            v = both @ (x - self._x[i]) / (k * dt_self)
             speed = float(np.sqrt(v @ v))
             self._v[i] = v if speed <= 3.0 else v * (3.0 / speed)  # a jump is not a velocity
         else:
             self._v[i] = 0.0
-        self._t[i], self._c[i] = t, centre
+        self._t[i], self._x[i], self._m[i] = t, x, tracked
         owner = self._owner[:n]
         dt = t - self._t[:n]
         valid = (np.abs(dt) <= 0.1) & self._trusted[owner]
         valid[owner == owner[i]] = False
         if not valid.any():
             return None
-        diff = self._c[:n] + self._v[:n] * dt[:, None] - centre
-        d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        common = self._m[:n] & tracked                                     # (n, P)
+        count = common.sum(axis=1)
+        valid &= count >= self.min_joints
+        if not valid.any():
+            return None
+        # the mean over the joints both track of (the other view, moved on by its velocity,
+        # minus this one)
+        mean = (np.matmul(common[:, None, :].astype(float), self._x[:n] - x)[:, 0]
+                / np.maximum(count, 1)[:, None] + self._v[:n] * dt[:, None])
+        d = np.sqrt(np.einsum("ij,ij->i", mean, mean))
         agree = valid & (d <= self.agree_m)
         if agree.any():
             self._links[i, :n][agree] = t
@@ -109,10 +177,10 @@ class JumpGate:
         names = {k: s for s, k in self._sensors.items()}
         return sorted({names[k] for k in owner[jumped]}), float(d[jumped].max())
 
-    def check_many(self, sensor: str, users: list[int], t: float, centres: np.ndarray,
-                   ) -> list[tuple[list[str], float] | None]:
+    def check_many(self, sensor: str, users: list[int], t: float, points: np.ndarray,
+                   tracked: np.ndarray) -> list[tuple[list[str], float] | None]:
         """``check`` for several views of one sensor at one time t (one datagram's
-        skeletons: distinct users), centres (k, 3); one result per view.
+        skeletons: distinct users), points (k, P, 3), tracked (k, P); one result per view.
 
         The same as checking them one after another: a view is never compared with views
         of its own sensor, so no view of the group reads what another one writes (only
@@ -121,32 +189,20 @@ class JumpGate:
         a sensor nobody is compared against until it is trusted again)."""
         rows = [self._row(sensor, user) for user in users]
         rows_a = np.array(rows)
+        tracked = np.asarray(tracked, bool)
+        self._record(rows_a, t, points, tracked)
+        out: list[tuple[list[str], float] | None] = [None] * len(rows)
+        found = self._distances(sensor, t, self._x[rows_a], tracked)  # untracked joints: 0
+        if found is None:
+            return out
+        valid, d = found
         n = len(self._index)
-        dt_self = t - self._t[rows_a]
-        moved = (dt_self > 0) & (dt_self <= 0.2)
-        v = np.zeros((len(rows), 3))
-        if moved.any():
-            v[moved] = (centres[moved] - self._c[rows_a[moved]]) / dt_self[moved, None]
-            speed = np.sqrt(np.einsum("ij,ij->i", v, v))
-            fast = speed > 3.0
-            v[fast] *= (3.0 / speed[fast])[:, None]  # a jump is not a velocity
-        self._v[rows_a] = v
-        self._t[rows_a], self._c[rows_a] = t, centres
-        owner = self._owner[:n]
-        dt = t - self._t[:n]
-        valid = (np.abs(dt) <= 0.1) & self._trusted[owner]
-        valid[owner == self._sensors[sensor]] = False
-        if not valid.any():
-            return [None] * len(rows)
-        predicted = self._c[:n] + self._v[:n] * dt[:, None]               # (n, 3)
-        diff = predicted[None] - centres[:, None]                          # (k, n, 3)
-        d = np.sqrt(np.einsum("kij,kij->ki", diff, diff))
         agree = valid & (d <= self.agree_m)                                 # (k, n)
         agreed = agree.any(axis=1)
         jumped = (valid & (d >= self.gate_m) & ~agreed[:, None]
                   & (t - self._links[rows_a, :n] <= self.link_s))
-        out: list[tuple[list[str], float] | None] = [None] * len(rows)
         names = None
+        owner = self._owner[:n]
         for r, i in enumerate(rows):
             if agreed[r]:
                 self._links[i, :n][agree[r]] = t
