@@ -269,7 +269,12 @@ def _check_loops(graph: SensorGraph, rig: RigCalibration, gates: Gates,
         if any(o is None for o in abc):
             continue
         ab, bc, ac = abc
-        loop = ab.matrix @ bc.matrix @ np.linalg.inv(ac.matrix)   # a's space -> a's space
+        try:
+            loop = ab.matrix @ bc.matrix @ np.linalg.inv(ac.matrix)   # a's space -> a's
+        except np.linalg.LinAlgError:
+            continue  # a degenerate affine fit (regression): nothing to compose
+        if not np.isfinite(loop).all():
+            continue
         turn = transform_error(loop, np.eye(4))["rot_deg"]
         far = float(np.linalg.norm(loop[:3, :3] @ [0.0, 0.0, gates.edge_m] + loop[:3, 3]
                                    - [0.0, 0.0, gates.edge_m]))
