@@ -178,9 +178,9 @@ def _triangle(turn_ac_deg: float, medians=(0.05, 0.06, 0.09)):
     """A graph of three used overlaps a-b, b-c, a-c (b's and c's spaces -> a's and b's) whose
     fits agree except for a turn of ``turn_ac_deg`` about y in a-c's, with these medians."""
     from stage.calibration.offline import Overlap, RigCalibration
-    t_ab = matrix(rot_y(30.0), [1.0, 0.0, 0.5])
-    t_bc = matrix(rot_y(45.0), [0.5, 0.1, 1.0])
-    t_ac = t_ab @ t_bc @ matrix(rot_y(turn_ac_deg), [0.0, 0.0, 0.0])
+    t_ab = matrix(rot_y(np.radians(30.0)), [1.0, 0.0, 0.5])
+    t_bc = matrix(rot_y(np.radians(45.0)), [0.5, 0.1, 1.0])
+    t_ac = t_ab @ t_bc @ matrix(rot_y(np.radians(turn_ac_deg)), [0.0, 0.0, 0.0])
     graph = SensorGraph(["a", "b", "c"])
     rig = RigCalibration("a", {}, graph, None, [])
     for (x, y, m), med in zip((("a", "b", t_ab), ("b", "c", t_bc), ("a", "c", t_ac)), medians):
@@ -216,6 +216,11 @@ def test_three_fits_that_do_not_compose_to_no_turn_lose_the_worst_one():
     graph.edges = graph.edges[:2]
     _check_loops(graph, rig, Gates(), lambda _: None)
     assert rig.loops[0]["open"] and rig.loops[0]["dropped"] is None and len(graph.edges) == 2
+    # a degenerate (singular) fit in the triangle: skipped, never an exception
+    graph, rig = _triangle(25.0)
+    rig.overlaps[2].matrix = np.zeros((4, 4))
+    _check_loops(graph, rig, Gates(), lambda _: None)
+    assert rig.loops == [] and len(graph.edges) == 3
 
 
 def test_a_right_rig_closes_its_loops():
