@@ -33,7 +33,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import nucla  # noqa: E402
 import nucla_consensus as nc  # noqa: E402
-from bench_calibration_real import copied, load_view, pair_transform, run_stage  # noqa: E402
+from bench_calibration_real import (copied, import_and_calibrate, load_view,  # noqa: E402
+                                    pair_transform)
 
 
 def judge(m: np.ndarray, ref: nc.Reference) -> dict:
@@ -42,15 +43,10 @@ def judge(m: np.ndarray, ref: nc.Reference) -> dict:
 
 
 def triple(sample: str, paths: list[str], tmp: str, fits: dict, tolerance: list[str]) -> dict:
-    rec = os.path.join(tmp, f"{sample}.stagerec")
-    code, _, err = run_stage(["--quiet", "import", "nucla", *paths, "--out", rec])
-    if code != 0:
-        return {"sample": sample, "error": f"import failed: {err.strip()}"}
-    started = time.perf_counter()
-    code, out, err = run_stage(["--quiet", "calibrate", rec, "--json", *tolerance])
-    seconds = time.perf_counter() - started
-    os.unlink(rec)
-    result = json.loads(out) if out.strip() else {"sensors": {}, "overlaps": []}
+    done = import_and_calibrate(sample, paths, tmp, tolerance)
+    if isinstance(done, dict):
+        return done
+    code, result, seconds = done
     sensors = result["sensors"]
     views = [load_view(p) for p in paths]
     ids = [f"nucla-v{k}" for k in (1, 2, 3)]

@@ -112,17 +112,27 @@ def cached_optimum(sample: str, a: str, b: str, ref: np.ndarray, other: np.ndarr
 _CALIBRATE: list[str] = []
 
 
-def triple(sample: str, paths: list[str], tmp: str, hypotheses: int) -> dict:
-    views = [load_view(p) for p in paths]
+def import_and_calibrate(sample: str, paths: list[str], tmp: str, options: list[str],
+                         ) -> tuple[int, dict, float] | dict:
+    """One triple through `stage import nucla` and `stage calibrate --json OPTIONS`:
+    (calibrate's exit status, its JSON, its seconds), or the row of a failed import."""
     rec = os.path.join(tmp, f"{sample}.stagerec")
     code, _, err = run_stage(["--quiet", "import", "nucla", *paths, "--out", rec])
     if code != 0:
         return {"sample": sample, "error": f"import failed: {err.strip()}"}
     started = time.perf_counter()
-    code, out, err = run_stage(["--quiet", "calibrate", rec, "--json", *_CALIBRATE])
+    code, out, err = run_stage(["--quiet", "calibrate", rec, "--json", *options])
     seconds = time.perf_counter() - started
     os.unlink(rec)
-    result = json.loads(out) if out.strip() else {"sensors": {}}
+    return code, json.loads(out) if out.strip() else {"sensors": {}, "overlaps": []}, seconds
+
+
+def triple(sample: str, paths: list[str], tmp: str, hypotheses: int) -> dict:
+    views = [load_view(p) for p in paths]
+    done = import_and_calibrate(sample, paths, tmp, _CALIBRATE)
+    if isinstance(done, dict):
+        return done
+    code, result, seconds = done
     sensors = result["sensors"]
     ids = [f"nucla-v{k}" for k in (1, 2, 3)]
     copies = {}
