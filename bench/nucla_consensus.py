@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import optimum
+from stage.geometry import nearest_rotation, rotation_angle_deg  # maths, not the calibration
 
 #: where people stand in a sensor's view (its own camera space, metres; z forward)
 POINTS = np.array([(x, y, z) for x in (-1.0, 0.0, 1.0) for y in (-0.8, 0.0, 0.8)
@@ -50,16 +51,13 @@ def displacement(m1: np.ndarray, m2: np.ndarray, points: np.ndarray = POINTS) ->
 
 
 def angle_deg(m1: np.ndarray, m2: np.ndarray) -> float:
-    r = m1[:3, :3] @ m2[:3, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    return rotation_angle_deg(m1, m2)
 
 
 def mean_transform(ms: list[np.ndarray]) -> np.ndarray:
     """The chordal mean of the rotations (nearest rotation to their sum) and the mean translation."""
-    u, _, vt = np.linalg.svd(sum(m[:3, :3] for m in ms))
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
     out = np.eye(4)
-    out[:3, :3] = u @ np.diag([1.0, 1.0, d]) @ vt
+    out[:3, :3] = nearest_rotation(sum(m[:3, :3] for m in ms))
     out[:3, 3] = np.mean([m[:3, 3] for m in ms], axis=0)
     return out
 

@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import CalibrationError
-from ..geometry import transform_error
+from ..geometry import rotation_angle_deg, transform_error
 from .coverage import Gates, count_poses
 from .fitness import fitness_from_median, weighted_median
 from .graph import Edge, SensorGraph
@@ -275,7 +275,7 @@ def _check_loops(graph: SensorGraph, rig: RigCalibration, gates: Gates,
             continue  # a degenerate affine fit (regression): nothing to compose
         if not np.isfinite(loop).all():
             continue
-        turn = transform_error(loop, np.eye(4))["rot_deg"]
+        turn = rotation_angle_deg(loop, np.eye(4))
         far = float(np.linalg.norm(loop[:3, :3] @ [0.0, 0.0, gates.edge_m] + loop[:3, 3]
                                    - [0.0, 0.0, gates.edge_m]))
         worst = max(abc, key=lambda o: o.median_m if o.median_m is not None else np.inf)
