@@ -37,6 +37,7 @@ from ..sensors.protocol import (FloorPlane, HandStateMsg, HealthQuery, Inbound, 
                                 LostUser, NewUser, RegisterView, StatsQuery, ViewUnreachable,
                                 decode_datagram)
 from ..stats import DropCounter, LatencyWindow, format_drops
+from . import jit
 from .callbacks import Callbacks
 from .output import Transport, ViewOutput, encode_stats
 from .people import People, fused_persons_stats
@@ -67,6 +68,9 @@ class Engine:
                  transport: Transport | None = None, drops: DropCounter | None = None) -> None:
         self.rig = rig or Rig()
         self.clock = clock or MonotonicClock()
+        # the compiled kernels now, before any frame: compiling (or loading numba's cache)
+        # must not fall in the middle of a show
+        jit.warm()
         self.drops = drops or DropCounter(self.rig.limits.max_drop_keys)
         #: items and whole datagrams (lists of items, ``submit_batch``) for the engine thread
         self.queue: queue.Queue[Inbound | list[Inbound]] = queue.Queue(maxsize=8192)

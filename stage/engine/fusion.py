@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from ..joints import JOINT_INDEX, TORSO
+from . import jit
 
 
 def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
@@ -161,6 +162,17 @@ _CHILDREN = np.concatenate([b for _, b in _LEVELS])
 
 def carry_untracked(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray,
                     offsets: np.ndarray) -> np.ndarray:
+    """``carry_untracked_numpy`` (below), compiled (``jit``) where the arrays allow."""
+    if (jit.ready() and joints.dtype == np.float64 and offsets.dtype == np.float64
+            and joints.flags.c_contiguous and offsets.flags.c_contiguous
+            and reported.dtype == np.bool_ and tracked.dtype == np.bool_):
+        return jit.carry(joints, np.ascontiguousarray(reported), np.ascontiguousarray(tracked),
+                         offsets, _PARENTS, _CHILDREN)
+    return carry_untracked_numpy(joints, reported, tracked, offsets)
+
+
+def carry_untracked_numpy(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray,
+                          offsets: np.ndarray) -> np.ndarray:
     """Joints that no sensor tracks now, carried by their parent joint (in place).
 
     joints (25, 3) m, a fused body; reported (25,) bool, the joints it reports; tracked

@@ -53,6 +53,7 @@ import numpy as np
 
 from ..joints import INFERRED
 from ..settings import KalmanSettings
+from . import jit
 from .imm import _MU_FLOOR, M, fused_update
 
 __all__ = ["KalmanSettings", "FilterState", "JointKalman", "transition", "mix", "predict",
@@ -319,6 +320,8 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     t = np.asarray(t, dtype=float)
     if t.shape != (n,):
         t = np.broadcast_to(t, (n,))
+    if jit.ready():
+        return _step_compiled(state, t, z, r, s, q_scale)
     # r <= 0, r = inf, NaN anywhere: not measured (0 * inf and 0 * NaN are NaN)
     valid = np.isfinite(z[:, 0] + z[:, 1] + z[:, 2] + t + 0.0 * r) & (r > 0)
     init = state.t == state.t                                # not NaN: has a state
@@ -368,6 +371,31 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     if fresh is not None and np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
+    return outcome
+
+
+def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+                   s: KalmanSettings, q_scale: np.ndarray | None) -> np.ndarray:
+    """``_step`` with its usual path in one compiled loop (``jit.step_rows``): the same
+    outcome and state; rejected, restarted and new rows as there."""
+    t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
+    block, new_t, held_t, outcome, n_bad, n_fresh = jit.step_rows(
+        state.stacked(), state.t, state.held_t, t, z, r, s, q_scale)
+    keep = FilterState.of_block(block, new_t, state.held_z, held_t)
+    state.x, state.P, state.mu, state.t, state.held_t, state.block = (
+        keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
+    if n_bad:
+        bad = np.flatnonzero(outcome == REJECTED)
+        again = bad[~np.isnan(state.held_t[bad])]
+        first = bad[np.isnan(state.held_t[bad])]
+        state.held_z = state.held_z.copy()
+        state.held_z[first], state.held_t[first] = z[first], t[first]
+        if len(again):
+            _restart(state, again, z[again], t[again], r[again], s)
+            outcome[again] = RESTARTED
+    if n_fresh:
+        fresh = np.flatnonzero(outcome == STARTED)
+        _start(state, fresh, z[fresh], t[fresh], r[fresh], s)
     return outcome
 
 

@@ -1,0 +1,74 @@
+"""The compiled kernels (stage/engine/jit.py) against the numpy code, in the same run.
+
+The input is bench_engine_inproc.py's (S simulated Kinects on a ring, P people on a grid,
+every sensor seeing every person, 30 Hz), replayed into a fresh Engine on an injected
+clock; the CPU time (process_time) of ``handle_datagram`` + ``tick`` over the whole
+replay is divided by the number of datagrams. Each repetition runs the kernels, then
+the numpy code (``jit.disabled()``) on the same datagrams, so that the ratio is taken
+pair by pair: this machine's speed drifts by tens of percent from one minute to the next,
+and a pair a few seconds apart shares the drift. Also printed: how long ``jit.warm()``
+took in this process (numba's on-disk cache loaded; the first run after an install
+compiles, which takes a few seconds).
+
+Run: python bench/bench_jit.py [--configs 1x1,3x3,6x6] [--seconds 4] [--reps 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from bench_engine_inproc import NullTransport, datagrams
+from stage.clock import ManualClock
+from stage.engine import jit
+from stage.engine.engine import Engine
+from stage.rig import Rig, set_calibration
+
+
+def replay(poses, data) -> float:
+    """CPU us per datagram of one fresh engine over ``data``."""
+    rig = Rig(reference="s0", views=[("127.0.0.1", 9)])
+    rig.stage_frame = poses[0].to_stage
+    inverse = np.linalg.inv(poses[0].to_stage)
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
+    clock = ManualClock(0.0)
+    engine = Engine(rig, clock, NullTransport())
+    c0 = time.process_time()
+    for t, d in data:
+        clock.set(t)
+        engine.handle_datagram(d)
+        engine.tick()
+    return (time.process_time() - c0) / len(data) * 1e6
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configs", default="1x1,3x3,6x6")
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--reps", type=int, default=5)
+    args = parser.parse_args()
+    t0 = time.perf_counter()
+    if not jit.warm():
+        print(f"compiled kernels unavailable ({jit.why_not()}): nothing to compare")
+        return 1
+    print(f"jit.warm() in this process: {time.perf_counter() - t0:.2f} s")
+    print(f"{'config':>7} {'kernels us':>11} {'numpy us':>9} {'ratio (pairs)':>14}  range")
+    for config in args.configs.split(","):
+        n_sensors, n_people = map(int, config.split("x"))
+        poses, data = datagrams(n_sensors, n_people, args.seconds)
+        on, off = [], []
+        for _ in range(args.reps):
+            on.append(replay(poses, data))
+            with jit.disabled():
+                off.append(replay(poses, data))
+        ratio = np.array(on) / np.array(off)
+        print(f"{config:>7} {np.median(on):11.0f} {np.median(off):9.0f} {np.median(ratio):14.3f}"
+              f"  {ratio.min():.3f}-{ratio.max():.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,319 @@
+"""Compiled kernels for the engine's hottest loops (numba), the numpy code as reference.
+
+Profiled per datagram at six sensors and six people (docs/reports/issue-10.md, stop
+25), the filter step of the fused rows (``kalman.step``: about 100 numpy calls on a few
+hundred floats, ``imm.fused_update`` most of them) and the carrying of joints no sensor
+tracks (``fusion.carry_untracked``: a dozen calls and a Python loop per person) were a
+third of the engine's CPU; a numpy call costs about the same whatever its size. Here
+each is one loop over the rows, compiled by numba: the same operations in the same order,
+so the same filter up to the last bit of exp, log and expm1, which come from another
+library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them). The
+step's rare paths (rows rejected, restarted or started) stay in Python.
+
+numba is a dependency; should it fail to import or to compile on some machine, or with
+``STAGE_JIT=0`` in the environment, the engine logs one line and runs the numpy code
+(``ENABLED`` says which). The kernels are compiled when the engine is built
+(``warm``), never in the middle of a show, and cached on disk by numba, so only the
+first start after an install pays the compilation (a few seconds).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+
+import numpy as np
+
+from ..settings import KalmanSettings
+from .imm import _constants
+
+log = logging.getLogger("stage.engine")
+
+_MU_FLOOR = 1e-300
+
+try:  # pragma: no branch
+    if os.environ.get("STAGE_JIT", "1").strip() in ("0", "false", "no", "off"):
+        raise ImportError("STAGE_JIT=0")
+    import numba
+except Exception as exc:  # ImportError, or numba's own errors on an unsupported machine
+    numba = None
+    _WHY_NOT = f"{type(exc).__name__}: {exc}"
+else:
+    _WHY_NOT = ""
+
+#: whether the compiled kernels are used (False: numba missing, disabled or broken)
+ENABLED = numba is not None
+
+
+def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
+               out, out_t, out_held_t, outcome, counts):  # pragma: no cover (compiled)
+    """``kalman.step``'s usual path, row by row: the IMM update of ``imm.fused_update``
+    (mix, predict, gate, update with the variance grown beyond the gate) of every row that
+    has a state and a valid measurement, and what ``step`` keeps of it.
+
+    S (6, 2, N, 3) [x pos, x vel, P pp, P pv, P vv, mu] and st, held_t (N,): the state;
+    t (N,), z (N, 3), r (N,): the measurements; q (2,) the modes' noise, q_scale (N,) or
+    empty, rates (2,) minus the switching rates. Writes the new state (out, out_t,
+    out_held_t), outcome (N,) int8 -- NOT_MEASURED 0, STARTED 1 (a valid measurement of a
+    row without a state: for the caller to start), ACCEPTED 2, DOWNWEIGHTED 3, REJECTED 4
+    (beyond reject2: the row keeps its state, for the caller to hold or restart) -- and
+    counts [rows rejected, rows to start].
+    """
+    n = S.shape[2]
+    X = np.empty((5, 2, 3))
+    cb = np.empty((2, 3))
+    d = np.empty(5)
+    lik = np.empty(2)
+    new = np.empty((6, 2, 3))
+    scaled = q_scale.shape[0] > 0
+    counts[0] = 0
+    counts[1] = 0
+    for i in range(n):
+        ti = t[i]
+        check = z[i, 0] + z[i, 1] + z[i, 2] + ti + 0.0 * r[i]   # NaN or inf anywhere
+        valid = (not math.isnan(check)) and (not math.isinf(check)) and r[i] > 0.0
+        known = st[i] == st[i]
+        keep = True
+        if valid and known:
+            dt = ti - st[i]
+            if dt < 0.0:
+                dt = 0.0
+            e0 = math.expm1(rates[0] * dt)
+            e1 = math.expm1(rates[1] * dt)
+            stay0 = e0 + 1.0
+            stay1 = e1 + 1.0
+            sw0 = -e0
+            sw1 = -e1
+            tt = dt * dt
+            if scaled:
+                qd0 = (q[0] * q_scale[i]) * tt
+                qd1 = (q[1] * q_scale[i]) * tt
+            else:
+                qd0 = q[0] * tt
+                qd1 = q[1] * tt
+            acc = 0.0
+            for j in range(3):
+                mu0 = S[5, 0, i, j]
+                mu1 = S[5, 1, i, j]
+                c0 = stay0 * mu0 + sw1 * mu1      # cbar: each mode's probability after mixing
+                c1 = stay1 * mu1 + sw0 * mu0
+                cb[0, j] = c0
+                cb[1, j] = c1
+                for c in range(5):
+                    d[c] = S[c, 1, i, j] - S[c, 0, i, j]
+                s0 = d[0] * d[0]
+                s1 = d[0] * d[1]
+                s2 = d[1] * d[1]
+                for m in range(2):
+                    if m == 0:
+                        w1 = (sw1 * mu1) / c0         # weight of mode 1 in each mixture
+                        qd = qd0
+                    else:
+                        w1 = (stay1 * mu1) / c1
+                        qd = qd1
+                    x0 = S[0, 0, i, j] + w1 * d[0]
+                    x1 = S[1, 0, i, j] + w1 * d[1]
+                    ww = w1 * (1.0 - w1)
+                    a = (S[2, 0, i, j] + w1 * d[2]) + ww * s0
+                    b = (S[3, 0, i, j] + w1 * d[3]) + ww * s1
+                    cc = (S[4, 0, i, j] + w1 * d[4]) + ww * s2
+                    # predict: constant velocity, white-noise acceleration
+                    X[0, m, j] = x1 * dt + x0
+                    X[1, m, j] = x1
+                    pv = (cc + 0.5 * qd) * dt + b
+                    X[2, m, j] = ((b + pv) * dt + a) - (0.25 * qd) * tt
+                    X[3, m, j] = pv
+                    X[4, m, j] = cc + qd
+                # the gate: the mixture's predicted position, weighted by cbar
+                w = c1
+                p0 = X[0, 0, j]
+                dp = X[0, 1, j] - p0
+                var = X[2, 1, j] - X[2, 0, j]
+                var += (1.0 - w) * dp * dp
+                var *= w
+                var += X[2, 0, j]
+                var += r[i]
+                y = z[i, j] - p0
+                y -= w * dp
+                y *= y
+                y /= var
+                acc = y if j == 0 else acc + y
+            g = acc / gate2
+            r3 = r[i] * (g if g > 1.0 else 1.0)
+            for j in range(3):
+                for m in range(2):
+                    y = z[i, j] - X[0, m, j]
+                    sv = X[2, m, j] + r3
+                    inv = 1.0 / sv
+                    k0 = X[2, m, j] * inv
+                    k1 = X[3, m, j] * inv
+                    gm = r3 * inv
+                    new[0, m, j] = X[0, m, j] + k0 * y
+                    new[1, m, j] = X[1, m, j] + k1 * y
+                    new[2, m, j] = X[2, m, j] * gm
+                    new[3, m, j] = X[3, m, j] * gm
+                    new[4, m, j] = X[4, m, j] - k1 * X[3, m, j]
+                    lik[m] = (math.log(sv) + (y * y) * inv) * -0.5
+                # (NaN as numpy's maximum gives it)
+                top = lik[0] if (lik[0] > lik[1] or lik[0] != lik[0]) else lik[1]
+                for m in range(2):
+                    v = cb[m, j] * math.exp(lik[m] - top)
+                    lik[m] = v if (v > _MU_FLOOR or v != v) else _MU_FLOOR
+                tot = lik[0] + lik[1]
+                new[5, 0, j] = lik[0] / tot
+                new[5, 1, j] = lik[1] / tot
+            if acc <= reject2:
+                keep = False
+                for c in range(6):
+                    for m in range(2):
+                        for j in range(3):
+                            out[c, m, i, j] = new[c, m, j]
+                out_t[i] = ti if ti > st[i] else st[i]
+                out_held_t[i] = np.nan
+                outcome[i] = 3 if acc > gate2 else 2
+            else:
+                outcome[i] = 4
+                counts[0] += 1
+        elif valid:
+            outcome[i] = 1
+            counts[1] += 1
+        else:
+            outcome[i] = 0
+        if keep:
+            for c in range(6):
+                for m in range(2):
+                    for j in range(3):
+                        out[c, m, i, j] = S[c, m, i, j]
+            out_t[i] = st[i]
+            out_held_t[i] = held_t[i]
+
+
+def _carry(joints, reported, tracked, offsets, parents, children, carried):  # pragma: no cover
+    """``fusion.carry_untracked`` for one body (bones parents first); writes ``carried``."""
+    carried[:] = False
+    for k in range(children.shape[0]):
+        c = children[k]
+        p = parents[k]
+        if not (reported[c] and reported[p]):
+            continue
+        if tracked[c]:
+            continue
+        if math.isnan(offsets[c, 0]):
+            continue
+        for a in range(3):
+            joints[c, a] = joints[p, a] + offsets[c, a]
+        carried[c] = True
+    # the offsets of tracked joints from their (reported) parents, after the moves: a
+    # tracked child of a carried parent takes its offset from where the parent was put
+    for k in range(children.shape[0]):
+        c = children[k]
+        p = parents[k]
+        if reported[c] and reported[p] and tracked[c]:
+            for a in range(3):
+                offsets[c, a] = joints[c, a] - joints[p, a]
+
+
+_F8_4 = "float64[:, :, :, ::1]"
+_SIGNATURES = {
+    "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
+                  f"float64[::1], float64[::1], float64[::1], float64[::1], float64, float64, "
+                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], int64[::1])",
+    "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
+              "int64[::1], boolean[::1])",
+}
+_compiled: dict = {}
+
+
+def warm() -> bool:
+    """Compile the kernels now (or load them from numba's cache); False, after one logged
+    line, if they cannot be and the numpy code is used instead."""
+    global ENABLED
+    if not ENABLED:
+        return False
+    if _compiled:
+        return True
+    try:
+        for name, sig in _SIGNATURES.items():
+            _compiled[name] = numba.njit(sig, cache=True, nogil=True)(globals()[name])
+    except Exception as exc:  # a numba that cannot compile here must not stop a show
+        ENABLED = False
+        _compiled.clear()
+        log.warning("compiled kernels unavailable (%s: %s); the engine runs its numpy code",
+                    type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "")
+        return False
+    return True
+
+
+def ready() -> bool:
+    """Whether the kernels are compiled and used: compiled on first use if need be (the
+    engine compiles them when it is built, so a show never pays it mid-way)."""
+    return bool(_compiled) or (ENABLED and warm())
+
+
+@contextlib.contextmanager
+def disabled():
+    """The numpy code only, within the block (tests of the reference code)."""
+    global ENABLED
+    saved, kernels = ENABLED, dict(_compiled)
+    ENABLED = False
+    _compiled.clear()
+    try:
+        yield
+    finally:
+        ENABLED = saved
+        _compiled.update(kernels)
+
+
+def why_not() -> str:
+    """Why the kernels are not used ('' when they are)."""
+    return "" if ENABLED else (_WHY_NOT or "compilation failed (logged)")
+
+
+_EMPTY = np.empty(0)
+
+
+_FLAT: dict[int, tuple] = {}
+
+
+def _flat(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    """``imm._constants`` as the kernel takes them: writable (2,) arrays (a read-only array is
+    another type to numba), kept by the settings' identity as there."""
+    entry = _FLAT.get(id(s))
+    if entry is None or entry[0] is not s:
+        q, rates = _constants(s)
+        if len(_FLAT) > 64:
+            _FLAT.clear()
+        entry = _FLAT[id(s)] = (s, np.array(q.ravel()), np.array(rates.ravel()))
+    return entry[1], entry[2]
+
+
+def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
+              z: np.ndarray, r: np.ndarray, s: KalmanSettings, q_scale: np.ndarray | None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """The compiled ``_step_rows`` (see there): (new block (6, 2, N, 3), its t (N,), held_t
+    (N,), outcome (N,) int8, rows rejected, rows to start). ``warm()`` must have
+    succeeded; ``kalman.step`` is the way to call it."""
+    q, rates = _flat(s)
+    n = len(st)
+    out = np.empty((6, 2, n, 3))
+    out_t = np.empty(n)
+    out_held_t = np.empty(n)
+    outcome = np.empty(n, dtype=np.int8)
+    counts = np.empty(2, dtype=np.int64)
+    qs = _EMPTY if q_scale is None else np.ascontiguousarray(q_scale, dtype=float)
+    _compiled["_step_rows"](np.ascontiguousarray(S), np.ascontiguousarray(st),
+                            np.ascontiguousarray(held_t), t, z, r, q, qs, rates,
+                            float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
+                            out, out_t, out_held_t, outcome, counts)
+    return out, out_t, out_held_t, outcome, int(counts[0]), int(counts[1])
+
+
+def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,
+          parents: np.ndarray, children: np.ndarray) -> np.ndarray:
+    """The compiled ``fusion.carry_untracked`` (in place on C-contiguous float64 ``joints``
+    and ``offsets``); returns the (25,) bool joints carried."""
+    carried = np.empty(len(joints), dtype=bool)
+    _compiled["_carry"](joints, reported, tracked, offsets, parents, children, carried)
+    return carried
