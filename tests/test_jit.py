@@ -154,3 +154,77 @@ def test_stage_jit_0_turns_the_kernels_off():
                           "print(jit.ready(), jit.why_not())"],
                          env=env, capture_output=True, text=True, check=True).stdout
     assert out.startswith("False") and "STAGE_JIT=0" in out
+
+
+def _show(seed: int = 5, seconds: float = 6.0):
+    """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
+    walk to the edge of the sensors' range (inferred and lost joints: carried joints)."""
+    from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
+    from stage.sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
+    rng = np.random.default_rng(seed)
+    poses = ring_poses(3, radius=3.2)
+    kinects = [VirtualKinect(p, KinectModel(), rng) for p in poses]
+    out = []
+    for f in range(int(seconds * 30)):
+        for s, kinect in enumerate(kinects):
+            msgs = []
+            for u in range(3):
+                x = -1.2 + 1.2 * u + 1.6 * np.sin(f / 40 + u)
+                truth = standing_pose((x, 0.4 * u - 0.4), 0.05 * f * (u + 1),
+                                      1.5 * np.sin(f / 9 + u), 1.5 * np.cos(f / 11),
+                                      stride_phase=f / 5, stride_amp=0.3)
+                seen = kinect.observe(truth, user=u)
+                if seen is None:                          # out of this sensor's view
+                    continue
+                joints, conf = seen
+                state = ("open", "closed", "lasso")[int(rng.integers(3))]
+                msgs += [encode_client_joints(f"s{s}", u, joints, conf),
+                         encode_message("/handState", f"s{s}", u, "left", state),
+                         encode_message("/handState", f"s{s}", u, "right", "open")]
+            out.append((f / 30 + s / 90, encode_bundle(msgs, None)))
+    return poses, out
+
+
+def _run_engine(poses, data, snapshots: list) -> None:
+    from stage.clock import ManualClock
+    from stage.engine.engine import Engine
+    from stage.rig import Rig, set_calibration
+    rig = Rig(reference="s0")
+    rig.stage_frame = poses[0].to_stage
+    inverse = np.linalg.inv(poses[0].to_stage)
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "test")
+    clock = ManualClock(0.0)
+    engine = Engine(rig, clock)
+    for t, d in data:
+        clock.set(t)
+        engine.handle_datagram(d)
+        engine.tick()
+        snapshots.append({pid: (b.joints, b.conf, b.velocity, b.position, b.hands)
+                          for pid, b in engine.bodies().items()})
+    snapshots.append(engine.people.stats())
+
+
+@needs_jit
+def test_the_engine_with_kernels_fuses_what_the_numpy_engine_fuses():
+    """Whole shows through two engines, kernels on and off: the same persons, the same
+    confidences, hands and filter outcomes, positions within a micrometre."""
+    poses, data = _show()
+    on, off = [], []
+    _run_engine(poses, data, on)
+    with jit.disabled():
+        _run_engine(poses, data, off)
+    assert on[-1] == off[-1]                              # gate outcomes, replays, rejections
+    assert on[-1]["joints_downweighted"] > 0
+    carried = 0
+    for a, b in zip(on[:-1], off[:-1]):
+        assert a.keys() == b.keys()
+        for pid in a:
+            (ja, ca, va, ma, ha), (jb, cb, vb, mb, hb) = a[pid], b[pid]
+            np.testing.assert_array_equal(ca, cb)
+            assert ha == hb
+            np.testing.assert_allclose(ja, jb, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(va, vb, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(ma, mb, rtol=0, atol=1e-6)
+            carried += int(((ca > 0) & (ca <= 0.5)).sum())
+    assert len(on) > 500 and carried > 0

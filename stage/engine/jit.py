@@ -8,7 +8,9 @@ third of the engine's CPU; a numpy call costs about the same whatever its size. 
 each is one loop over the rows, compiled by numba: the same operations in the same order,
 so the same filter up to the last bit of exp, log and expm1, which come from another
 library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them). The
-step's rare paths (rows rejected, restarted or started) stay in Python.
+step's rare paths (rows rejected, restarted or started) stay in Python. A third kernel
+(``_settle``) makes each updated person's output skeleton from its filter
+(``people.People._update``: about 40 numpy calls a batch plus a dozen a person).
 
 numba is a dependency; should it fail to import or to compile on some machine, or with
 ``STAGE_JIT=0`` in the environment, the engine logs one line and runs the numpy code
@@ -215,6 +217,55 @@ def _carry(joints, reported, tracked, offsets, parents, children, carried):  # p
                 offsets[c, a] = joints[c, a] - joints[p, a]
 
 
+def _settle(pos, vel, row_t, t, stale, conf_in, prev, known, tracked, hold, carry_on,
+            hold_back, inferred, parents, children, torso, joints_out, vel_out, conf_out,
+            known_out, carried_out, centre_out):  # pragma: no cover (compiled)
+    """``people.People._update`` for one person: the output skeleton from the filter's
+    estimate ``pos``/``vel`` (25, 3) at ``t``; see there. ``tracked`` and ``hold`` are the
+    person's own, updated in place as there; the rest goes to the ``*_out`` arrays.
+    Returns how many torso joints are known (0: the caller finds the centre otherwise)."""
+    n = pos.shape[0]
+    for k in range(n):
+        c = conf_in[k]
+        seen = c > 0.0 and t - row_t[k] <= stale
+        if seen:
+            for a in range(3):
+                if math.isnan(pos[k, a]) or math.isinf(pos[k, a]):
+                    seen = False
+        for a in range(3):
+            joints_out[k, a] = pos[k, a] if seen else prev[k, a]
+            v = vel[k, a]
+            vel_out[k, a] = v if not (math.isnan(v) or math.isinf(v)) else 0.0
+        known_out[k] = known[k] or seen
+        conf_out[k] = (c if c < 1.0 else 1.0) if seen else 0.0
+        if conf_out[k] > inferred:
+            tracked[k] = True
+    if carry_on:
+        reported = np.empty(n, dtype=np.bool_)
+        now = np.empty(n, dtype=np.bool_)
+        for k in range(n):
+            reported[k] = conf_out[k] > 0.0
+            now[k] = conf_out[k] > inferred
+        _carry(joints_out, reported, now, hold, parents, children, carried_out)
+    if hold_back:
+        for k in range(n):
+            if not tracked[k]:
+                conf_out[k] = 0.0
+    count = 0
+    for a in range(3):
+        centre_out[a] = 0.0
+    for k in range(torso.shape[0]):
+        j = torso[k]
+        if known_out[j]:
+            count += 1
+            for a in range(3):
+                centre_out[a] += joints_out[j, a]
+    if count:
+        for a in range(3):
+            centre_out[a] /= count
+    return count
+
+
 _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
@@ -222,8 +273,14 @@ _SIGNATURES = {
                   f"{_F8_4}, float64[::1], float64[::1], int8[::1], int64[::1])",
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
+    "_settle": "int64(float64[:, ::1], float64[:, ::1], float64[::1], float64, float64, "
+               "float64[::1], float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], "
+               "boolean, boolean, float64, int64[::1], int64[::1], int64[::1], float64[:, ::1], "
+               "float64[:, ::1], float64[::1], boolean[::1], boolean[::1], float64[::1])",
 }
 _compiled: dict = {}
+#: the kernels as Python functions (what numba compiles)
+_PYTHON = {name: globals()[name] for name in _SIGNATURES}
 
 
 def warm() -> bool:
@@ -236,7 +293,9 @@ def warm() -> bool:
         return True
     try:
         for name, sig in _SIGNATURES.items():
-            _compiled[name] = numba.njit(sig, cache=True, nogil=True)(globals()[name])
+            # in order: a kernel that calls another finds it compiled under its own name
+            _compiled[name] = globals()[name] = numba.njit(sig, cache=True, nogil=True)(
+                _PYTHON[name])
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
         _compiled.clear()
@@ -308,6 +367,27 @@ def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
                             float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
                             out, out_t, out_held_t, outcome, counts)
     return out, out_t, out_held_t, outcome, int(counts[0]), int(counts[1])
+
+
+def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,
+           conf: np.ndarray, prev: np.ndarray, known: np.ndarray, tracked: np.ndarray,
+           hold: np.ndarray, carry_on: bool, hold_back: bool, inferred: float,
+           parents: np.ndarray, children: np.ndarray, torso: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The compiled ``_settle`` (see there): new arrays (joints, velocity, conf, known,
+    carried, centre or None when no torso joint is known); ``tracked`` and ``hold`` (the
+    person's own, C-contiguous) are updated in place."""
+    n = len(conf)
+    joints, velocity = np.empty((n, 3)), np.empty((n, 3))
+    conf_out, known_out = np.empty(n), np.empty(n, dtype=bool)
+    carried, centre = np.zeros(n, dtype=bool), np.empty(3)
+    f = np.ascontiguousarray
+    count = _compiled["_settle"](
+        f(pos, dtype=float), f(vel, dtype=float), f(row_t, dtype=float), float(t), float(stale),
+        f(conf, dtype=float), f(prev, dtype=float), known, tracked, hold, bool(carry_on),
+        bool(hold_back), float(inferred), parents, children, torso, joints, velocity,
+        conf_out, known_out, carried, centre)
+    return joints, velocity, conf_out, known_out, carried, (centre if count else None)
 
 
 def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,

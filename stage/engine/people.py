@@ -28,7 +28,9 @@ from ..stats import DropCounter, LatencyWindow
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
-from .fusion import ARM_TRADED, apply_transform, carry_untracked, torso_centre, unswap_limbs
+from . import jit
+from .fusion import (_CHILDREN, _PARENTS, ARM_TRADED, apply_transform, carry_untracked,
+                     torso_centre, unswap_limbs)
 from .kalman import KalmanSettings, measurement_variance
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
@@ -164,6 +166,9 @@ class People:
         """Each person's output skeleton from its filter at its newest frame's capture time,
         for all persons of a batch at once."""
         stale = self.rig.fusion.stale_s
+        if jit.ready():
+            self._update_compiled(persons, stale)
+            return
         t = np.array([max(p.t, p.filter.output[0]) for p in persons])
         pos = np.array([p.filter.output[1] for p in persons])           # (P, 25, 3)
         vel = np.array([p.filter.output[2] for p in persons])
@@ -186,6 +191,21 @@ class People:
         for k, p in enumerate(persons):
             p.joints, p.velocity, p.conf, p.known, p.t = joints[k], vel[k], conf[k], known[k], t[k]
             p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
+
+    def _update_compiled(self, persons: list[Person], stale: float) -> None:
+        """``_update``, person by person, each in one compiled call (``jit.settle``)."""
+        fusion = self.rig.fusion
+        for p in persons:
+            out_t, pos, vel = p.filter.output
+            t = max(p.t, out_t)
+            joints, velocity, conf, known, carried, centre = jit.settle(
+                pos, vel, p.filter.state.t, t, stale, self._recent_conf(p, t, stale), p.joints,
+                p.known, p.tracked, p.hold, fusion.carry_untracked, fusion.hold_back_inferred,
+                INFERRED, _PARENTS, _CHILDREN, _TORSO)
+            if fusion.carry_untracked:
+                p.carried = carried
+            p.joints, p.velocity, p.conf, p.known, p.t = joints, velocity, conf, known, t
+            p.centre = centre if centre is not None else torso_centre(joints, known.astype(float))
 
     def _untracked(self, p: Person, joints: np.ndarray, conf: np.ndarray) -> None:
         """Joints no sensor tracks now (confidence at most ``INFERRED`` in every view: a guess;
