@@ -228,3 +228,61 @@ def test_the_engine_with_kernels_fuses_what_the_numpy_engine_fuses():
             np.testing.assert_allclose(ma, mb, rtol=0, atol=1e-6)
             carried += int(((ca > 0) & (ca <= 0.5)).sum())
     assert len(on) > 500 and carried > 0
+
+
+@needs_jit
+def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
+    """Random calibrations and bodies whose arms or legs are crossed, swapped, partly
+    unseen or inferred: the same joints (to rounding), confidences and traded bits."""
+    from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M, apply_transform, unswap_limbs
+    from stage.geometry import rot_y
+    from stage.sensors.sim import standing_pose
+    rng = np.random.default_rng(21)
+    bits = set()
+    for k in range(400):
+        body = standing_pose((rng.uniform(-1, 1), rng.uniform(-1, 1)), rng.uniform(-3, 3),
+                             rng.uniform(-2, 2), rng.uniform(-2, 2))
+        conf = rng.choice([0.0, 0.5, 1.0, 1.0, 1.0], 25)
+        if k % 3 == 0:                                    # a sensor that swapped a limb
+            left, right = _TRADED[k % 2]
+            body[np.r_[left, right]] = body[np.r_[right, left]]
+        matrix = np.eye(4)
+        matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
+        matrix[:3, 3] = rng.normal(0, 2, 3)
+        want_j, want_c, want_bits = unswap_limbs(apply_transform(matrix, body), conf)
+        got_j, got_c, got_bits = jit.frame(matrix, body, conf, True, _LOOK, _TRADED,
+                                           SWAP_MARGIN_M)
+        assert got_bits == want_bits
+        np.testing.assert_array_equal(got_c, want_c)
+        np.testing.assert_allclose(got_j, want_j, rtol=0, atol=1e-12)
+        plain_j, plain_c, none = jit.frame(matrix, body, conf, False, _LOOK, _TRADED,
+                                           SWAP_MARGIN_M)
+        assert none == 0
+        np.testing.assert_allclose(plain_j, apply_transform(matrix, body), rtol=0, atol=1e-12)
+        bits.add(want_bits)
+    assert {0, 1, 2} <= bits                              # arms, legs and nothing traded
+
+
+@needs_jit
+def test_distance_kernel_is_persons_distance():
+    from stage.engine.tracking import Person
+    from stage.settings import FusionSettings
+    rng = np.random.default_rng(5)
+    results = set()
+    for k in range(300):
+        person = Person.new(1, 0.0, FusionSettings())
+        person.joints = rng.normal(0, 1, (25, 3))
+        person.velocity = rng.normal(0, 1, (25, 3))
+        person.known = rng.random(25) < (0.3, 0.9, 1.0)[k % 3]
+        person.t = rng.uniform(0, 1)
+        joints = person.joints + rng.normal(0, 0.1, (25, 3))
+        conf = rng.choice([0.0, 0.5, 1.0], 25, p=(0.2 + 0.6 * (k % 5 == 0), 0.2, 0.6 - 0.6 * (k % 5 == 0)))
+        t = rng.uniform(0, 1.5)
+        got = person.distance(joints, conf, t)
+        with jit.disabled():
+            want = person.distance(joints, conf, t)
+        assert (got is None) == (want is None)
+        if want is not None:
+            assert got == pytest.approx(want, rel=1e-12)
+        results.add(want is None)
+    assert results == {True, False}

@@ -266,6 +266,86 @@ def _settle(pos, vel, row_t, t, stale, conf_in, prev, known, tracked, hold, carr
     return count
 
 
+def _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r, margin,
+           joints_out, conf_out):  # pragma: no cover (compiled)
+    """``apply_transform`` then, with ``unswap``, ``fusion.unswap_limbs`` (see there) of
+    one sensor frame, into ``joints_out``/``conf_out``; returns the traded bit mask."""
+    n = joints.shape[0]
+    for k in range(n):
+        x, y, z = joints[k, 0], joints[k, 1], joints[k, 2]
+        for a in range(3):
+            joints_out[k, a] = (x * matrix[a, 0] + y * matrix[a, 1] + z * matrix[a, 2]
+                                + matrix[a, 3])
+        conf_out[k] = conf[k]
+    if not unswap:
+        return 0
+    c = np.empty(6)
+    diff = np.empty((6, 3))
+    for p in range(6):
+        cl, cr = conf_out[look_l[p]], conf_out[look_r[p]]
+        c[p] = cl if cl < cr else cr                   # both seen?
+        for a in range(3):
+            diff[p, a] = joints_out[look_l[p], a] - joints_out[look_r[p], a]   # left - right
+    if c[0] < 1.0 and c[1] < 1.0:                      # no girdle tracked
+        return 0
+    traded = 0
+    for k in range(2):                                 # arm (shoulders), leg (hips)
+        if not (c[2 + 2 * k] > 0.0 and c[3 + 2 * k] > 0.0):
+            continue
+        g = k if c[k] >= 1.0 else 1 - k
+        ax, ay, az = diff[g, 0], diff[g, 1], diff[g, 2]
+        size = math.sqrt(ax * ax + ay * ay + az * az)
+        if size < 0.05:                                # shoulders or hips on one point
+            continue
+        p0, p1 = 2 + 2 * k, 3 + 2 * k
+        a0 = (diff[p0, 0] * ax + diff[p0, 1] * ay + diff[p0, 2] * az) / size
+        a1 = (diff[p1, 0] * ax + diff[p1, 1] * ay + diff[p1, 2] * az) / size
+        if a0 < -margin and a1 < -margin:
+            left = arm_l if k == 0 else leg_l
+            right = arm_r if k == 0 else leg_r
+            for m in range(left.shape[0]):
+                jl, jr = left[m], right[m]
+                for a in range(3):
+                    v = joints_out[jl, a]
+                    joints_out[jl, a] = joints_out[jr, a]
+                    joints_out[jr, a] = v
+                v = conf_out[jl]
+                conf_out[jl] = conf_out[jr]
+                conf_out[jr] = v
+            traded |= 1 << k
+    return traded
+
+
+def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragma: no cover
+    """``tracking.Person.distance`` (see there) with ``dt`` already bounded; NaN for None."""
+    n_torso = 0
+    for k in range(torso.shape[0]):
+        if conf[torso[k]] > 0.0 and known[torso[k]]:
+            n_torso += 1
+    total = 0.0
+    count = 0
+    if n_torso:
+        for k in range(torso.shape[0]):
+            j = torso[k]
+            if conf[j] > 0.0 and known[j]:
+                s = 0.0
+                for a in range(3):
+                    d = joints[j, a] - person_joints[j, a] - velocity[j, a] * dt
+                    s = d * d if a == 0 else s + d * d
+                total += math.sqrt(s)
+                count += 1
+    else:
+        for j in range(joints.shape[0]):
+            if conf[j] > 0.0 and known[j]:
+                s = 0.0
+                for a in range(3):
+                    d = joints[j, a] - person_joints[j, a] - velocity[j, a] * dt
+                    s = d * d if a == 0 else s + d * d
+                total += math.sqrt(s)
+                count += 1
+    return total / count if count else np.nan
+
+
 _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
@@ -277,6 +357,11 @@ _SIGNATURES = {
                "float64[::1], float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], "
                "boolean, boolean, float64, int64[::1], int64[::1], int64[::1], float64[:, ::1], "
                "float64[:, ::1], float64[::1], boolean[::1], boolean[::1], float64[::1])",
+    "_frame": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
+              "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, "
+              "float64[:, ::1], float64[::1])",
+    "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
+                 "boolean[::1], float64, int64[::1])",
 }
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
@@ -388,6 +473,27 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
         bool(hold_back), float(inferred), parents, children, torso, joints, velocity,
         conf_out, known_out, carried, centre)
     return joints, velocity, conf_out, known_out, carried, (centre if count else None)
+
+
+def frame(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
+          look: tuple, traded: tuple, margin: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The compiled ``_frame``: (stage-space joints, conf, traded bits), new arrays.
+    ``look`` and ``traded`` are ``fusion``'s index arrays (left, right; (arm, leg))."""
+    n = len(conf)
+    joints_out, conf_out = np.empty((n, 3)), np.empty(n)
+    f = np.ascontiguousarray
+    (arm_l, arm_r), (leg_l, leg_r) = traded
+    bits = _compiled["_frame"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
+                               f(conf, dtype=float), bool(unswap), look[0], look[1], arm_l, arm_r,
+                               leg_l, leg_r, float(margin), joints_out, conf_out)
+    return joints_out, conf_out, bits
+
+
+def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
+             velocity: np.ndarray, known: np.ndarray, dt: float, torso: np.ndarray) -> float | None:
+    """The compiled ``_distance``: mean distance (m), None where nothing is shared."""
+    d = _compiled["_distance"](joints, conf, person_joints, velocity, known, float(dt), torso)
+    return None if d != d else d
 
 
 def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,

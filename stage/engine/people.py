@@ -29,8 +29,8 @@ from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
 from . import jit
-from .fusion import (_CHILDREN, _PARENTS, ARM_TRADED, apply_transform, carry_untracked,
-                     torso_centre, unswap_limbs)
+from .fusion import (_CHILDREN, _LOOK, _PARENTS, _TRADED, ARM_TRADED, SWAP_MARGIN_M,
+                     apply_transform, carry_untracked, torso_centre, unswap_limbs)
 from .kalman import KalmanSettings, measurement_variance
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
@@ -75,9 +75,16 @@ class People:
               t: float, arrival: float) -> None:
         """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
         (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
-        track.joints = apply_transform(transform, joints)
+        if jit.ready():
+            track.joints, conf, traded = jit.frame(transform, joints, conf,
+                                                   self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
+                                                   SWAP_MARGIN_M)
+        else:
+            track.joints = apply_transform(transform, joints)
+            traded = 0
+            if self.rig.fusion.unswap_limbs:
+                track.joints, conf, traded = unswap_limbs(track.joints, conf)
         if self.rig.fusion.unswap_limbs:
-            track.joints, conf, traded = unswap_limbs(track.joints, conf)
             # the sensor's hand states follow its arms: its "left" hand is the right one
             # while it has the arms swapped (kept until a frame says otherwise, so a
             # /handState sent before the frame of its datagram reads the last frame's)

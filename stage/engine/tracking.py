@@ -20,6 +20,7 @@ import numpy as np
 
 from ..joints import JOINT_INDEX, N_JOINTS, TORSO, HandState
 from ..settings import FusionSettings
+from . import jit
 from .fuser import BodyFilter
 from .fusion import torso_centre
 from .hands import HandVoter
@@ -143,6 +144,12 @@ class Person:
         so a view that sees only part of the body is not judged by a centre
         that jumps with what happens to be occluded.
         """
+        if jit.ready():
+            try:
+                return jit.distance(joints, conf, self.joints, self.velocity, self.known,
+                                    min(max(t - self.t, 0.0), 0.5), _TORSO_IDX)
+            except TypeError:   # arrays the kernel does not take (not float64, not contiguous)
+                pass
         on_torso = (conf[_TORSO_IDX] > 0) & self.known[_TORSO_IDX]
         n = np.count_nonzero(on_torso)                 # (not .any(): a reduction costs more)
         if n == len(_TORSO_IDX):
