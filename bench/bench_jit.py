@@ -10,7 +10,13 @@ and a pair a few seconds apart shares the drift. Also printed: how long ``jit.wa
 took in this process (numba's on-disk cache loaded; the first run after an install
 compiles, which takes a few seconds).
 
+``--self-healing`` attaches the live calibrator as ``stage serve`` runs it (threaded; its
+worker's polls run on this thread right after the datagram that made them due: see
+bench_engine_inproc.py ``--worker``) and prints its CPU share of a core, kernels and
+numpy, beside the engine's; run 12 s or more so that lag searches are in it.
+
 Run: python bench/bench_jit.py [--configs 1x1,3x3,6x6] [--seconds 4] [--reps 5]
+[--self-healing]
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import time
 
 import numpy as np
 
-from bench_engine_inproc import NullTransport, datagrams
+from bench_engine_inproc import NullTransport, datagrams, run
 from stage.clock import ManualClock
 from stage.engine import jit
 from stage.engine.engine import Engine
@@ -49,12 +55,16 @@ def main() -> int:
     parser.add_argument("--configs", default="1x1,3x3,6x6")
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--reps", type=int, default=5)
+    parser.add_argument("--self-healing", action="store_true",
+                        help="with the live calibrator (threaded, as stage serve runs it)")
     args = parser.parse_args()
     t0 = time.perf_counter()
     if not jit.warm():
         print(f"compiled kernels unavailable ({jit.why_not()}): nothing to compare")
         return 1
     print(f"jit.warm() in this process: {time.perf_counter() - t0:.2f} s")
+    if args.self_healing:
+        return healing(args)
     print(f"{'config':>7} {'kernels us':>11} {'numpy us':>9} {'ratio (pairs)':>14}  range")
     for config in args.configs.split(","):
         n_sensors, n_people = map(int, config.split("x"))
@@ -67,6 +77,26 @@ def main() -> int:
         ratio = np.array(on) / np.array(off)
         print(f"{config:>7} {np.median(on):11.0f} {np.median(off):9.0f} {np.median(ratio):14.3f}"
               f"  {ratio.min():.3f}-{ratio.max():.3f}")
+    return 0
+
+
+def healing(args) -> int:
+    """Engine and calibrator CPU, % of a core, kernels and numpy, pair by pair."""
+    print(f"{'config':>7} | {'all, kernels':>12} {'numpy':>6} {'ratio':>6} | {'calibrator, kernels':>19}"
+          f" {'numpy':>6} {'ratio':>6}")
+    for config in args.configs.split(","):
+        n_sensors, n_people = map(int, config.split("x"))
+        rows = {True: [], False: []}
+        for _ in range(args.reps):
+            rows[True].append(run(n_sensors, n_people, args.seconds, True, True))
+            with jit.disabled():
+                rows[False].append(run(n_sensors, n_people, args.seconds, True, True))
+        total = {k: np.array([r["core_fraction"] for r in v]) * 100 for k, v in rows.items()}
+        cal = {k: np.array([r["calibrator_core_fraction"] for r in v]) * 100
+               for k, v in rows.items()}
+        print(f"{config:>7} | {np.median(total[True]):12.1f} {np.median(total[False]):6.1f} "
+              f"{np.median(total[True] / total[False]):6.3f} | {np.median(cal[True]):19.1f} "
+              f"{np.median(cal[False]):6.1f} {np.median(cal[True] / cal[False]):6.3f}")
     return 0
 
 

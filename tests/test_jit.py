@@ -286,3 +286,74 @@ def test_distance_kernel_is_persons_distance():
             assert got == pytest.approx(want, rel=1e-12)
         results.add(want is None)
     assert results == {True, False}
+
+
+def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
+    """A read-only install whose user has no writable cache folder: numba refuses to cache;
+    the kernels are compiled without a cache (one logged line), not given up."""
+    if jit.numba is None:
+        pytest.skip("numba is not installed")
+    real = jit.numba.njit
+    calls = []
+
+    def no_cache(sig, cache=False, **kwargs):
+        calls.append(cache)
+        if cache:
+            raise RuntimeError("cannot cache function '_step_rows': no locator available for "
+                               "file '/opt/stage/jit.py'")
+        return real(sig, cache=False, **kwargs)
+    monkeypatch.setattr(jit.numba, "njit", no_cache)
+    with jit.disabled():
+        jit.ENABLED = True
+        with caplog.at_level(logging.WARNING, logger="stage.engine"):
+            assert jit.warm() is True
+        assert calls[0] is True and not any(calls[1:])
+        assert sum("no disk cache" in r.getMessage() for r in caplog.records) == 1
+
+
+@needs_jit
+def test_jump_gate_kernel_is_the_numpy_gate():
+    """Two gates fed the same three sensors' views of four people for 20 s, in datagrams
+    and one view at a time, while the sensors are trusted and untrusted and one is bumped
+    now and then: the same jumps (sensors and distance), links and recorded state."""
+    from stage.calibration.gate import JumpGate
+    rng = np.random.default_rng(8)
+    gates = [JumpGate(), JumpGate()]
+    people = rng.uniform(-2, 2, (4, 1, 3)) + rng.normal(0, 0.15, (4, 5, 3))   # torso points
+    offset = {s: np.zeros(3) for s in "abc"}
+    jumps = 0
+    for f in range(600):
+        people += rng.normal(0, 0.01, (4, 1, 3))
+        if f % 97 == 50:
+            offset["abc"[f % 3]] = rng.normal(0, 0.4, 3)          # a bump
+        for s in "abc":
+            if f % 40 == 0:
+                trusted = bool(rng.random() < 0.85)
+                for g in gates:
+                    g.trust(s, trusted)
+            users = [u for u in range(4) if rng.random() < 0.9]
+            if not users:
+                continue
+            t = f / 30 + rng.uniform(0, 0.005)
+            points = people[users] + offset[s] + rng.normal(0, 0.01, (len(users), 5, 3))
+            tracked = rng.random((len(users), 5)) < 0.8
+            results = []
+            for compiled, g in zip((True, False), gates):
+                with (contextlib.nullcontext() if compiled else jit.disabled()):
+                    if f % 2:
+                        results.append(g.check_many(s, users, t, points, tracked))
+                    else:
+                        results.append([g.check(s, u, t, points[k], tracked[k])
+                                        for k, u in enumerate(users)])
+            for got, want in zip(*results):
+                assert (got is None) == (want is None)
+                if want is not None:
+                    jumps += 1
+                    assert got[0] == want[0] and got[1] == pytest.approx(want[1], rel=1e-9)
+    a, b = gates
+    n = len(a._index)
+    for name in ("_t", "_x", "_v", "_links"):
+        np.testing.assert_allclose(getattr(a, name)[:n], getattr(b, name)[:n], rtol=1e-9,
+                                   atol=1e-12, err_msg=name)
+    np.testing.assert_array_equal(a._m[:n], b._m[:n])
+    assert jumps > 5

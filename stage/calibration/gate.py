@@ -22,6 +22,7 @@ from collections import OrderedDict
 
 import numpy as np
 
+from ..engine import jit
 from ..joints import TORSO
 
 INF = float("inf")
@@ -136,6 +137,8 @@ class JumpGate:
         none; else None. (``check_many`` for one view, with fewer numpy calls: this
         runs for every frame.)
         """
+        if jit.ready():
+            return self.check_many(sensor, [user], t, points[None], tracked[None])[0]
         i = self._row(sensor, user)
         n = len(self._index)
         x = np.where(tracked[:, None], points, 0.0)
@@ -177,6 +180,19 @@ class JumpGate:
         names = {k: s for s, k in self._sensors.items()}
         return sorted({names[k] for k in owner[jumped]}), float(d[jumped].max())
 
+    def _check_compiled(self, sensor: str, rows: np.ndarray, t: float, points: np.ndarray,
+                        tracked: np.ndarray) -> list[tuple[list[str], float] | None]:
+        """``check_many`` in one compiled call (``jit.gate``, without the GIL)."""
+        n = len(self._index)
+        jumped, dmax = jit.gate(rows, t, points, tracked, self._t, self._x, self._m, self._v,
+                                self._owner, self._trusted, self._links, self._sensors[sensor],
+                                n, self.min_joints, self.agree_m, self.gate_m, self.link_s)
+        out: list[tuple[list[str], float] | None] = [None] * len(rows)
+        for r in np.flatnonzero(dmax >= 0.0):
+            names = {k: s for s, k in self._sensors.items()}
+            out[r] = (sorted({names[k] for k in self._owner[:n][jumped[r]]}), float(dmax[r]))
+        return out
+
     def check_many(self, sensor: str, users: list[int], t: float, points: np.ndarray,
                    tracked: np.ndarray) -> list[tuple[list[str], float] | None]:
         """``check`` for several views of one sensor at one time t (one datagram's
@@ -190,6 +206,8 @@ class JumpGate:
         rows = [self._row(sensor, user) for user in users]
         rows_a = np.array(rows)
         tracked = np.asarray(tracked, bool)
+        if jit.ready():
+            return self._check_compiled(sensor, rows_a, t, points, tracked)
         self._record(rows_a, t, points, tracked)
         out: list[tuple[list[str], float] | None] = [None] * len(rows)
         found = self._distances(sensor, t, self._x[rows_a], tracked)  # untracked joints: 0

@@ -346,6 +346,82 @@ def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragm
     return total / count if count else np.nan
 
 
+def _gate(rows, t, points, tracked, T, X, Mk, V, owner, trusted, links, own, n, min_joints,
+          agree_m, gate_m, link_s, valid, d, jumped, dmax):  # pragma: no cover (compiled)
+    """``calibration.gate.JumpGate.check_many`` (see there) of k views of sensor ``own`` at
+    ``t``: points (k, P, 3) stage space, tracked (k, P); the gate's arrays (T, X, Mk, V,
+    owner, trusted, links; n views) are updated in place as there. Writes valid, d and
+    jumped (k, n) and dmax (k,) (the largest distance among the views it jumped from);
+    valid (k, n) is scratch."""
+    k, p = tracked.shape
+    for r in range(k):                                   # record (``_record``)
+        i = rows[r]
+        dt = t - T[i]
+        count = 0
+        for q in range(p):
+            if tracked[r, q] and Mk[i, q]:
+                count += 1
+        v0 = v1 = v2 = 0.0
+        if dt > 0.0 and dt <= 0.2 and count > 0:
+            for q in range(p):
+                if tracked[r, q] and Mk[i, q]:
+                    v0 += points[r, q, 0] - X[i, q, 0]
+                    v1 += points[r, q, 1] - X[i, q, 1]
+                    v2 += points[r, q, 2] - X[i, q, 2]
+            den = count * dt
+            v0, v1, v2 = v0 / den, v1 / den, v2 / den
+            speed = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            if speed > 3.0:                              # a jump is not a velocity
+                f = 3.0 / speed
+                v0, v1, v2 = v0 * f, v1 * f, v2 * f
+        V[i, 0], V[i, 1], V[i, 2] = v0, v1, v2
+        T[i] = t
+        for q in range(p):
+            Mk[i, q] = tracked[r, q]
+            for a in range(3):
+                X[i, q, a] = points[r, q, a] if tracked[r, q] else 0.0
+    for r in range(k):                                   # distances (``_distances``)
+        i = rows[r]
+        for j in range(n):
+            dtj = t - T[j]
+            ok = abs(dtj) <= 0.1 and trusted[owner[j]] and owner[j] != own
+            count = 0
+            m0 = m1 = m2 = 0.0
+            if ok:
+                for q in range(p):
+                    if tracked[r, q] and Mk[j, q]:
+                        count += 1
+                        m0 += X[j, q, 0] - X[i, q, 0]
+                        m1 += X[j, q, 1] - X[i, q, 1]
+                        m2 += X[j, q, 2] - X[i, q, 2]
+                ok = count >= min_joints
+            valid[r, j] = ok
+            if ok:
+                m0 = m0 / count + V[j, 0] * dtj
+                m1 = m1 / count + V[j, 1] * dtj
+                m2 = m2 / count + V[j, 2] * dtj
+                d[r, j] = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+            else:
+                d[r, j] = np.inf
+    for r in range(k):                                   # agreement, jumps
+        i = rows[r]
+        agreed = False
+        for j in range(n):
+            if valid[r, j] and d[r, j] <= agree_m:
+                agreed = True
+        dmax[r] = -1.0
+        for j in range(n):
+            jumped[r, j] = False
+            if agreed:
+                if valid[r, j] and d[r, j] <= agree_m:
+                    links[i, j] = t
+                    links[j, i] = t
+            elif valid[r, j] and d[r, j] >= gate_m and t - links[i, j] <= link_s:
+                jumped[r, j] = True
+                if d[r, j] > dmax[r]:
+                    dmax[r] = d[r, j]
+
+
 _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
@@ -362,6 +438,10 @@ _SIGNATURES = {
               "float64[:, ::1], float64[::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
+    "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
+             "float64[:, :, ::1], boolean[:, ::1], float64[:, ::1], int64[::1], boolean[::1], "
+             "float64[:, ::1], int64, int64, int64, float64, float64, float64, boolean[:, ::1], "
+             "float64[:, ::1], boolean[:, ::1], float64[::1])",
 }
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
@@ -377,10 +457,22 @@ def warm() -> bool:
     if _compiled:
         return True
     try:
+        cache = True
         for name, sig in _SIGNATURES.items():
             # in order: a kernel that calls another finds it compiled under its own name
-            _compiled[name] = globals()[name] = numba.njit(sig, cache=True, nogil=True)(
-                _PYTHON[name])
+            try:
+                kernel = numba.njit(sig, cache=cache, nogil=True)(_PYTHON[name])
+            except RuntimeError as exc:
+                if not cache or "cannot cache" not in str(exc):
+                    raise
+                # no writable place for numba's cache (a read-only install, a service user
+                # without a home): compile every start instead (docs/installing.md)
+                log.warning("compiled kernels: no disk cache (%s); compiling at every start "
+                            "(set NUMBA_CACHE_DIR to a writable folder)",
+                            str(exc).splitlines()[0])
+                cache = False
+                kernel = numba.njit(sig, cache=False, nogil=True)(_PYTHON[name])
+            _compiled[name] = globals()[name] = kernel
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
         _compiled.clear()
@@ -494,6 +586,23 @@ def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
     """The compiled ``_distance``: mean distance (m), None where nothing is shared."""
     d = _compiled["_distance"](joints, conf, person_joints, velocity, known, float(dt), torso)
     return None if d != d else d
+
+
+def gate(rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray, T: np.ndarray,
+         X: np.ndarray, Mk: np.ndarray, V: np.ndarray, owner: np.ndarray, trusted: np.ndarray,
+         links: np.ndarray, own: int, n: int, min_joints: int, agree_m: float, gate_m: float,
+         link_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled ``_gate``: (jumped (k, n) bool, the largest distance per view); the
+    gate's arrays updated in place. Runs without the GIL (the calibrator's worker thread
+    then leaves the engine thread its core)."""
+    k = len(rows)
+    valid, jumped = np.empty((k, n), dtype=bool), np.empty((k, n), dtype=bool)
+    d, dmax = np.empty((k, n)), np.empty(k)
+    _compiled["_gate"](rows, float(t), np.ascontiguousarray(points, dtype=float),
+                       np.ascontiguousarray(tracked, dtype=bool), T, X, Mk, V, owner, trusted,
+                       links, int(own), int(n), int(min_joints), float(agree_m), float(gate_m),
+                       float(link_s), valid, d, jumped, dmax)
+    return jumped, dmax
 
 
 def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,
