@@ -89,16 +89,22 @@ def _timed(fn, acc: list):
     return wrapped
 
 
-def run(n_sensors: int, n_people: int, seconds: float, healing: bool = False,
-        worker: bool = False, paced: bool = False) -> dict:
-    poses, data = datagrams(n_sensors, n_people, seconds)
+def make_engine(poses) -> tuple[Engine, ManualClock]:
+    """An engine on a manual clock whose rig calibrates the sensors at ``poses`` exactly
+    (sensor 0 the reference), with one view and a transport that sends nothing."""
     rig = Rig(reference="s0", views=[("127.0.0.1", 9)])
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):
         set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
     clock = ManualClock(0.0)
-    engine = Engine(rig, clock, NullTransport())
+    return Engine(rig, clock, NullTransport()), clock
+
+
+def run(n_sensors: int, n_people: int, seconds: float, healing: bool = False,
+        worker: bool = False, paced: bool = False) -> dict:
+    poses, data = datagrams(n_sensors, n_people, seconds)
+    engine, clock = make_engine(poses)
     calibrator_cpu = [0.0, 0]
     cal = None
     if healing:

@@ -26,22 +26,13 @@ import time
 
 import numpy as np
 
-from bench_engine_inproc import NullTransport, datagrams, run
-from stage.clock import ManualClock
+from bench_engine_inproc import datagrams, make_engine, run
 from stage.engine import jit
-from stage.engine.engine import Engine
-from stage.rig import Rig, set_calibration
 
 
 def replay(poses, data) -> float:
     """CPU us per datagram of one fresh engine over ``data``."""
-    rig = Rig(reference="s0", views=[("127.0.0.1", 9)])
-    rig.stage_frame = poses[0].to_stage
-    inverse = np.linalg.inv(poses[0].to_stage)
-    for k, p in enumerate(poses):
-        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
-    clock = ManualClock(0.0)
-    engine = Engine(rig, clock, NullTransport())
+    engine, clock = make_engine(poses)
     c0 = time.process_time()
     for t, d in data:
         clock.set(t)

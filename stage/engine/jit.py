@@ -317,32 +317,23 @@ def _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, le
 
 
 def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragma: no cover
-    """``tracking.Person.distance`` (see there) with ``dt`` already bounded; NaN for None."""
-    n_torso = 0
+    """``tracking.Person.distance`` (see there) with ``dt`` already bounded; NaN for None:
+    over the torso joints both have, or over every joint both have if they share none."""
+    on_torso = False
     for k in range(torso.shape[0]):
         if conf[torso[k]] > 0.0 and known[torso[k]]:
-            n_torso += 1
+            on_torso = True
     total = 0.0
     count = 0
-    if n_torso:
-        for k in range(torso.shape[0]):
-            j = torso[k]
-            if conf[j] > 0.0 and known[j]:
-                s = 0.0
-                for a in range(3):
-                    d = joints[j, a] - person_joints[j, a] - velocity[j, a] * dt
-                    s = d * d if a == 0 else s + d * d
-                total += math.sqrt(s)
-                count += 1
-    else:
-        for j in range(joints.shape[0]):
-            if conf[j] > 0.0 and known[j]:
-                s = 0.0
-                for a in range(3):
-                    d = joints[j, a] - person_joints[j, a] - velocity[j, a] * dt
-                    s = d * d if a == 0 else s + d * d
-                total += math.sqrt(s)
-                count += 1
+    for m in range(torso.shape[0] if on_torso else joints.shape[0]):
+        j = torso[m] if on_torso else m
+        if conf[j] > 0.0 and known[j]:
+            s = 0.0
+            for a in range(3):
+                d = joints[j, a] - person_joints[j, a] - velocity[j, a] * dt
+                s = d * d if a == 0 else s + d * d
+            total += math.sqrt(s)
+            count += 1
     return total / count if count else np.nan
 
 
