@@ -132,8 +132,8 @@ def test_disabled_runs_the_numpy_code_and_restores():
 
 
 def test_a_compiler_that_fails_leaves_one_line_and_the_numpy_code(monkeypatch, caplog):
-    if jit.numba is None:
-        pytest.skip("numba is not installed")
+    if not jit.ready():
+        pytest.skip(f"no compiled kernels: {jit.why_not()}")
 
     def broken(*args, **kwargs):
         raise RuntimeError("LLVM ERROR: no target\nmore")
@@ -291,8 +291,8 @@ def test_distance_kernel_is_persons_distance():
 def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
     """A read-only install whose user has no writable cache folder: numba refuses to cache;
     the kernels are compiled without a cache (one logged line), not given up."""
-    if jit.numba is None:
-        pytest.skip("numba is not installed")
+    if not jit.ready():
+        pytest.skip(f"no compiled kernels: {jit.why_not()}")
     real = jit.numba.njit
     calls = []
 
@@ -357,3 +357,20 @@ def test_jump_gate_kernel_is_the_numpy_gate():
                                    atol=1e-12, err_msg=name)
     np.testing.assert_array_equal(a._m[:n], b._m[:n])
     assert jumps > 5
+
+
+def test_no_numba_is_one_line_and_the_numpy_engine():
+    """A machine where numba will not import: building an engine logs one line and the
+    engine fuses with the numpy code."""
+    code = ("import sys, logging; sys.modules['numba'] = None\n"
+            "logging.basicConfig(level=logging.WARNING, format='%(message)s')\n"
+            "from stage.engine import jit\n"
+            "from stage.engine.engine import Engine\n"
+            "Engine()\n"
+            "print('ready', jit.ready(), jit.why_not())\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env=dict(os.environ, STAGE_JIT="1"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("ready False ModuleNotFoundError")
+    lines = [line for line in done.stderr.splitlines() if "compiled kernels" in line]
+    assert len(lines) == 1 and "numpy code" in lines[0]

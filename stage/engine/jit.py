@@ -35,18 +35,29 @@ log = logging.getLogger("stage.engine")
 
 _MU_FLOOR = 1e-300
 
-try:  # pragma: no branch
-    if os.environ.get("STAGE_JIT", "1").strip() in ("0", "false", "no", "off"):
-        raise ImportError("STAGE_JIT=0")
-    import numba
-except Exception as exc:  # ImportError, or numba's own errors on an unsupported machine
-    numba = None
-    _WHY_NOT = f"{type(exc).__name__}: {exc}"
-else:
-    _WHY_NOT = ""
+#: numba, imported by ``warm`` (importing it takes about 0.4 s: ``stage --help`` and the
+#: commands that build no engine do not pay it)
+numba = None
+#: whether the compiled kernels are used (False: ``STAGE_JIT=0``, numba missing or broken)
+ENABLED = os.environ.get("STAGE_JIT", "1").strip().lower() not in ("0", "false", "no", "off")
+_WHY_NOT = "" if ENABLED else "STAGE_JIT=0"
 
-#: whether the compiled kernels are used (False: numba missing, disabled or broken)
-ENABLED = numba is not None
+
+def _import() -> bool:
+    """Import numba once; False (after one logged line) if it cannot be."""
+    global numba, ENABLED, _WHY_NOT
+    if numba is not None:
+        return True
+    try:
+        import numba as imported
+    except Exception as exc:  # ImportError, or numba's own errors on an unsupported machine
+        ENABLED = False
+        _WHY_NOT = f"{type(exc).__name__}: {exc}"
+        log.warning("compiled kernels unavailable (%s); the engine runs its numpy code",
+                    _WHY_NOT.splitlines()[0])
+        return False
+    numba = imported
+    return True
 
 
 def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
@@ -447,6 +458,8 @@ def warm() -> bool:
         return False
     if _compiled:
         return True
+    if not _import():
+        return False
     try:
         cache = True
         for name, sig in _SIGNATURES.items():
