@@ -374,3 +374,29 @@ def test_no_numba_is_one_line_and_the_numpy_engine():
     assert done.stdout.startswith("ready False ModuleNotFoundError")
     lines = [line for line in done.stderr.splitlines() if "compiled kernels" in line]
     assert len(lines) == 1 and "numpy code" in lines[0]
+
+
+@needs_jit
+def test_a_person_whose_arrays_the_kernel_does_not_take_is_updated_in_numpy():
+    """A person whose hold offsets are not float64 (no path makes one today): the kernel
+    refuses it (TypeError) and that person is updated by the numpy code, not dropped."""
+    poses, data = _show(seconds=1.0)
+    from stage.clock import ManualClock
+    from stage.engine.engine import Engine
+    from stage.rig import Rig, set_calibration
+    rig = Rig(reference="s0")
+    rig.stage_frame = poses[0].to_stage
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", np.linalg.inv(poses[0].to_stage) @ p.to_stage, "test")
+    clock = ManualClock(0.0)
+    engine = Engine(rig, clock)
+    for t, d in data[:30]:
+        clock.set(t)
+        engine.handle_datagram(d)
+    odd = next(iter(engine.people.persons.values()))
+    odd.hold = odd.hold.astype(np.float32)
+    before = odd.t
+    for t, d in data[30:]:
+        clock.set(t)
+        engine.handle_datagram(d)
+    assert odd.t > before and np.isfinite(odd.joints[odd.conf > 0]).all()

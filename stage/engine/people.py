@@ -175,7 +175,11 @@ class People:
         stale = self.rig.fusion.stale_s
         if jit.ready():
             self._update_compiled(persons, stale)
-            return
+        else:
+            self._update_numpy(persons, stale)
+
+    def _update_numpy(self, persons: list[Person], stale: float) -> None:
+        """``_update`` in numpy, all persons at once (the kernels' reference)."""
         t = np.array([max(p.t, p.filter.output[0]) for p in persons])
         pos = np.array([p.filter.output[1] for p in persons])           # (P, 25, 3)
         vel = np.array([p.filter.output[2] for p in persons])
@@ -205,10 +209,14 @@ class People:
         for p in persons:
             out_t, pos, vel = p.filter.output
             t = max(p.t, out_t)
-            joints, velocity, conf, known, carried, centre = jit.settle(
-                pos, vel, p.filter.state.t, t, stale, self._recent_conf(p, t, stale), p.joints,
-                p.known, p.tracked, p.hold, fusion.carry_untracked, fusion.hold_back_inferred,
-                INFERRED, _PARENTS, _CHILDREN, _TORSO)
+            try:
+                joints, velocity, conf, known, carried, centre = jit.settle(
+                    pos, vel, p.filter.state.t, t, stale, self._recent_conf(p, t, stale),
+                    p.joints, p.known, p.tracked, p.hold, fusion.carry_untracked,
+                    fusion.hold_back_inferred, INFERRED, _PARENTS, _CHILDREN, _TORSO)
+            except TypeError:    # arrays the kernel does not take: this person in numpy
+                self._update_numpy([p], stale)
+                continue
             if fusion.carry_untracked:
                 p.carried = carried
             p.joints, p.velocity, p.conf, p.known, p.t = joints, velocity, conf, known, t
