@@ -1,16 +1,21 @@
 """Compiled kernels for the engine's hottest loops (numba), the numpy code as reference.
 
 Profiled per datagram at six sensors and six people (docs/reports/issue-10.md, stop
-25), the filter step of the fused rows (``kalman.step``: about 100 numpy calls on a few
-hundred floats, ``imm.fused_update`` most of them) and the carrying of joints no sensor
-tracks (``fusion.carry_untracked``: a dozen calls and a Python loop per person) were a
-third of the engine's CPU; a numpy call costs about the same whatever its size. Here
-each is one loop over the rows, compiled by numba: the same operations in the same order,
-so the same filter up to the last bit of exp, log and expm1, which come from another
-library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them). The
-step's rare paths (rows rejected, restarted or started) stay in Python. A third kernel
-(``_settle``) makes each updated person's output skeleton from its filter
-(``people.People._update``: about 40 numpy calls a batch plus a dozen a person).
+25), the engine's CPU was spread over many numpy calls on a few hundred floats each, and
+a numpy call costs about the same whatever its size. The loops that are arithmetic are
+compiled here by numba, each the same operations in the same order as the numpy code it
+replaces, which stays as reference and fallback:
+
+- ``_step_rows``: ``kalman.step``'s usual path (``imm.fused_update`` and what the step
+  keeps); rows rejected, restarted or started stay in Python;
+- ``_settle``: each updated person's output skeleton (``people.People._update``), with
+  ``_carry`` (``fusion.carry_untracked``);
+- ``_frame``: a frame's transform and ``fusion.unswap_limbs``;
+- ``_distance``: ``tracking.Person.distance``;
+- ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL.
+
+The results are the numpy code's up to the last bit of exp, log and expm1, which come from
+another library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them).
 
 numba is a dependency; should it fail to import or to compile on some machine, or with
 ``STAGE_JIT=0`` in the environment, the engine logs one line and runs the numpy code
@@ -29,11 +34,9 @@ import os
 import numpy as np
 
 from ..settings import KalmanSettings
-from .imm import _constants
+from .imm import _MU_FLOOR, _constants
 
 log = logging.getLogger("stage.engine")
-
-_MU_FLOOR = 1e-300
 
 #: numba, imported by ``warm`` (importing it takes about 0.4 s: ``stage --help`` and the
 #: commands that build no engine do not pay it)
@@ -512,8 +515,6 @@ def why_not() -> str:
 
 
 _EMPTY = np.empty(0)
-
-
 _FLAT: dict[int, tuple] = {}
 
 

@@ -144,10 +144,11 @@ class Person:
         so a view that sees only part of the body is not judged by a centre
         that jumps with what happens to be occluded.
         """
+        dt = min(max(t - self.t, 0.0), 0.5)
         if jit.ready():
             try:
-                return jit.distance(joints, conf, self.joints, self.velocity, self.known,
-                                    min(max(t - self.t, 0.0), 0.5), _TORSO_IDX)
+                return jit.distance(joints, conf, self.joints, self.velocity, self.known, dt,
+                                    _TORSO_IDX)
             except TypeError:   # arrays the kernel does not take (not float64, not contiguous)
                 pass
         on_torso = (conf[_TORSO_IDX] > 0) & self.known[_TORSO_IDX]
@@ -160,7 +161,6 @@ class Person:
             idx = np.flatnonzero((conf > 0) & self.known)
             if not len(idx):
                 return None
-        dt = min(max(t - self.t, 0.0), 0.5)
         diff = joints[idx] - self.joints[idx] - self.velocity[idx] * dt
         diff *= diff
         # sum / count is what .mean() computes, without its Python-level wrapper (this runs
