@@ -400,3 +400,39 @@ def test_a_person_whose_arrays_the_kernel_does_not_take_is_updated_in_numpy():
         clock.set(t)
         engine.handle_datagram(d)
     assert odd.t > before and np.isfinite(odd.joints[odd.conf > 0]).all()
+
+
+@needs_jit
+def test_view_joints_kernel_writes_the_encoders_bytes():
+    """The compiled ``/jointCoordinates`` is byte for byte ``encode_view_joints``'s on random
+    skeletons (joints dropped, NaN and inf coordinates, values beyond float32, every user
+    id width), and python-osc reads it back."""
+    from pythonosc.osc_message import OscMessage
+
+    from stage.joints import JOINTS
+    from stage.sensors.encode import encode_view_joints
+
+    rng = np.random.default_rng(7)
+    dropped = 0
+    for k in range(2000):
+        joints = rng.normal(0.0, 1.0, (25, 3)) * rng.choice([1e-3, 1.0, 5.0, 1e39])
+        conf = rng.choice([0.0, 0.5, 1.0, 0.3, -1.0, np.nan], size=25)
+        if k % 5 == 0:
+            joints[rng.integers(25)] = rng.choice([np.nan, np.inf, -np.inf])
+        if k % 97 == 0:
+            conf[:] = 0.0
+        user = int(rng.choice([0, 7, 2 ** 15, 2 ** 31 - 1]))
+        expected = encode_view_joints(user, joints, conf)
+        assert jit.view_joints(user, joints, conf) == expected
+        dropped += int(not (conf > 0).all())
+    assert dropped > 1000
+    joints, conf = rng.normal(0.0, 1.0, (25, 3)), np.linspace(0.04, 1.0, 25)
+    conf[3] = 0.0
+    msg = OscMessage(jit.view_joints(12, joints, conf))
+    params = msg.params
+    assert msg.address == "/jointCoordinates" and params[0] == 12
+    names = [JOINTS[j] for j in range(25) if j != 3]
+    assert params[1::5] == names
+    got = np.array([params[2 + 5 * m: 6 + 5 * m] for m in range(24)])
+    want = np.column_stack([np.delete(joints, 3, axis=0), np.delete(conf, 3)])
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)

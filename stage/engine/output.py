@@ -43,8 +43,17 @@ from ..sensors.protocol import (RegisterView, encode_message, encode_view_hand_s
                                 encode_view_joints, encode_view_lost_user, encode_view_new_user)
 from ..settings import LimitSettings
 from ..stats import DropCounter, OTHER
+from . import jit
 
 log = logging.getLogger("stage.engine")
+
+
+def _encode_joints(pid: int, joints: np.ndarray, conf: np.ndarray) -> bytes:
+    """A fused skeleton's ``/jointCoordinates`` (one per person per update: the compiled
+    encoder when the kernels are used, the same bytes as ``encode_view_joints``)."""
+    if jit.ready():
+        return jit.view_joints(pid, joints, conf)
+    return encode_view_joints(pid, joints, conf)
 
 
 class Transport(Protocol):
@@ -239,16 +248,16 @@ class ViewOutput:
                targets: list[tuple[str, int]] | None = None) -> None:
         """To every view that takes every update (default), or to ``targets``."""
         if targets is not None:
-            data = encode_view_joints(pid, joints, conf)
+            data = _encode_joints(pid, joints, conf)
             for view in targets:
                 self.send(data, view)
             return
         if not self.views or self.transport is None:
             return
         if not self.rates and not self.forecasts:
-            self.broadcast(encode_view_joints(pid, joints, conf))
+            self.broadcast(_encode_joints(pid, joints, conf))
             return
-        data = encode_view_joints(pid, joints, conf)
+        data = _encode_joints(pid, joints, conf)
         for view in self.views:
             if view not in self.rates and view not in self.forecasts:
                 self.send(data, view)
