@@ -125,10 +125,13 @@ def test_carry_falls_back_to_numpy_for_arrays_the_kernel_does_not_take():
 
 
 def test_disabled_runs_the_numpy_code_and_restores():
-    before = jit.ready()
+    from stage.sensors import protocol
+
+    before, scanner = jit.ready(), protocol._scanner
+    assert (scanner is not None) == before        # the receiver's scanner comes with them
     with jit.disabled():
-        assert not jit.ready() and not jit.ENABLED
-    assert jit.ready() == before
+        assert not jit.ready() and not jit.ENABLED and protocol._scanner is None
+    assert jit.ready() == before and protocol._scanner is scanner
 
 
 def test_a_compiler_that_fails_leaves_one_line_and_the_numpy_code(monkeypatch, caplog):
@@ -143,6 +146,8 @@ def test_a_compiler_that_fails_leaves_one_line_and_the_numpy_code(monkeypatch, c
         with caplog.at_level(logging.WARNING, logger="stage.engine"):
             assert jit.warm() is False
         assert not jit.ENABLED and not jit.ready()
+        from stage.sensors import protocol
+        assert protocol._scanner is None               # bundles walked in Python
         assert jit.why_not() == "compilation failed (logged)"
         lines = [r.getMessage() for r in caplog.records if "compiled kernels" in r.getMessage()]
         assert len(lines) == 1 and "\n" not in lines[0] and "LLVM ERROR: no target" in lines[0]
@@ -296,7 +301,7 @@ def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
     real = jit.numba.njit
     calls = []
 
-    def no_cache(sig, cache=False, **kwargs):
+    def no_cache(sig=None, cache=False, **kwargs):
         calls.append(cache)
         if cache:
             raise RuntimeError("cannot cache function '_step_rows': no locator available for "

@@ -14,7 +14,9 @@ replaces, which stays as reference and fallback:
 - ``_distance``: ``tracking.Person.distance``;
 - ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL;
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
-  views (the same bytes).
+  views (the same bytes);
+- ``sensors.scan.scan``: a sensor bundle's skeletons and hand states read in one pass
+  (given to ``sensors.protocol.use_scanner``; the receiver decodes with it).
 
 The results are the numpy code's up to the last bit of exp, log and expm1, which come from
 another library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them).
@@ -32,10 +34,12 @@ import contextlib
 import logging
 import math
 import os
+import types
 
 import numpy as np
 
 from ..joints import JOINTS
+from ..sensors import protocol, scan
 from ..settings import KalmanSettings
 from .imm import _MU_FLOOR, _constants
 
@@ -513,6 +517,15 @@ _SIGNATURES = {
     "_view_joints": "int64(int64, float64[:, ::1], float64[::1], uint8[::1], int64[::1], "
                     "uint8[::1])",
 }
+#: ``sensors.scan.scan``, compiled with the helpers it calls and given to the decoder
+def _scan_sig():
+    """``scan``'s signature: the datagram is a read-only view of its bytes."""
+    t = numba.types
+    return t.int64(t.Array(t.uint8, 1, "C", readonly=True), t.int64[:, ::1],
+                   t.float64[:, :, ::1], t.float64[:, ::1])
+
+
+_SCAN_HELPERS = ("_starts", "_nul", "_find", "_int", "_client", "_skeleton", "_hand")
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
@@ -545,9 +558,13 @@ def warm() -> bool:
                 cache = False
                 kernel = numba.njit(sig, cache=False, nogil=True)(_PYTHON[name])
             _compiled[name] = globals()[name] = kernel
+        _compiled["scan"] = _compile_with_helpers(scan, "scan", _SCAN_HELPERS, _scan_sig(),
+                                                  cache)
+        protocol.use_scanner(_compiled["scan"])
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
         _compiled.clear()
+        protocol.use_scanner(None)
         log.warning("compiled kernels unavailable (%s: %s); the engine runs its numpy code",
                     type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "")
         return False
@@ -567,11 +584,13 @@ def disabled():
     saved, kernels = ENABLED, dict(_compiled)
     ENABLED = False
     _compiled.clear()
+    protocol.use_scanner(None)
     try:
         yield
     finally:
         ENABLED = saved
         _compiled.update(kernels)
+        protocol.use_scanner(kernels.get("scan"))
 
 
 def why_not() -> str:
@@ -704,3 +723,19 @@ def view_joints(user: int, joints: np.ndarray, conf: np.ndarray) -> bytes:
                                   np.ascontiguousarray(conf, dtype=float), _NAMES, _NAME_END,
                                   out)
     return out[:n].tobytes()
+
+
+def _compile_with_helpers(module, entry: str, helpers: tuple[str, ...], sig,
+                          cache: bool):
+    """``module.entry`` compiled, with the module's ``helpers`` it calls compiled too: each
+    a copy of the function bound to a copy of the module's globals, so the module itself
+    stays plain Python (it imports no compiler and runs uncompiled in its tests)."""
+    ns = dict(vars(module))
+
+    def copy(name):
+        fn = ns[name]
+        return types.FunctionType(fn.__code__, ns, name, fn.__defaults__)
+
+    for name in helpers:
+        ns[name] = numba.njit(nogil=True)(copy(name))   # compiled into the entry: no cache of their own
+    return numba.njit(sig, cache=cache, nogil=True)(copy(entry))

@@ -29,7 +29,8 @@ import numpy as np
 from pythonosc import osc_message
 from pythonosc.parsing import ntp
 
-from ..joints import JOINT_INDEX, N_JOINTS, parse_hand, parse_hand_state
+from ..joints import JOINT_INDEX, N_JOINTS, HandState, parse_hand, parse_hand_state
+from . import scan
 # The message types and the encoders live in their own modules; they are re-exported
 # here because ``protocol`` is the wire API's one import for views, clients and tests.
 from .encode import (_pad, encode_bundle, encode_client_joints, encode_message,  # noqa: F401
@@ -58,6 +59,8 @@ def decode_datagram(data: bytes, source: str = "?") -> Decoded:
     out = Decoded()
     try:
         if data.startswith(b"#bundle\0"):
+            if _scanner is not None and _decode_scanned(data, out, source):
+                return out
             canonical: list = []
             _walk_bundle(data, out, source, canonical)
             if canonical:
@@ -86,6 +89,57 @@ def decode_records(records: Iterable[tuple[float, bytes, float | None]], drops: 
             drops[reason] = drops.get(reason, 0) + 1
         for msg, timetag in decoded.messages:
             yield arrival, capture, msg, timetag
+
+
+#: ``scan.scan`` compiled (``use_scanner``); None: bundles are walked in Python
+_scanner = None
+_STATES = tuple(HandState(code) for code in range(len(HandState)))
+
+
+def use_scanner(scanner) -> None:
+    """Walk sensor bundles with ``scanner`` (``scan.scan`` compiled; the engine installs it
+    when it compiles its kernels), or in Python (None)."""
+    global _scanner
+    _scanner = scanner
+
+
+def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
+    """``decode_datagram`` of a bundle by the scanner: the same messages and drops as
+    ``_walk_bundle`` gives (elements the scanner does not read are decoded here as there);
+    False, having added nothing, where the bundle needs the Python walker (nested)."""
+    n = len(data)
+    info = np.empty((min(n // 8, 128), scan.COLUMNS), dtype=np.int64)
+    rows = min(n // scan.SMALLEST_SKELETON + 1, 64)
+    joints, conf = np.empty((rows, N_JOINTS, 3)), np.empty((rows, N_JOINTS))
+    count = _scanner(np.frombuffer(data, dtype=np.uint8), info, joints, conf)
+    if count == scan.USE_WALKER:
+        return False
+    if count == scan.MALFORMED:
+        raise ValueError("bundle element size out of bounds")
+    (stamp,) = struct.unpack_from(">Q", data, 8)
+    timetag = None if stamp == 1 else ntp.ntp_to_system_time(data[8:16])
+    messages = out.messages
+    clients: dict[bytes, str] = {}
+    for kind, start, end, c0, c1, c_int, user, hand, state, row in info[:count].tolist():
+        if kind == scan.OTHER:
+            _decode_element(data[start:end], timetag, out, source)
+            continue
+        if c0 < 0:
+            client = str(c_int)
+        else:
+            raw = data[c0:c1]
+            client = clients.get(raw)
+            if client is None:
+                try:
+                    client = clients[raw] = raw.decode("utf-8")
+                except UnicodeDecodeError:   # the Python path names the drop
+                    _decode_element(data[start:end], timetag, out, source)
+                    continue
+        if kind == scan.SKELETON:
+            messages.append((JointCoordinates(client, user, joints[row], conf[row]), timetag))
+        else:
+            messages.append((HandStateMsg(client, user, hand, _STATES[state]), timetag))
+    return True
 
 
 def _walk_bundle(data: bytes, out: Decoded, source: str, canonical: list,
