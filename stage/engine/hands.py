@@ -95,7 +95,8 @@ class HandVoter:
         #: False: the hold alone reports changes (issue 10's rule; a benchmark's reference)
         self.evidence = evidence
         #: per hand: sensor key -> [newest report time, shares per state code (5), weight,
-        #: state of the newest report]
+        #: state of the newest report, its part of the vote for open, closed and lasso,
+        #: whether it has a notTracked share]
         self.reports: tuple[dict, dict] = ({}, {})
         #: what was last reported per hand (None: nothing yet)
         self.reported: list[HandState | None] = [None, None]
@@ -125,21 +126,32 @@ class HandVoter:
         if entry is None:
             shares = [0.0] * 5
             shares[state] = 1.0
-            self.reports[hand][key] = [t, shares, weight, state]
-            return
-        newest, shares = entry[0], entry[1]
-        if t == newest:
-            shares[entry[3]] -= 1.0
-            shares[state] += 1.0
-            entry[2], entry[3] = weight, state
-        elif t > newest:
-            decay = math.exp(-(t - newest) / self.memory_s)
-            for k in range(5):
-                shares[k] *= decay
-            shares[state] += 1.0
-            entry[0], entry[2], entry[3] = t, weight, state
-        else:  # an older report, out of order: counts as old as it is
-            shares[state] += math.exp(-(newest - t) / self.memory_s)
+            entry = self.reports[hand][key] = [t, shares, weight, state, 0.0, 0.0, 0.0, False]
+        else:
+            newest, shares = entry[0], entry[1]
+            if t == newest:
+                shares[entry[3]] -= 1.0
+                shares[state] += 1.0
+                entry[2], entry[3] = weight, state
+            elif t > newest:
+                decay = math.exp(-(t - newest) / self.memory_s)
+                for k in range(5):
+                    shares[k] *= decay
+                shares[state] += 1.0
+                entry[0], entry[2], entry[3] = t, weight, state
+            else:  # an older report, out of order: counts as old as it is
+                shares[state] += math.exp(-(newest - t) / self.memory_s)
+        # the sensor's part of the vote (rule 1): it changes only here, so each vote adds
+        # these up instead of working them out for every sensor (the same floats: a share
+        # at or under the floor adds 0.0, where the vote used to add nothing)
+        total = shares[0] + shares[1] + shares[2] + shares[3] + shares[4]
+        floor = _FORGOTTEN * total
+        scale = entry[2] / total
+        so, sc, sl = shares[2], shares[3], shares[4]
+        entry[4] = scale * so if so > floor else 0.0
+        entry[5] = scale * sc if sc > floor else 0.0
+        entry[6] = scale * sl if sl > floor else 0.0
+        entry[7] = shares[1] > floor
 
     def forget(self, key: tuple[str, int]) -> None:
         """A sensor view left this person: its reports no longer vote."""
@@ -158,21 +170,13 @@ class HandVoter:
         window = 4.0 * self.memory_s
         o = c = l = 0.0
         not_tracked = False
-        for newest, shares, weight, _ in self.reports[hand].values():
+        for newest, _, _, _, so, sc, sl, nt in self.reports[hand].values():
             if t - newest > window:
                 continue
-            total = shares[0] + shares[1] + shares[2] + shares[3] + shares[4]
-            floor = _FORGOTTEN * total
-            scale = weight / total
-            so, sc, sl = shares[2], shares[3], shares[4]
-            if so > floor:
-                o += scale * so
-            if sc > floor:
-                c += scale * sc
-            if sl > floor:
-                l += scale * sl
-            if shares[1] > floor:
-                not_tracked = True
+            o += so
+            c += sc
+            l += sl
+            not_tracked = not_tracked or nt
         # the largest total wins; a tie between known states goes to the higher code
         total = o + c + l
         if l > 0.0 and l >= c and l >= o:
