@@ -13,7 +13,7 @@ import pytest
 
 from stage.engine import imm, jit
 from stage.engine.kalman import (ACCEPTED, DOWNWEIGHTED, NOT_MEASURED, REJECTED, RESTARTED,
-                                 STARTED, FilterState, step)
+                                 STARTED, FilterState, step, step_predicted)
 from stage.engine.fusion import _CHILDREN, _PARENTS, carry_untracked, carry_untracked_numpy
 from stage.settings import KalmanSettings
 
@@ -48,8 +48,13 @@ def test_imm_kernel_gives_the_numpy_floats(n, scaled):
     r = rng.uniform(1e-6, 1e-3, n)
     q = rng.uniform(0.5, 2.0, n) if scaled else None
     want, want_d2 = imm.fused_update(S, dt, z, r, s, q, s.gate_sigma ** 2)
-    block, t, held_t, outcome, n_bad, n_fresh = jit.step_rows(
+    block, t, held_t, outcome, n_bad, n_fresh, pos, vel = jit.step_rows(
         S, st, np.full(n, np.nan), st + dt, z, r, s, q)
+    # the position and velocity at t are FilterState.predicted's, bit for bit
+    want_pos, want_vel = FilterState.of_block(block, t, np.full((n, 3), np.nan),
+                                              held_t).predicted(st + dt)
+    np.testing.assert_array_equal(pos, want_pos)
+    np.testing.assert_array_equal(vel, want_vel)
     use = want_d2 <= s.reject_sigma ** 2
     np.testing.assert_allclose(block[:, :, use], want[:, :, use], rtol=1e-11, atol=1e-300)
     np.testing.assert_array_equal(block[:, :, ~use], S[:, :, ~use])      # kept as it was
@@ -84,7 +89,22 @@ def test_compiled_step_is_the_numpy_step():
         outcomes = []
         for compiled, state in zip((True, False), states):
             with (contextlib.nullcontext() if compiled else jit.disabled()):
-                outcomes.append(step(state, t, z, r, s))
+                if k % 2:
+                    outcomes.append(step(state, t, z, r, s))
+                    continue
+                # every other frame: step_predicted, whose position and velocity are
+                # state.predicted(t) after the step (from the kernel, or after a restart
+                # or a start, from the state), bit for bit
+                before = state.shallow()
+                outcome, pos, vel = step_predicted(state, t, z, r, s)
+                want_pos, want_vel = state.predicted(t)
+                np.testing.assert_array_equal(pos, want_pos)
+                np.testing.assert_array_equal(vel, want_vel)
+                after = state.shallow()
+                np.testing.assert_array_equal(step(before, t, z, r, s), outcome)
+                for name in ("x", "P", "mu", "t", "held_z", "held_t"):
+                    np.testing.assert_array_equal(getattr(before, name), getattr(after, name))
+                outcomes.append(outcome)
         np.testing.assert_array_equal(outcomes[0], outcomes[1])
         seen |= set(outcomes[0].tolist())
         for name in ("x", "P", "mu", "t", "held_z", "held_t"):
@@ -266,6 +286,39 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
         np.testing.assert_allclose(plain_j, apply_transform(matrix, body), rtol=0, atol=1e-12)
         bits.add(want_bits)
     assert {0, 1, 2} <= bits                              # arms, legs and nothing traded
+
+
+@needs_jit
+def test_frame_kernel_gives_the_batch_variances():
+    """``jit.frame_r``'s variances are, bit for bit, what ``People._variances`` computes for
+    the same stage-space joints (the kernel's own, which match numpy's to rounding),
+    including inferred, continuous and unseen confidences and joints within 1 m."""
+    from types import SimpleNamespace
+
+    from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M
+    from stage.engine.people import People
+    from stage.geometry import rot_y
+    from stage.joints import INFERRED
+    from stage.sensors.sim import standing_pose
+    rng = np.random.default_rng(22)
+    settings = [KalmanSettings(), KalmanSettings(measurement_noise=4e-4, noise_per_m=0.01,
+                                                 inferred_sd_m=0.2)]
+    near = 0
+    for k in range(300):
+        s = settings[k % 2]
+        body = standing_pose((rng.uniform(-1, 1), rng.uniform(-1, 1)), rng.uniform(-3, 3),
+                             rng.uniform(-2, 2), rng.uniform(-2, 2))
+        conf = rng.choice([0.0, 0.3, 0.5, 0.9, 1.0], 25)
+        matrix = np.eye(4)
+        matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
+        matrix[:3, 3] = rng.normal(0, 1.5, 3)
+        joints, c, _, r = jit.frame_r(matrix, body, conf, k % 3 > 0, _LOOK, _TRADED,
+                                      SWAP_MARGIN_M, s, INFERRED)
+        view = SimpleNamespace(joints=joints, conf=c, r=None)
+        People._variances(SimpleNamespace(smoothing=s), [(view, matrix[:3, 3])])
+        np.testing.assert_array_equal(r, view.r)          # NaN where unseen, on both
+        near += int((np.linalg.norm(joints - matrix[:3, 3], axis=1) < 1.0).sum())
+    assert near > 0
 
 
 @needs_jit

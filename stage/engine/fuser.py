@@ -38,7 +38,7 @@ from ..joints import INFERRED, N_JOINTS
 from ..settings import FusionSettings, KalmanSettings
 from .fusion import consistent_views
 from .kalman import (ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED, STARTED, FilterState, combine,
-                     mix, predict, step, transition)
+                     mix, predict, step, step_predicted, transition)
 
 _USED = np.array([False] * 8)
 _USED[[STARTED, ACCEPTED, DOWNWEIGHTED, RESTARTED]] = True
@@ -199,9 +199,8 @@ class Fuser:
         r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
                             for _, view, mask, _ in items])
         q = None if self.q_scale is None else np.tile(self.q_scale, len(items))
-        outcome = step(work, t, z, r, self.s, q)
+        outcome, pos, vel = step_predicted(work, t, z, r, self.s, q)
         self._count(outcome)
-        pos, vel = work.predicted(t)
         used = _USED[outcome]
         seen = np.isfinite(r)           # a view's rows, where it has no mask: np.isfinite(view.r)
         for k, (body, view, mask, anchor) in enumerate(items):

@@ -10,7 +10,8 @@ replaces, which stays as reference and fallback:
   keeps); rows rejected, restarted or started stay in Python;
 - ``_settle``: each updated person's output skeleton (``people.People._update``), with
   ``_carry`` (``fusion.carry_untracked``);
-- ``_frame``: a frame's transform and ``fusion.unswap_limbs``;
+- ``_frame``: a frame's transform and ``fusion.unswap_limbs``; ``_frame_r`` adds its joints'
+  measurement variances;
 - ``_distance``: ``tracking.Person.distance``;
 - ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL;
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
@@ -71,7 +72,7 @@ def _import() -> bool:
 
 
 def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
-               out, out_t, out_held_t, outcome, counts):  # pragma: no cover (compiled)
+               out, out_t, out_held_t, outcome, counts, pos, vel):  # pragma: no cover
     """``kalman.step``'s usual path, row by row: the IMM update of ``imm.fused_update``
     (mix, predict, gate, update with the variance grown beyond the gate) of every row that
     has a state and a valid measurement, and what ``step`` keeps of it.
@@ -82,7 +83,9 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
     out_held_t), outcome (N,) int8 -- NOT_MEASURED 0, STARTED 1 (a valid measurement of a
     row without a state: for the caller to start), ACCEPTED 2, DOWNWEIGHTED 3, REJECTED 4
     (beyond reject2: the row keeps its state, for the caller to hold or restart) -- and
-    counts [rows rejected, rows to start].
+    counts [rows rejected, rows to start]; and each row's position and velocity at t as
+    ``FilterState.predicted`` gives them from the new state (pos, vel (N, 3); valid for
+    the caller only where no row is rejected or to start: those change the state after).
     """
     n = S.shape[2]
     X = np.empty((5, 2, 3))
@@ -211,6 +214,16 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                         out[c, m, i, j] = S[c, m, i, j]
             out_t[i] = st[i]
             out_held_t[i] = held_t[i]
+        # FilterState.estimate, then .predicted(t): never backwards (NaN stays NaN)
+        ahead = ti - out_t[i]
+        if not (ahead > 0.0 or ahead != ahead):
+            ahead = 0.0
+        for j in range(3):
+            w1 = out[5, 1, i, j]
+            p = out[0, 0, i, j] + w1 * (out[0, 1, i, j] - out[0, 0, i, j])
+            v = out[1, 0, i, j] + w1 * (out[1, 1, i, j] - out[1, 0, i, j])
+            pos[i, j] = p + ahead * v
+            vel[i, j] = v
 
 
 def _carry(joints, reported, tracked, offsets, parents, children, carried):  # pragma: no cover
@@ -335,6 +348,33 @@ def _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, le
                 conf_out[jr] = v
             traded |= 1 << k
     return traded
+
+
+def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r, margin,
+             sqrt_noise, per_m, inferred, inferred_var, joints_out, conf_out,
+             r_out):  # pragma: no cover (compiled)
+    """``_frame``, then each joint's measurement variance into ``r_out`` as
+    ``people.People._fold`` computes it (``kalman.measurement_variance`` at the joint's
+    distance from the sensor, whose stage position is the transform's translation; NaN
+    where the joint is not seen); returns the traded bit mask."""
+    bits = _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r,
+                  margin, joints_out, conf_out)
+    tx, ty, tz = matrix[0, 3], matrix[1, 3], matrix[2, 3]
+    for k in range(conf_out.shape[0]):
+        c = conf_out[k]
+        if not c > 0.0:
+            r_out[k] = np.nan
+            continue
+        ox = joints_out[k, 0] - tx
+        oy = joints_out[k, 1] - ty
+        oz = joints_out[k, 2] - tz
+        d2 = ox * ox + oy * oy
+        d2 += oz * oz
+        e = math.sqrt(d2) - 1.0
+        sd = sqrt_noise + per_m * (e if e > 0.0 or e != e else 0.0)     # np.maximum(e, 0)
+        guess = 1.0 / c - 1.0 if c <= inferred else 0.0
+        r_out[k] = sd * sd / c + guess * inferred_var
+    return bits
 
 
 def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragma: no cover
@@ -498,7 +538,8 @@ _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
                   f"float64[::1], float64[::1], float64[::1], float64[::1], float64, float64, "
-                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], int64[::1])",
+                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], int64[::1], "
+                  f"float64[:, ::1], float64[:, ::1])",
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
     "_settle": "int64(float64[:, ::1], float64[:, ::1], float64[::1], float64, float64, "
@@ -508,6 +549,9 @@ _SIGNATURES = {
     "_frame": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
               "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, "
               "float64[:, ::1], float64[::1])",
+    "_frame_r": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
+                "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, float64, "
+                "float64, float64, float64, float64[:, ::1], float64[::1], float64[::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
     "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
@@ -616,10 +660,11 @@ def _flat(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
 
 def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
               z: np.ndarray, r: np.ndarray, s: KalmanSettings, q_scale: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int,
+                         np.ndarray, np.ndarray]:
     """The compiled ``_step_rows`` (see there): (new block (6, 2, N, 3), its t (N,), held_t
-    (N,), outcome (N,) int8, rows rejected, rows to start). ``warm()`` must have
-    succeeded; ``kalman.step`` is the way to call it."""
+    (N,), outcome (N,) int8, rows rejected, rows to start, position and velocity (N, 3) at
+    t). ``warm()`` must have succeeded; ``kalman.step`` is the way to call it."""
     q, rates = _flat(s)
     n = len(st)
     out = np.empty((6, 2, n, 3))
@@ -627,12 +672,13 @@ def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
     out_held_t = np.empty(n)
     outcome = np.empty(n, dtype=np.int8)
     counts = np.empty(2, dtype=np.int64)
+    pos, vel = np.empty((n, 3)), np.empty((n, 3))
     qs = _EMPTY if q_scale is None else np.ascontiguousarray(q_scale, dtype=float)
     _compiled["_step_rows"](np.ascontiguousarray(S), np.ascontiguousarray(st),
                             np.ascontiguousarray(held_t), t, z, r, q, qs, rates,
                             float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
-                            out, out_t, out_held_t, outcome, counts)
-    return out, out_t, out_held_t, outcome, int(counts[0]), int(counts[1])
+                            out, out_t, out_held_t, outcome, counts, pos, vel)
+    return out, out_t, out_held_t, outcome, int(counts[0]), int(counts[1]), pos, vel
 
 
 def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,
@@ -668,6 +714,24 @@ def frame(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool
                                f(conf, dtype=float), bool(unswap), look[0], look[1], arm_l, arm_r,
                                leg_l, leg_r, float(margin), joints_out, conf_out)
     return joints_out, conf_out, bits
+
+
+def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
+            look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
+            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """The compiled ``_frame_r``: ``frame``'s (joints, conf, traded bits) and the joints'
+    measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen)."""
+    n = len(conf)
+    joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
+    f = np.ascontiguousarray
+    (arm_l, arm_r), (leg_l, leg_r) = traded
+    bits = _compiled["_frame_r"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
+                                 f(conf, dtype=float), bool(unswap), look[0], look[1], arm_l,
+                                 arm_r, leg_l, leg_r, float(margin),
+                                 math.sqrt(s.measurement_noise), float(s.noise_per_m),
+                                 float(inferred), float(s.inferred_sd_m ** 2), joints_out,
+                                 conf_out, r_out)
+    return joints_out, conf_out, bits, r_out
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,

@@ -307,13 +307,27 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     (N,): per-row factor on both modes' process noise (default 1).
     """
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        return _step(state, t, z, r, s, q_scale)
+        return _step(state, t, z, r, s, q_scale)[0]
+
+
+def step_predicted(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+                   s: KalmanSettings, q_scale: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``step``, then (outcome, position, velocity (N, 3)): ``state.predicted(t)`` after the
+    step, given by the compiled step itself where it can (the same floats)."""
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        outcome, predicted = _step(state, t, z, r, s, q_scale)
+    if predicted is None:
+        predicted = state.predicted(t)
+    return outcome, predicted[0], predicted[1]
 
 
 def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
-          s: KalmanSettings, q_scale: np.ndarray | None) -> np.ndarray:
+          s: KalmanSettings, q_scale: np.ndarray | None
+          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """``step``, inside one ``np.errstate`` (entering one costs as much as a few array
-    operations of a step)."""
+    operations of a step); with the compiled step, also ``state.predicted(t)`` when no
+    row was rejected, restarted or started (else None)."""
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -371,19 +385,22 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     if fresh is not None and np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
-    return outcome
+    return outcome, None
 
 
 def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
-                   s: KalmanSettings, q_scale: np.ndarray | None) -> np.ndarray:
+                   s: KalmanSettings, q_scale: np.ndarray | None
+                   ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """``_step`` with its usual path in one compiled loop (``jit.step_rows``): the same
-    outcome and state; rejected, restarted and new rows as there."""
+    outcome and state; rejected, restarted and new rows as there. Also the kernel's
+    ``state.predicted(t)``, unless a row was restarted or started after it (None)."""
     t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
-    block, new_t, held_t, outcome, n_bad, n_fresh = jit.step_rows(
+    block, new_t, held_t, outcome, n_bad, n_fresh, pos, vel = jit.step_rows(
         state.stacked(), state.t, state.held_t, t, z, r, s, q_scale)
     keep = FilterState.of_block(block, new_t, state.held_z, held_t)
     state.x, state.P, state.mu, state.t, state.held_t, state.block = (
         keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
+    predicted = (pos, vel)      # a row held (rejected once) keeps its x, P, mu and t
     if n_bad:
         bad = np.flatnonzero(outcome == REJECTED)
         again = bad[~np.isnan(state.held_t[bad])]
@@ -393,10 +410,12 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
         if len(again):
             _restart(state, again, z[again], t[again], r[again], s)
             outcome[again] = RESTARTED
+            predicted = None
     if n_fresh:
         fresh = np.flatnonzero(outcome == STARTED)
         _start(state, fresh, z[fresh], t[fresh], r[fresh], s)
-    return outcome
+        predicted = None
+    return outcome, predicted
 
 
 def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,

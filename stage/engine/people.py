@@ -75,10 +75,11 @@ class People:
               t: float, arrival: float) -> None:
         """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
         (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
+        r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         if jit.ready():
-            track.joints, conf, traded = jit.frame(transform, joints, conf,
-                                                   self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
-                                                   SWAP_MARGIN_M)
+            track.joints, conf, traded, r = jit.frame_r(
+                transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
+                SWAP_MARGIN_M, self.smoothing, INFERRED)
         else:
             track.joints = apply_transform(transform, joints)
             traded = 0
@@ -105,7 +106,7 @@ class People:
             person.known = seen.copy()
             person.t = t
         # the measurement variances are computed for the whole batch in _fold
-        view = View(track.key, t, track.joints, conf, _NO_R, arrival)
+        view = View(track.key, t, track.joints, conf, r, arrival)
         self._views.append((person, view, transform[:3, 3]))
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand in (0, 1):
@@ -142,19 +143,9 @@ class People:
     def _fold(self) -> None:
         views, self._views = self._views, []
         live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
-        # each joint's variance from its confidence and its distance from the sensor (whose
-        # position in stage space is the translation of its transform), all views at once
-        joints = np.array([v.joints for _, v, _ in views])                  # (K, 25, 3)
-        conf = np.array([v.conf for _, v, _ in views])                      # (K, 25)
-        offset = joints - np.array([where for _, _, where in views])[:, None]
-        offset *= offset
-        d2 = offset[..., 0] + offset[..., 1]          # .sum(axis=2), the same floats, cheaper
-        d2 += offset[..., 2]
-        seen = conf > 0
-        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0), np.sqrt(d2),
-                                                self.smoothing), np.nan)
-        for k, (_, view, _) in enumerate(views):
-            view.r = r[k]
+        missing = [(v, where) for _, v, where in views if v.r is _NO_R]
+        if missing:
+            self._variances(missing)
         late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in live])}
         touched: dict[int, Person] = {}
         for person, view in live:
@@ -168,6 +159,22 @@ class People:
         if touched:
             self._update(list(touched.values()))
             self.counts["fused_frames"] += len(touched)
+
+    def _variances(self, views: list[tuple[View, np.ndarray]]) -> None:
+        """Each joint's variance from its confidence and its distance from the sensor (whose
+        position in stage space is the translation of its transform), all views at once
+        (without the kernels; ``jit.frame_r`` gives the same floats per frame)."""
+        joints = np.array([v.joints for v, _ in views])                     # (K, 25, 3)
+        conf = np.array([v.conf for v, _ in views])                         # (K, 25)
+        offset = joints - np.array([where for _, where in views])[:, None]
+        offset *= offset
+        d2 = offset[..., 0] + offset[..., 1]          # .sum(axis=2), the same floats, cheaper
+        d2 += offset[..., 2]
+        seen = conf > 0
+        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0), np.sqrt(d2),
+                                                self.smoothing), np.nan)
+        for k, (view, _) in enumerate(views):
+            view.r = r[k]
 
     def _update(self, persons: list[Person]) -> None:
         """Each person's output skeleton from its filter at its newest frame's capture time,
