@@ -182,3 +182,64 @@ def test_damaged_sensor_bundles_decode_alike(data):
 @given(bundles())
 def test_fuzzed_bundles_decode_alike(data):
     check_same(data)
+
+
+def test_compiled_scanner_reads_nothing_outside_the_datagram(tmp_path):
+    """numba does not check array bounds by default: a scanner that read past a damaged
+    datagram would read the process's memory. Compiled with NUMBA_BOUNDSCHECK=1 (in a
+    fresh process and cache), 3000 damaged sensor bundles -- cut, bytes flipped, sizes
+    lying, joints' names and tags broken, the last element cut short with a size that
+    fits it -- must scan without an IndexError."""
+    import os
+    import subprocess
+    import sys
+
+    if not jit.ready():
+        pytest.skip(f"no compiled kernels: {jit.why_not()}")
+    script = r'''
+import numpy as np
+from stage.engine import jit
+from stage.sensors import protocol, scan
+from stage.sensors.encode import encode_bundle, encode_client_joints, encode_message
+assert jit.warm(), jit.why_not()
+scanner = jit._compiled["scan"]
+rng = np.random.default_rng(5)
+scanned = 0
+for k in range(3000):
+    msgs = []
+    for user in range(int(rng.integers(1, 4))):
+        joints = rng.normal(0.0, 1.0, (25, 3))
+        conf = rng.choice([1.0, 0.5, 0.0], size=25)
+        msgs += [encode_client_joints("k", user, joints, conf),
+                 encode_message("/handState", "k", user, "left", "open")]
+    data = bytearray(encode_bundle(msgs, None))
+    kind = k % 5
+    if kind == 4:                         # the last element cut short, its size made to fit
+        last = int(rng.integers(0, len(msgs)))
+        cut = msgs[last][:4 * int(rng.integers(1, len(msgs[last]) // 4 + 1))]
+        data = bytearray(encode_bundle(msgs[:last], None) + len(cut).to_bytes(4, "big") + cut)
+    elif kind == 0:
+        data = data[:int(rng.integers(0, len(data)))]
+    elif kind == 1:
+        for _ in range(int(rng.integers(1, 8))):
+            data[int(rng.integers(0, len(data)))] = int(rng.integers(0, 256))
+    elif kind == 2:                       # a size field that lies
+        data[16:20] = int(rng.integers(-8, len(data) + 64)).to_bytes(4, "big", signed=True)
+    else:                                 # zero bytes where names and tags end
+        for _ in range(int(rng.integers(1, 20))):
+            data[int(rng.integers(16, len(data)))] = 0
+    data = bytes(data)
+    n = len(data)
+    info = np.empty((max(n // 8, 1), scan.COLUMNS), dtype=np.int64)
+    rows = n // scan.SMALLEST_SKELETON + 1
+    scanner(np.frombuffer(data, dtype=np.uint8), info, np.empty((rows, 25, 3)),
+            np.empty((rows, 25)))
+    protocol.decode_datagram(data)
+    scanned += 1
+print("scanned", scanned)
+'''
+    env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "scanned 3000" in out.stdout
