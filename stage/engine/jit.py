@@ -474,6 +474,11 @@ def _gate(rows, t, points, tracked, T, X, Mk, V, owner, trusted, links, own, n, 
                     dmax[r] = d[r, j]
 
 
+#: "/jointCoordinates" padded (a constant of ``_view_joints``: iterating a str there made
+#: numba compile its unicode support, a second more of compilation)
+_JC_ADDRESS = np.frombuffer(b"/jointCoordinates\0\0\0", dtype=np.uint8).copy()
+
+
 def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover (compiled)
     """``sensors.encode.encode_view_joints`` of the joints with ``conf`` > 0, into ``out``
     (long enough for all 25); returns the message's length. ``names`` holds the joint
@@ -484,13 +489,9 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
     for j in range(n):
         if conf[j] > 0.0:
             k += 1
-    address = "/jointCoordinates"
     pos = 0
-    for c in address:
-        out[pos] = ord(c)
-        pos += 1
-    while pos < 20:                                      # padded to 20 bytes
-        out[pos] = 0
+    for b in range(_JC_ADDRESS.shape[0]):                # the address, padded to 20 bytes
+        out[pos] = _JC_ADDRESS[b]
         pos += 1
     out[pos] = 44                                        # ','
     out[pos + 1] = 105                                   # 'i'
