@@ -118,6 +118,11 @@ def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
         raise ValueError("bundle element size out of bounds")
     (stamp,) = struct.unpack_from(">Q", data, 8)
     timetag = None if stamp == 1 else ntp.ntp_to_system_time(data[8:16])
+    skeletons = int(np.count_nonzero(info[:count, scan.KIND] == scan.SKELETON))
+    if skeletons < rows:
+        # the messages' arrays are views of these, and a view keeps its whole base alive
+        # (the calibrator buffers seconds of frames): arrays of the skeletons' size only
+        joints, conf = joints[:skeletons].copy(), conf[:skeletons].copy()
     messages = out.messages
     clients: dict[bytes, str] = {}
     for kind, start, end, c0, c1, c_int, user, hand, state, row in info[:count].tolist():
