@@ -161,6 +161,18 @@ def test_edge_cases_decode_alike(case):
     check_same(EDGE_CASES[case])
 
 
+def test_a_bytearray_decodes_as_its_bytes():
+    """A bytearray decodes to what its bytes give (the compiled scanner takes a read-only
+    buffer, and client names are looked up by their bytes: without care every such
+    datagram would be 'malformed')."""
+    rng = np.random.default_rng(9)
+    data = _sensor_bundle(rng, 2)
+    for name, scanner in _scanners():
+        got = _decode(bytearray(data), scanner)
+        assert _flat(got) == _flat(_decode(data, None)), name
+        assert len(got.messages) == 6 and not got.drops
+
+
 def test_edge_cases_give_what_the_api_says():
     """A few of them spelled out (the reference could be wrong too)."""
     ok = check_same(EDGE_CASES["int client"]).messages

@@ -105,7 +105,7 @@ class People:
             person.joints = np.where(seen[:, None], track.joints, person.joints)
             person.known = seen.copy()
             person.t = t
-        # the measurement variances are computed for the whole batch in _fold
+        # without the kernels, the measurement variances are computed for the batch in _fold
         view = View(track.key, t, track.joints, conf, r, arrival)
         self._views.append((person, view, transform[:3, 3]))
         weighted = self.rig.fusion.hand_vote == "confidence"

@@ -111,7 +111,13 @@ def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
     info = np.empty((min(n // 8, 128), scan.COLUMNS), dtype=np.int64)
     rows = min(n // scan.SMALLEST_SKELETON + 1, 64)
     joints, conf = np.empty((rows, N_JOINTS, 3)), np.empty((rows, N_JOINTS))
-    count = _scanner(np.frombuffer(data, dtype=np.uint8), info, joints, conf)
+    if type(data) is not bytes:      # a bytearray: hashable client names, a read-only view
+        data = bytes(data)
+    buf = np.frombuffer(data, dtype=np.uint8)
+    try:
+        count = _scanner(buf, info, joints, conf)
+    except TypeError:       # a buffer the compiled scanner does not take: the Python walker
+        return False
     if count == scan.USE_WALKER:
         return False
     if count == scan.MALFORMED:
