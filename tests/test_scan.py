@@ -152,6 +152,10 @@ EDGE_CASES = {
         _element("/handState", "k", 1, "left", "open") + b"\0" * 4),
     "skeleton with bytes after it": _bundle(
         _skeleton("k", 1, JOINTS[:2], np.ones((2, 4)) * 0.5) + b"\0" * 4),
+    "130 elements (more than the scanner's rows)": _bundle(
+        *[_element("/handState", "k", k % 6, "left", "open") for k in range(130)]),
+    "65 skeletons (more than the scanner's rows)": _bundle(
+        *[_skeleton("k", k % 6, JOINTS, np.full((25, 4), 0.5)) for k in range(65)]),
     "general parse error": _bundle(b"/handState\0\0,six\0\0\0\0"),
 }
 
@@ -182,6 +186,14 @@ def test_edge_cases_give_what_the_api_says():
     assert [type(m) for m, _ in accents] == [JointCoordinates, HandStateMsg]
     assert check_same(EDGE_CASES["size lies"]).drops == [("10.0.0.1:9000", "malformed")]
     assert len(check_same(EDGE_CASES["nested"]).messages) == 2
+    for case, n in (("130 elements (more than the scanner's rows)", 130),
+                    ("65 skeletons (more than the scanner's rows)", 65)):
+        assert len(check_same(EDGE_CASES[case]).messages) == n       # by the Python walker
+        data = np.frombuffer(EDGE_CASES[case], dtype=np.uint8)
+        rows = len(data) // scan.SMALLEST_SKELETON + 1
+        assert scan.scan(data, np.empty((min(len(data) // 8, 128), scan.COLUMNS), np.int64),
+                         np.empty((min(rows, 64), 25, 3)),
+                         np.empty((min(rows, 64), 25))) == scan.USE_WALKER
 
 
 @FAST
