@@ -41,6 +41,7 @@ import numpy as np
 
 from ..joints import JOINTS
 from ..sensors import protocol, scan
+from ..sensors.encode import _NAME_BYTES
 from ..settings import KalmanSettings
 from .imm import _MU_FLOOR, _constants
 
@@ -769,8 +770,9 @@ def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets
 
 
 def _names() -> tuple[np.ndarray, np.ndarray, int]:
-    """The joint names as ``_view_joints`` takes them, and the longest message it writes."""
-    padded = [name.encode() + b"\0" * (4 - len(name) % 4) for name in JOINTS]
+    """The joint names as ``_view_joints`` takes them (the encoder's, padded), and the
+    longest message it writes."""
+    padded = _NAME_BYTES
     ends = np.cumsum([len(p) for p in padded]).astype(np.int64)
     tags = 2 + 5 * len(JOINTS) + 1
     longest = 20 + tags + (-tags) % 4 + 4 + int(ends[-1]) + 16 * len(JOINTS)
