@@ -273,7 +273,7 @@ class Tracker:
         centres = np.array([p.centre for p in live])
         diff = centres[:, None] - centres[None]
         near = (diff * diff).sum(axis=2) <= fs.merge_m ** 2      # every pair at once
-        if np.count_nonzero(near) == len(live):   # only each person with itself: the usual
+        if np.count_nonzero(near) == np.count_nonzero(near.diagonal()):   # no pair: the usual
             self._close_since.clear()
             return
         for i, j in zip(*np.nonzero(np.triu(near, 1))):
