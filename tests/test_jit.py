@@ -275,13 +275,13 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
         matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
         matrix[:3, 3] = rng.normal(0, 2, 3)
         want_j, want_c, want_bits = unswap_limbs(apply_transform(matrix, body), conf)
-        got_j, got_c, got_bits = jit.frame(matrix, body, conf, True, _LOOK, _TRADED,
-                                           SWAP_MARGIN_M)
+        got_j, got_c, got_bits, _ = jit.frame_r(matrix, body, conf, True, _LOOK, _TRADED,
+                                                SWAP_MARGIN_M, KalmanSettings(), 0.5)
         assert got_bits == want_bits
         np.testing.assert_array_equal(got_c, want_c)
         np.testing.assert_allclose(got_j, want_j, rtol=0, atol=1e-12)
-        plain_j, plain_c, none = jit.frame(matrix, body, conf, False, _LOOK, _TRADED,
-                                           SWAP_MARGIN_M)
+        plain_j, plain_c, none, _ = jit.frame_r(matrix, body, conf, False, _LOOK, _TRADED,
+                                                SWAP_MARGIN_M, KalmanSettings(), 0.5)
         assert none == 0
         np.testing.assert_allclose(plain_j, apply_transform(matrix, body), rtol=0, atol=1e-12)
         bits.add(want_bits)
@@ -334,7 +334,8 @@ def test_distance_kernel_is_persons_distance():
         person.known = rng.random(25) < (0.3, 0.9, 1.0)[k % 3]
         person.t = rng.uniform(0, 1)
         joints = person.joints + rng.normal(0, 0.1, (25, 3))
-        conf = rng.choice([0.0, 0.5, 1.0], 25, p=(0.2 + 0.6 * (k % 5 == 0), 0.2, 0.6 - 0.6 * (k % 5 == 0)))
+        sparse = 0.6 * (k % 5 == 0)
+        conf = rng.choice([0.0, 0.5, 1.0], 25, p=(0.2 + sparse, 0.2, 0.6 - sparse))
         t = rng.uniform(0, 1.5)
         got = person.distance(joints, conf, t)
         with jit.disabled():
@@ -366,6 +367,34 @@ def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
         with caplog.at_level(logging.WARNING, logger="stage.engine"):
             assert jit.warm() is True
         assert calls[0] is True and not any(calls[1:])
+        assert sum("no disk cache" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_scanner_that_cannot_cache_is_compiled_without_a_cache(monkeypatch, caplog):
+    """The scanner lives in another package folder than the engine's kernels; should only
+    that one have no writable cache, it is compiled without one (one logged line) and
+    installed, and the kernels are kept."""
+    if not jit.ready():
+        pytest.skip(f"no compiled kernels: {jit.why_not()}")
+    from stage.sensors import protocol
+    real = jit.numba.njit
+    calls = []
+
+    def no_cache_for_scan(sig=None, cache=False, **kwargs):
+        def decorate(fn):
+            calls.append((fn.__name__, cache))
+            if cache and fn.__name__ == "scan":
+                raise RuntimeError("cannot cache function 'scan': no locator available for "
+                                   "file '/opt/stage/sensors/scan.py'")
+            return real(sig, cache=cache, **kwargs)(fn)
+        return decorate
+    monkeypatch.setattr(jit.numba, "njit", no_cache_for_scan)
+    with jit.disabled():
+        jit.ENABLED = True
+        with caplog.at_level(logging.WARNING, logger="stage.engine"):
+            assert jit.warm() is True
+        assert jit.ready() and protocol._scanner is jit._compiled["scan"]
+        assert ("scan", True) in calls and calls[-1] == ("scan", False)
         assert sum("no disk cache" in r.getMessage() for r in caplog.records) == 1
 
 

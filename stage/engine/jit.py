@@ -588,24 +588,12 @@ def warm() -> bool:
     if not _import():
         return False
     try:
-        cache = True
+        cache = [True]
         for name, sig in _SIGNATURES.items():
             # in order: a kernel that calls another finds it compiled under its own name
-            try:
-                kernel = numba.njit(sig, cache=cache, nogil=True)(_PYTHON[name])
-            except RuntimeError as exc:
-                if not cache or "cannot cache" not in str(exc):
-                    raise
-                # no writable place for numba's cache (a read-only install, a service user
-                # without a home): compile every start instead (docs/installing.md)
-                log.warning("compiled kernels: no disk cache (%s); compiling at every start "
-                            "(set NUMBA_CACHE_DIR to a writable folder)",
-                            str(exc).splitlines()[0])
-                cache = False
-                kernel = numba.njit(sig, cache=False, nogil=True)(_PYTHON[name])
-            _compiled[name] = globals()[name] = kernel
-        _compiled["scan"] = _compile_with_helpers(scan, "scan", _SCAN_HELPERS, _scan_sig(),
-                                                  cache)
+            _compiled[name] = globals()[name] = _njit(_PYTHON[name], sig, cache)
+        _compiled["scan"] = _njit(_with_helpers(scan, "scan", _SCAN_HELPERS), _scan_sig(),
+                                  cache)
         protocol.use_scanner(_compiled["scan"])
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
@@ -687,7 +675,8 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
            conf: np.ndarray, prev: np.ndarray, known: np.ndarray, tracked: np.ndarray,
            hold: np.ndarray, carry_on: bool, hold_back: bool, inferred: float,
            parents: np.ndarray, children: np.ndarray, torso: np.ndarray
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                      np.ndarray | None]:
     """The compiled ``_settle`` (see there): new arrays (joints, velocity, conf, known,
     carried, centre or None when no torso joint is known); ``tracked`` and ``hold`` (the
     person's own, C-contiguous) are updated in place."""
@@ -704,25 +693,13 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
     return joints, velocity, conf_out, known_out, carried, (centre if count else None)
 
 
-def frame(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
-          look: tuple, traded: tuple, margin: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """The compiled ``_frame``: (stage-space joints, conf, traded bits), new arrays.
-    ``look`` and ``traded`` are ``fusion``'s index arrays (left, right; (arm, leg))."""
-    n = len(conf)
-    joints_out, conf_out = np.empty((n, 3)), np.empty(n)
-    f = np.ascontiguousarray
-    (arm_l, arm_r), (leg_l, leg_r) = traded
-    bits = _compiled["_frame"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
-                               f(conf, dtype=float), bool(unswap), look[0], look[1], arm_l, arm_r,
-                               leg_l, leg_r, float(margin), joints_out, conf_out)
-    return joints_out, conf_out, bits
-
-
 def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
             look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
             ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """The compiled ``_frame_r``: ``frame``'s (joints, conf, traded bits) and the joints'
-    measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen)."""
+    """The compiled ``_frame_r``: a frame's (stage-space joints, conf, traded bits) and its
+    joints' measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen);
+    new arrays. ``look`` and ``traded`` are ``fusion``'s index arrays (left, right; (arm,
+    leg))."""
     n = len(conf)
     joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
     f = np.ascontiguousarray
@@ -792,11 +769,28 @@ def view_joints(user: int, joints: np.ndarray, conf: np.ndarray) -> bytes:
     return out[:n].tobytes()
 
 
-def _compile_with_helpers(module, entry: str, helpers: tuple[str, ...], sig,
-                          cache: bool):
-    """``module.entry`` compiled, with the module's ``helpers`` it calls compiled too: each
-    a copy of the function bound to a copy of the module's globals, so the module itself
-    stays plain Python (it imports no compiler and runs uncompiled in its tests)."""
+def _njit(fn, sig, cache: list[bool]):
+    """``fn`` compiled for ``sig``, cached on disk while ``cache[0]``; where numba finds no
+    writable place for its cache (a read-only install, a service user without a home),
+    one warning, and this and every later kernel are compiled at every start instead
+    (docs/installing.md)."""
+    if cache[0]:
+        try:
+            return numba.njit(sig, cache=True, nogil=True)(fn)
+        except RuntimeError as exc:
+            if "cannot cache" not in str(exc):
+                raise
+            log.warning("compiled kernels: no disk cache (%s); compiling at every start "
+                        "(set NUMBA_CACHE_DIR to a writable folder)", str(exc).splitlines()[0])
+            cache[0] = False
+    return numba.njit(sig, cache=False, nogil=True)(fn)
+
+
+def _with_helpers(module, entry: str, helpers: tuple[str, ...]):
+    """``module.entry`` to compile, with the module's ``helpers`` it calls compiled: each a
+    copy of the function bound to a copy of the module's globals, so the module itself
+    stays plain Python (it imports no compiler and runs uncompiled in its tests). The
+    helpers are compiled into the entry, so they need no disk cache of their own."""
     ns = dict(vars(module))
 
     def copy(name):
@@ -804,5 +798,5 @@ def _compile_with_helpers(module, entry: str, helpers: tuple[str, ...], sig,
         return types.FunctionType(fn.__code__, ns, name, fn.__defaults__)
 
     for name in helpers:
-        ns[name] = numba.njit(nogil=True)(copy(name))   # compiled into the entry: no cache of their own
-    return numba.njit(sig, cache=cache, nogil=True)(copy(entry))
+        ns[name] = numba.njit(nogil=True)(copy(name))
+    return copy(entry)
