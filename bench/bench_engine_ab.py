@@ -12,8 +12,12 @@ person every frame. The first fifth of the datagrams (persons being found) is le
 Both trees' final fused joints are compared (``identical``): a change meant to give the same
 floats shows here if it does not.
 
+``--timetags`` stamps each bundle with its capture time (as a Unix time), as live sensor
+clients and ``bench_engine.py`` do; without it the bundles are "immediately", as in
+``bench_engine_inproc``, and the engine's per-message clock work is left out.
+
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
@@ -41,7 +45,12 @@ def load(tree: str, name: str, root: Path) -> dict:
             for m in ("engine.engine", "clock", "rig", "sensors.protocol", "sensors.sim")}
 
 
-def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: int = 0):
+#: a Unix time for the bundles' timetags (--timetags): the engine's clock starts at 0
+EPOCH = 1.7e9
+
+
+def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: int = 0,
+              timetags: bool = False):
     """bench_engine_inproc's input, built with one tree's simulator and encoders."""
     sim, proto = mods["sensors.sim"], mods["sensors.protocol"]
     rng = np.random.default_rng(seed)
@@ -58,7 +67,8 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
                 msgs += [proto.encode_client_joints(f"s{s}", u, joints, conf),
                          proto.encode_message("/handState", f"s{s}", u, "left", "open"),
                          proto.encode_message("/handState", f"s{s}", u, "right", "closed")]
-            out.append((f / 30 + s / (30 * n_sensors), proto.encode_bundle(msgs, None)))
+            t = f / 30 + s / (30 * n_sensors)
+            out.append((t, proto.encode_bundle(msgs, EPOCH + t if timetags else None)))
     return poses, out
 
 
@@ -73,8 +83,9 @@ def engine(mods: dict, poses):
     return mods["engine.engine"].Engine(rig, clock, NullTransport()), clock
 
 
-def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float) -> dict:
-    poses, data = datagrams(a, n_sensors, n_people, seconds)
+def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
+        timetags: bool = False) -> dict:
+    poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags)
     (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses)
     ta: list[float] = []
     tb: list[float] = []
@@ -104,6 +115,8 @@ def main() -> int:
     parser.add_argument("--configs", default="1x1,3x3,6x6")
     parser.add_argument("--seconds", type=float, default=6.0)
     parser.add_argument("--quick", action="store_true", help="1 s of show per config")
+    parser.add_argument("--timetags", action="store_true",
+                        help="bundles stamped with their capture time, as live sensors send them")
     args = parser.parse_args()
     seconds = 1.0 if args.quick else args.seconds
     with tempfile.TemporaryDirectory() as tmp:
@@ -111,11 +124,12 @@ def main() -> int:
         a = load(args.tree_a, "stage_a", Path(tmp))
         b = load(args.tree_b, "stage_b", Path(tmp))
         print(f"A = {args.tree_a}, B = {args.tree_b}; CPU per datagram (thread_time), us; "
-              f"{seconds:g} s of show per config; load {open('/proc/loadavg').read().split()[0]}")
+              f"{seconds:g} s of show per config; "
+              f"{'capture-time timetags' if args.timetags else 'no timetags'}; load {open('/proc/loadavg').read().split()[0]}")
         print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
               f"{'median B/A':>10}  final joints identical")
         for config in args.configs.split(","):
-            r = run(a, b, *map(int, config.split("x")), seconds)
+            r = run(a, b, *map(int, config.split("x")), seconds, args.timetags)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}")
     return 0
