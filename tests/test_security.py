@@ -24,7 +24,7 @@ from stage.engine.engine import Engine
 from stage.engine.output import encode_stats
 from stage.network import Networks, canonical_ipv4
 from stage.rig import Rig, SensorConfig, load_rig
-from stage.sensors.protocol import (Inbound, encode_bundle, encode_client_joints,
+from stage.sensors.protocol import (Inbound, decode_datagram, encode_bundle, encode_client_joints,
                                     encode_message)
 from stage.sensors.receiver import Receiver
 from stage.sensors.sim import standing_pose
@@ -260,6 +260,59 @@ def test_a_client_sending_faster_than_real_time_keeps_its_time_line():
         clock.advance(1 / 600)
         feed(engine, frame("k", where=(0.001 * k, 2.5), timetag=tag + k / 30))
     assert engine.counts["fused_frames"] == 300
+
+
+
+def test_a_bundles_messages_share_the_capture_time_each_would_get_alone():
+    """ClientRegistry.capture_times works a bundle's time out once; the same times, drops and
+    clocks as asking for every message alone, through new clients, other hosts and ports,
+    re-registrations, far timetags, clocks going back and jumping ahead."""
+    rng = np.random.default_rng(7)
+    engines = [engine_with()[0] for _ in range(2)]
+    seen: list[list] = [[], []]
+    for k, engine in enumerate(engines):
+        registry = engine.registry
+        registry.wall_minus_clock = 1_700_000_000.0      # tags near 1.7e9 + the engine's time
+        one = registry.capture_times if k == 0 else (
+            lambda batch, r=registry: [r.capture_time(item) for item in batch])
+        registry.capture_times = (lambda batch, one=one, out=seen[k]:
+                                  out.append(one(batch)) or out[-1])
+    pose = standing_pose((0.0, 2.5), np.pi)
+    tags = {"a": 1_700_000_100.0, "b": 1_700_000_100.0}
+    arrival = 100.0
+    for _ in range(400):
+        arrival += float(rng.uniform(0.0, 0.04))
+        sensor = "ab"[int(rng.integers(2))]
+        tags[sensor] += float(rng.choice([1 / 30, 1 / 30, 1 / 30, -5.0, 3.0, 0.0]))
+        tag = tags[sensor] + (1e6 if rng.random() < 0.03 else 0.0)      # a far timetag
+        host = "127.0.0.2" if rng.random() < 0.05 else "127.0.0.1"
+        port = 5000 + int(rng.integers(3))
+        msgs = [encode_message("/registerDevice", sensor, "kinect")] if rng.random() < 0.1 else []
+        for user in range(int(rng.integers(1, 3))):
+            msgs += [encode_message("/handState", sensor, user, "left", "open"),
+                     encode_client_joints(sensor, user, pose, np.ones(25)),
+                     encode_message("/handState", sensor, user, "right", "closed")]
+        rng.shuffle(msgs)
+        data = encode_bundle(msgs, tag)
+        if rng.random() < 0.8:
+            for engine in engines:
+                engine.handle_datagram(data, (host, port), arrival)
+            continue
+        # a backlog: the same bundle from two ports, read at the same time, one batch
+        batch = [Inbound(m, arrival, source, t) for source in ((host, port), (host, port + 1))
+                 for m, t in decode_datagram(data).messages]
+        for engine in engines:
+            engine.process(batch)
+    assert seen[0] == seen[1] and sum(len(b) for b in seen[0]) > 1000
+    assert engines[0].drops.snapshot() == engines[1].drops.snapshot()
+    assert engines[0].drops.total("bad_time") > 0 and engines[0].drops.total("wrong_source") > 0
+    assert engines[0].counts == engines[1].counts
+    for cid in ("a", "b"):
+        c0, c1 = (e.clients[cid].offset for e in engines)
+        assert (c0.offset, c0.last_tag, c0.last_arrival, c0.latest) == \
+            (c1.offset, c1.last_tag, c1.last_arrival, c1.latest)
+        assert list(c0.estimator._mins) == list(c1.estimator._mins)
+        assert engines[0].clients[cid].restarts == engines[1].clients[cid].restarts > 0
 
 
 # ---------------------------------------------------------------- views and replies

@@ -43,6 +43,13 @@ from .tracking import OffsetEstimator, Track
 log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
 
+
+def _level(msg: Message) -> int:
+    """How much ``ClientRegistry._may_send`` asks of a message's source, by kind: a
+    registration the least, a skeleton the most (bound to its socket), anything else the host."""
+    return 2 if isinstance(msg, JointCoordinates) else 0 if isinstance(msg, RegisterDevice) else 1
+
+
 #: a time line this far ahead of arrival is a client sending faster than real time
 FAST_LEAD_S = 0.5
 #: a client's tag jumping this much further than the time that passed is a new time line
@@ -142,20 +149,59 @@ class ClientRegistry:
         self.wall_minus_clock: float | None = None
 
     # ------------------------------------------------------------ time
+    def capture_times(self, batch: list[Inbound]) -> list[float | None]:
+        """``capture_time`` of each item of ``batch``, worked out once for a bundle's messages.
+
+        The messages of one bundle share its timetag, arrival and source: a second call
+        with the same inputs gives the same time and leaves the clock as it was (the offset
+        estimator keeps one entry per value, and the offset moves only with time passing),
+        so a message takes the time of the one before it when they share all of these and
+        its kind is allowed to speak where the one before was (``_may_send``: a
+        ``/registerDevice`` asks the least, a skeleton the most). Nothing is applied while
+        this runs, so no client's state changes in between."""
+        out: list[float | None] = []
+        last: tuple | None = None         # (timetag, arrival, source, client, level, time)
+        for item in batch:
+            msg = item.message
+            client = getattr(msg, "client", None)
+            tag = item.timetag
+            if tag is None or client is None:
+                out.append(item.arrival)
+                continue
+            level = _level(msg)
+            if (last is not None and tag == last[0] and item.arrival == last[1]
+                    and item.source == last[2] and client == last[3] and level <= last[4]):
+                out.append(last[5])
+                continue
+            t, passed = self._capture(item, msg, client)
+            out.append(t)
+            # a time refused (None) or not from the clock (level -1) is not shared
+            last = (tag, item.arrival, item.source, client, passed, t)
+        return out
+
     def capture_time(self, item: Inbound) -> float | None:
         """``item``'s capture time on the engine clock; None: refuse it (bad_time, counted)."""
         msg = item.message
         client = getattr(msg, "client", None)
         if item.timetag is None or client is None:
             return item.arrival
+        return self._capture(item, msg, client)[0]
+
+    def _capture(self, item: Inbound, msg: Message, client: str) -> tuple[float | None, int]:
+        """(``capture_time``, the strictest kind of message (``_level``) the time holds for
+        from this source: 2 for a new client, whose messages are not checked here; -1: not
+        a time from the client's clock)."""
         tag, arrival = item.timetag, item.arrival
+        assert tag is not None
         if self.wall_minus_clock is not None and (
                 abs(tag - (arrival + self.wall_minus_clock)) > self.rig.clients.max_clock_skew_s):
             self.drops.add(client, "bad_time")
-            return None
+            return None, -1
         state = self.clients.get(client)
         if state is not None and not self._may_send(state, msg, item):
-            return item.arrival  # dropped as wrong_source when applied; the clock is untouched
+            # dropped as wrong_source when applied; the clock is untouched
+            return item.arrival, -1
+        passed = 2 if state is None else _level(msg)
         clock = state.offset if state is not None else self._new_clocks.get(client)
         if clock is None:
             if len(self._new_clocks) >= 1024:
@@ -172,7 +218,7 @@ class ClientRegistry:
             self._anchor(clock, client, arrival, tag)  # its clock jumped ahead: a new time line
         else:
             clock.follow(arrival, tag)
-        return clock.capture(tag, arrival)
+        return clock.capture(tag, arrival), passed
 
     def _anchor(self, clock: ClientClock, client: str, arrival: float, tag: float) -> None:
         """Start a client's time line at its arrival, or on the running time line of clients

@@ -210,14 +210,12 @@ class Engine:
     def process(self, batch: list[Inbound]) -> None:
         """Apply a batch of inbound items in capture-time order, then emit once."""
         started = time.perf_counter()
-        timed = []
-        for k, item in enumerate(batch):
-            t = self.registry.capture_time(item)
-            if t is not None:  # None: a timetag far from the real time (counted: bad_time)
-                timed.append((t, k, item))
+        # None: a timetag far from the real time (counted: bad_time)
+        timed = [(t, k, item) for k, (t, item) in
+                 enumerate(zip(self.registry.capture_times(batch), batch)) if t is not None]
         timed.sort(key=lambda e: (e[0], e[1]))
+        self.counts["messages"] += len(timed)
         for t, _, item in timed:
-            self.counts["messages"] += 1
             try:
                 self._apply(item, t)
             except Exception:  # a bug must not end the show: log it, drop the item
