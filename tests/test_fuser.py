@@ -130,3 +130,61 @@ def test_views_of_one_instant_that_disagree_keep_the_consistent_ones_whatever_co
         assert fuser.stats.disagreeing == 5                 # one joint per instant
     for other in results[1:]:
         np.testing.assert_allclose(other, results[0], atol=1e-9)
+
+
+def test_a_wave_of_the_same_people_starts_from_the_last_waves_arrays_and_folds_the_same(
+        monkeypatch):
+    """FilterState.concat gives a fold the previous fold's arrays when it takes the same
+    bodies in the same order; the result, replays of late views included, is the same as
+    with copies, and no history entry is changed by a later fold."""
+    def run(reuse: bool):
+        whole = FilterState._whole
+        hits = [0]
+
+        def counted(states):
+            found = whole(states) if reuse else None
+            hits[0] += found is not None
+            return found
+        monkeypatch.setattr(FilterState, "_whole", staticmethod(counted))
+        people = [walk(20 + p, 30) for p in range(3)]
+        # sensor 2's frames come two frames late: replays into waves of the others
+        for views in people:
+            views.sort(key=lambda v: v.t + (0.07 if v.key[0] == "s2" else 0.0))
+        bodies = [BodyFilter() for _ in people]
+        fuser = Fuser(S, F)
+        snapshots = []
+        for k in range(len(people[0])):
+            fuser.fold([(bodies[p], people[p][k]) for p in range(3)])
+            step = bodies[0].history[-1]
+            snapshots.append((step, step.before.stacked().copy()))
+        for step, saved in snapshots:   # a history entry's state before never changes
+            np.testing.assert_array_equal(step.before.stacked(), saved)
+        monkeypatch.undo()
+        return bodies, fuser, hits[0]
+
+    copied, fuser_c, none = run(False)
+    shared, fuser_s, hits = run(True)
+    assert none == 0 and hits > 20 and fuser_s.stats.replays > 20
+    assert fuser_s.stats == fuser_c.stats
+    for a, b in zip(shared, copied):
+        for name in ("x", "P", "mu", "t", "held_z", "held_t"):
+            np.testing.assert_array_equal(getattr(a.state, name), getattr(b.state, name))
+    # a state whose arrays were replaced since is copied, not taken whole
+    rows = [shared[p].state for p in range(3)]
+    rows[1].t = rows[1].t.copy()
+    assert FilterState._whole(rows) is None
+
+
+def test_concat_takes_a_state_whole_only_for_all_its_rows_in_order():
+    rng = np.random.default_rng(5)
+    owner = FilterState.of_block(rng.normal(size=(6, 2, 75, 3)), rng.normal(size=75),
+                                 rng.normal(size=(75, 3)), rng.normal(size=75))
+    rows = [owner.view_rows(a, a + 25) for a in (0, 25, 50)]
+    whole = FilterState.concat(rows)
+    assert whole.x is owner.x and whole.t is owner.t and whole.held_z is owner.held_z
+    for order in (rows[::-1], rows[:2], rows[1:], [rows[0], rows[2], rows[1]], [rows[0], rows[2]]):
+        joined = FilterState.concat(order)
+        assert not np.shares_memory(joined.stacked(), owner.stacked())
+        np.testing.assert_array_equal(
+            joined.stacked(), np.concatenate([s.stacked() for s in order], axis=2))
+        np.testing.assert_array_equal(joined.t, np.concatenate([s.t for s in order]))

@@ -209,6 +209,9 @@ class FilterState:
     #: (what ``step`` leaves), so that the next step reads it without gathering the three;
     #: used only while they are still these very arrays
     block: tuple | None = field(default=None, repr=False, compare=False)
+    #: (owner, start, stop, t, held_z, held_t): this state is rows start..stop of ``owner``,
+    #: as ``view_rows`` made it (its arrays are these views, while they still are)
+    rows_of: tuple | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def empty(cls, n: int) -> "FilterState":
@@ -249,10 +252,34 @@ class FilterState:
         arrays themselves: ``step`` never writes into a state's arrays)."""
         if len(states) == 1:
             return states[0].shallow()
+        whole = cls._whole(states)
+        if whole is not None:
+            return whole.shallow()
         return cls.of_block(np.concatenate([s.stacked() for s in states], axis=2),
                             np.concatenate([s.t for s in states]),
                             np.concatenate([s.held_z for s in states]),
                             np.concatenate([s.held_t for s in states]))
+
+    @staticmethod
+    def _whole(states: list["FilterState"]) -> "FilterState | None":
+        """The state whose rows ``states`` are, all of them in order, as ``view_rows`` made
+        them (so concatenating them would copy it), or None. A fold that takes the same
+        persons in the same order as the one before (every datagram of a steady show) then
+        starts from the previous fold's arrays instead of copying them: nothing writes
+        into a state's arrays (``step`` replaces them)."""
+        first = states[0].rows_of
+        if first is None:
+            return None
+        owner, at = first[0], 0
+        for s in states:
+            r = s.rows_of
+            b = s.block
+            if (r is None or r[0] is not owner or r[1] != at or b is None or b[1] is not s.x
+                    or b[2] is not s.P or b[3] is not s.mu or r[3] is not s.t
+                    or r[4] is not s.held_z or r[5] is not s.held_t):
+                return None
+            at = r[2]
+        return owner if at == owner.n else None
 
     def rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as a new state (copies)."""
@@ -261,8 +288,10 @@ class FilterState:
     def view_rows(self, start: int, stop: int) -> "FilterState":
         """Rows start..stop as views into this state's arrays (no copy: for a state that
         will not be changed again)."""
-        return FilterState.of_block(self.stacked()[:, :, start:stop], self.t[start:stop],
+        rows = FilterState.of_block(self.stacked()[:, :, start:stop], self.t[start:stop],
                                     self.held_z[start:stop], self.held_t[start:stop])
+        rows.rows_of = (self, start, stop, rows.t, rows.held_z, rows.held_t)
+        return rows
 
     def assign(self, other: "FilterState", mask: np.ndarray | None = None) -> None:
         """Take ``other``'s rows (all, or where ``mask`` (N,) is true) in place."""

@@ -43,6 +43,10 @@ _NO_R = np.full(25, np.nan)
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
 
 
+def _by_person(entry: tuple[Person, View]) -> int:
+    return entry[0].id
+
+
 class People:
     """Persons, their filters and hand votes, and what views are sent (engine thread only)."""
 
@@ -146,7 +150,11 @@ class People:
         missing = [(v, where) for _, v, where in views if v.r is _NO_R]
         if missing:
             self._variances(missing)
-        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in live])}
+        # in the order of the persons' ids (each person's views in their own order), so that
+        # sensors naming the same persons with other user ids fold them in the same order,
+        # and a fold can start from the one before's arrays (FilterState.concat)
+        ordered = sorted(live, key=_by_person) if len(live) > 1 else live
+        late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in ordered])}
         touched: dict[int, Person] = {}
         for person, view in live:
             if id(view) in late:
