@@ -524,3 +524,40 @@ def test_view_joints_kernel_writes_the_encoders_bytes():
     got = np.array([params[2 + 5 * m: 6 + 5 * m] for m in range(24)])
     want = np.column_stack([np.delete(joints, 3, axis=0), np.delete(conf, 3)])
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
+
+
+@needs_jit
+def test_recent_confidence_is_the_best_of_the_views_of_the_last_stale_seconds():
+    """A person's views come, go and fall silent; the output confidence (numpy and the
+    settle kernel) is each joint's best among the views heard within ``stale`` s."""
+    from stage.engine.people import INFERRED, People, _TORSO
+    from stage.engine.tracking import Person
+    from stage.settings import FusionSettings
+    rng = np.random.default_rng(11)
+    person = Person.new(1, 0.0, FusionSettings())
+    live: dict = {}
+    stale, t = 0.25, 0.0
+    checked = 0
+    for _ in range(400):
+        t += float(rng.uniform(0.0, 0.05))
+        key = (f"s{rng.integers(5)}", int(rng.integers(2)))
+        if rng.random() < 0.15:
+            person.forget(key)
+            live.pop(key, None)
+            continue
+        conf = np.where(rng.random(25) < 0.3, 0.0, rng.uniform(0.0, 1.2, 25))
+        person.remember(key, t, conf)
+        live[key] = (t, conf)
+        now = t + float(rng.uniform(0.0, 0.3))
+        heard = [c for vt, c in live.values() if now - vt <= stale]
+        want = np.max(heard, axis=0) if heard else np.zeros(25)
+        np.testing.assert_array_equal(People._recent_conf(person, now, stale), want)
+        pos = rng.normal(0, 1, (25, 3))
+        out = jit.settle(pos, np.zeros((25, 3)), np.full(25, now), now, stale,
+                         person.recent_conf, person.recent_t, np.zeros((25, 3)),
+                         np.zeros(25, dtype=bool), np.zeros(25, dtype=bool),
+                         np.full((25, 3), np.nan), False, False, INFERRED, _PARENTS,
+                         _CHILDREN, _TORSO)
+        np.testing.assert_array_equal(out[2], np.where(want > 0, np.minimum(want, 1.0), 0.0))
+        checked += bool(heard)
+    assert checked > 200 and len(person.recent_t) <= 16     # forgotten rows are used again

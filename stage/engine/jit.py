@@ -252,16 +252,29 @@ def _carry(joints, reported, tracked, offsets, parents, children, carried):  # p
                 offsets[c, a] = joints[c, a] - joints[p, a]
 
 
-def _settle(pos, vel, row_t, t, stale, conf_in, prev, known, tracked, hold, carry_on,
-            hold_back, inferred, parents, children, torso, joints_out, vel_out, conf_out,
-            known_out, carried_out, centre_out):  # pragma: no cover (compiled)
+def _settle(pos, vel, row_t, t, stale, recent_conf, recent_t, prev, known, tracked, hold,
+            carry_on, hold_back, inferred, parents, children, torso, joints_out, vel_out,
+            conf_out, known_out, carried_out, centre_out):  # pragma: no cover (compiled)
     """``people.People._update`` for one person: the output skeleton from the filter's
     estimate ``pos``/``vel`` (25, 3) at ``t``; see there. ``tracked`` and ``hold`` are the
     person's own, updated in place as there; the rest goes to the ``*_out`` arrays.
-    Returns how many torso joints are known (0: the caller finds the centre otherwise)."""
+    Returns how many torso joints are known (0: the caller finds the centre otherwise).
+    ``recent_conf``/``recent_t`` are the person's views' latest confidences and their times
+    (``Person.recent_rows``): a joint's confidence is the best among the views of the last
+    ``stale`` s, 0 without one (``People._recent_conf``)."""
     n = pos.shape[0]
+    rows = recent_t.shape[0]
     for k in range(n):
-        c = conf_in[k]
+        c = -np.inf
+        found = False
+        for v in range(rows):
+            if not (t - recent_t[v] > stale):
+                found = True
+                x = recent_conf[v, k]
+                if x > c or x != x:            # NaN wins, as in numpy's maximum
+                    c = x
+        if not found:
+            c = 0.0
         seen = c > 0.0 and t - row_t[k] <= stale
         if seen:
             for a in range(3):
@@ -545,7 +558,8 @@ _SIGNATURES = {
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
     "_settle": "int64(float64[:, ::1], float64[:, ::1], float64[::1], float64, float64, "
-               "float64[::1], float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], "
+               "float64[:, ::1], float64[::1], float64[:, ::1], boolean[::1], boolean[::1], "
+               "float64[:, ::1], "
                "boolean, boolean, float64, int64[::1], int64[::1], int64[::1], float64[:, ::1], "
                "float64[:, ::1], float64[::1], boolean[::1], boolean[::1], float64[::1])",
     "_frame": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
@@ -672,7 +686,8 @@ def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
 
 
 def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,
-           conf: np.ndarray, prev: np.ndarray, known: np.ndarray, tracked: np.ndarray,
+           recent_conf: np.ndarray, recent_t: np.ndarray, prev: np.ndarray,
+           known: np.ndarray, tracked: np.ndarray,
            hold: np.ndarray, carry_on: bool, hold_back: bool, inferred: float,
            parents: np.ndarray, children: np.ndarray, torso: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -680,14 +695,14 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
     """The compiled ``_settle`` (see there): new arrays (joints, velocity, conf, known,
     carried, centre or None when no torso joint is known); ``tracked`` and ``hold`` (the
     person's own, C-contiguous) are updated in place."""
-    n = len(conf)
+    n = len(pos)
     joints, velocity = np.empty((n, 3)), np.empty((n, 3))
     conf_out, known_out = np.empty(n), np.empty(n, dtype=bool)
     carried, centre = np.zeros(n, dtype=bool), np.empty(3)
     f = np.ascontiguousarray
     count = _compiled["_settle"](
         f(pos, dtype=float), f(vel, dtype=float), f(row_t, dtype=float), float(t), float(stale),
-        f(conf, dtype=float), f(prev, dtype=float), known, tracked, hold, bool(carry_on),
+        recent_conf, recent_t, f(prev, dtype=float), known, tracked, hold, bool(carry_on),
         bool(hold_back), float(inferred), parents, children, torso, joints, velocity,
         conf_out, known_out, carried, centre)
     return joints, velocity, conf_out, known_out, carried, (centre if count else None)

@@ -134,7 +134,7 @@ class People:
         person = self.persons.get(pid) if pid is not None else None
         if person is not None:
             person.voter.forget(track.key)
-            person.recent.pop(track.key, None)
+            person.forget(track.key)
             self._hands_dirty.add(pid)  # one voter fewer
 
     # ------------------------------------------------------------ fusion
@@ -161,7 +161,7 @@ class People:
                 self.drops.add(view.key[0], "late")
                 continue
             person.measure_size(view.joints, view.conf)
-            person.recent[view.key] = (view.t, view.conf)
+            person.remember(view.key, view.t, view.conf)
             touched[person.id] = person
             self._dirty.setdefault(person.id, []).append(view.arrival)
         if touched:
@@ -226,8 +226,8 @@ class People:
             t = max(p.t, out_t)
             try:
                 joints, velocity, conf, known, carried, centre = jit.settle(
-                    pos, vel, p.filter.state.t, t, stale, self._recent_conf(p, t, stale),
-                    p.joints, p.known, p.tracked, p.hold, fusion.carry_untracked,
+                    pos, vel, p.filter.state.t, t, stale, p.recent_conf, p.recent_t, p.joints,
+                    p.known, p.tracked, p.hold, fusion.carry_untracked,
                     fusion.hold_back_inferred, INFERRED, _PARENTS, _CHILDREN, _TORSO)
             except TypeError:    # arrays the kernel does not take: this person in numpy
                 self._update_numpy([p], stale)
@@ -252,14 +252,11 @@ class People:
     @staticmethod
     def _recent_conf(person: Person, t: float, stale: float) -> np.ndarray:
         """(25,) the best confidence of each joint among the person's views of the last
-        ``stale`` seconds (views that left the person are forgotten)."""
-        best = None
-        for key, (vt, conf) in list(person.recent.items()):
-            if t - vt > stale:
-                del person.recent[key]
-            else:
-                best = conf if best is None else np.maximum(best, conf)
-        return np.zeros(person.conf.shape) if best is None else best
+        ``stale`` seconds (views that left the person are forgotten), 0 without one."""
+        live = ~(t - person.recent_t > stale)
+        if not np.count_nonzero(live):
+            return np.zeros(person.conf.shape)
+        return np.maximum.reduce(person.recent_conf[live], axis=0)
 
     # ------------------------------------------------------------ forecasts
     def want_forecast(self, horizon: float) -> None:

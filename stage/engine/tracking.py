@@ -115,8 +115,11 @@ class Person:
     size: float | None = None               # trunk length, m (mean of the frames seen)
     size_n: int = 0
     merged: bool = False                    # folded into another person: never comes back
-    #: (client, user) -> (capture time, (25,) confidence) of each view's latest frame
+    #: (client, user) -> its row of ``recent_conf``/``recent_t``: each view's latest frame's
+    #: (25,) confidence and capture time (-inf: a free row)
     recent: dict = field(default_factory=dict)
+    recent_conf: np.ndarray = field(default_factory=lambda: np.zeros((0, N_JOINTS)))
+    recent_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: (25,) bool: joints some view has tracked (confidence above the inferred level) since
     #: the person was found
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
@@ -129,6 +132,29 @@ class Person:
     @classmethod
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
         return cls(pid, BodyFilter(), HandVoter(settings.hand_memory_s, settings.hand_hold_s), t)
+
+    def remember(self, key: tuple[str, int], t: float, conf: np.ndarray) -> None:
+        """The latest frame of the view ``key``: its capture time and confidences."""
+        row = self.recent.get(key)
+        if row is None:
+            free = np.flatnonzero(self.recent_t == -np.inf)
+            if len(free):
+                row = int(free[0])
+            else:               # room for more views (a few per person: a row per sensor)
+                row = len(self.recent_t)
+                grow = max(row, 2)
+                self.recent_conf = np.concatenate((self.recent_conf,
+                                                   np.zeros((grow, N_JOINTS))))
+                self.recent_t = np.concatenate((self.recent_t, np.full(grow, -np.inf)))
+            self.recent[key] = row
+        self.recent_conf[row] = conf
+        self.recent_t[row] = t
+
+    def forget(self, key: tuple[str, int]) -> None:
+        """The view ``key`` left this person: its confidences no longer count."""
+        row = self.recent.pop(key, None)
+        if row is not None:
+            self.recent_t[row] = -np.inf
 
     def measure_size(self, joints: np.ndarray, conf: np.ndarray) -> None:
         """Fold one view's trunk length into the running mean."""
