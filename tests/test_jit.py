@@ -275,12 +275,12 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
         matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
         matrix[:3, 3] = rng.normal(0, 2, 3)
         want_j, want_c, want_bits = unswap_limbs(apply_transform(matrix, body), conf)
-        got_j, got_c, got_bits, _ = jit.frame_r(matrix, body, conf, True, _LOOK, _TRADED,
+        got_j, got_c, got_bits, _, _ = jit.frame_r(matrix, body, conf, True, _LOOK, _TRADED,
                                                 SWAP_MARGIN_M, KalmanSettings(), 0.5)
         assert got_bits == want_bits
         np.testing.assert_array_equal(got_c, want_c)
         np.testing.assert_allclose(got_j, want_j, rtol=0, atol=1e-12)
-        plain_j, plain_c, none, _ = jit.frame_r(matrix, body, conf, False, _LOOK, _TRADED,
+        plain_j, plain_c, none, _, _ = jit.frame_r(matrix, body, conf, False, _LOOK, _TRADED,
                                                 SWAP_MARGIN_M, KalmanSettings(), 0.5)
         assert none == 0
         np.testing.assert_allclose(plain_j, apply_transform(matrix, body), rtol=0, atol=1e-12)
@@ -291,19 +291,20 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
 @needs_jit
 def test_frame_kernel_gives_the_batch_variances():
     """``jit.frame_r``'s variances are, bit for bit, what ``People._variances`` computes for
-    the same stage-space joints (the kernel's own, which match numpy's to rounding),
+    the same stage-space joints, and its trunk length ``body_size``'s (the kernel's own, which match numpy's to rounding),
     including inferred, continuous and unseen confidences and joints within 1 m."""
     from types import SimpleNamespace
 
     from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M
     from stage.engine.people import People
+    from stage.engine.tracking import body_size
     from stage.geometry import rot_y
     from stage.joints import INFERRED
     from stage.sensors.sim import standing_pose
     rng = np.random.default_rng(22)
     settings = [KalmanSettings(), KalmanSettings(measurement_noise=4e-4, noise_per_m=0.01,
                                                  inferred_sd_m=0.2)]
-    near = 0
+    near = sizes = 0
     for k in range(300):
         s = settings[k % 2]
         body = standing_pose((rng.uniform(-1, 1), rng.uniform(-1, 1)), rng.uniform(-3, 3),
@@ -312,13 +313,15 @@ def test_frame_kernel_gives_the_batch_variances():
         matrix = np.eye(4)
         matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
         matrix[:3, 3] = rng.normal(0, 1.5, 3)
-        joints, c, _, r = jit.frame_r(matrix, body, conf, k % 3 > 0, _LOOK, _TRADED,
-                                      SWAP_MARGIN_M, s, INFERRED)
+        joints, c, _, r, size = jit.frame_r(matrix, body, conf, k % 3 > 0, _LOOK, _TRADED,
+                                            SWAP_MARGIN_M, s, INFERRED)
         view = SimpleNamespace(joints=joints, conf=c, r=None)
         People._variances(SimpleNamespace(smoothing=s), [(view, matrix[:3, 3])])
         np.testing.assert_array_equal(r, view.r)          # NaN where unseen, on both
+        assert size == body_size(joints, c)               # the trunk, or None on both
+        sizes += size is None
         near += int((np.linalg.norm(joints - matrix[:3, 3], axis=1) < 1.0).sum())
-    assert near > 0
+    assert near > 0 and 0 < sizes < 300
 
 
 @needs_jit

@@ -39,7 +39,7 @@ import types
 
 import numpy as np
 
-from ..joints import JOINTS
+from ..joints import JOINT_INDEX, JOINTS
 from ..sensors import protocol, scan
 from ..sensors.encode import _NAME_BYTES
 from ..settings import KalmanSettings
@@ -364,15 +364,27 @@ def _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, le
     return traded
 
 
+#: the trunk's ends (``tracking.body_size``)
+_NECK, _BASE = JOINT_INDEX["Neck"], JOINT_INDEX["SpineBase"]
+
+
 def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r, margin,
              sqrt_noise, per_m, inferred, inferred_var, joints_out, conf_out,
-             r_out):  # pragma: no cover (compiled)
+             r_out, size_out):  # pragma: no cover (compiled)
     """``_frame``, then each joint's measurement variance into ``r_out`` as
     ``people.People._fold`` computes it (``kalman.measurement_variance`` at the joint's
     distance from the sensor, whose stage position is the transform's translation; NaN
-    where the joint is not seen); returns the traded bit mask."""
+    where the joint is not seen) and the trunk's length into ``size_out[0]``
+    (``tracking.body_size``; NaN for its None); returns the traded bit mask."""
     bits = _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r,
                   margin, joints_out, conf_out)
+    if conf_out[_NECK] <= 0.0 or conf_out[_BASE] <= 0.0:
+        size_out[0] = np.nan
+    else:
+        dx = joints_out[_NECK, 0] - joints_out[_BASE, 0]
+        dy = joints_out[_NECK, 1] - joints_out[_BASE, 1]
+        dz = joints_out[_NECK, 2] - joints_out[_BASE, 2]
+        size_out[0] = math.sqrt(dx * dx + dy * dy + dz * dz)
     tx, ty, tz = matrix[0, 3], matrix[1, 3], matrix[2, 3]
     for k in range(conf_out.shape[0]):
         c = conf_out[k]
@@ -567,7 +579,8 @@ _SIGNATURES = {
               "float64[:, ::1], float64[::1])",
     "_frame_r": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
                 "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, float64, "
-                "float64, float64, float64, float64[:, ::1], float64[::1], float64[::1])",
+                "float64, float64, float64, float64[:, ::1], float64[::1], float64[::1], "
+                "float64[::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
     "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
@@ -710,13 +723,14 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
 
 def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
             look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
-            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """The compiled ``_frame_r``: a frame's (stage-space joints, conf, traded bits) and its
-    joints' measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen);
-    new arrays. ``look`` and ``traded`` are ``fusion``'s index arrays (left, right; (arm,
-    leg))."""
+            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float | None]:
+    """The compiled ``_frame_r``: a frame's (stage-space joints, conf, traded bits), its
+    joints' measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen),
+    new arrays, and its trunk length (``tracking.body_size``, the same float). ``look`` and
+    ``traded`` are ``fusion``'s index arrays (left, right; (arm, leg))."""
     n = len(conf)
     joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
+    size = np.empty(1)
     f = np.ascontiguousarray
     (arm_l, arm_r), (leg_l, leg_r) = traded
     bits = _compiled["_frame_r"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
@@ -724,8 +738,9 @@ def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bo
                                  arm_r, leg_l, leg_r, float(margin),
                                  math.sqrt(s.measurement_noise), float(s.noise_per_m),
                                  float(inferred), float(s.inferred_sd_m ** 2), joints_out,
-                                 conf_out, r_out)
-    return joints_out, conf_out, bits, r_out
+                                 conf_out, r_out, size)
+    trunk = float(size[0])
+    return joints_out, conf_out, bits, r_out, (None if trunk != trunk else trunk)
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,

@@ -80,8 +80,10 @@ class People:
         """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
         (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
+        size, sized = None, False
         if jit.ready():
-            track.joints, conf, traded, r = jit.frame_r(
+            sized = True
+            track.joints, conf, traded, r, size = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
                 SWAP_MARGIN_M, self.smoothing, INFERRED)
         else:
@@ -110,7 +112,7 @@ class People:
             person.known = seen.copy()
             person.t = t
         # without the kernels, the measurement variances are computed for the batch in _fold
-        view = View(track.key, t, track.joints, conf, r, arrival)
+        view = View(track.key, t, track.joints, conf, r, arrival, size=size, sized=sized)
         self._views.append((person, view, transform[:3, 3]))
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand in (0, 1):
@@ -160,7 +162,10 @@ class People:
             if id(view) in late:
                 self.drops.add(view.key[0], "late")
                 continue
-            person.measure_size(view.joints, view.conf)
+            if view.sized:
+                person.add_size(view.size)
+            else:
+                person.measure_size(view.joints, view.conf)
             person.remember(view.key, view.t, view.conf)
             touched[person.id] = person
             self._dirty.setdefault(person.id, []).append(view.arrival)

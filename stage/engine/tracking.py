@@ -37,7 +37,8 @@ def body_size(joints: np.ndarray, conf: np.ndarray) -> float | None:
     if conf[_NECK] <= 0 or conf[_BASE] <= 0:
         return None
     d = joints[_NECK] - joints[_BASE]
-    return math.sqrt(float(d @ d))
+    # (summed in this order, as the frame kernel does: the same float either way)
+    return math.sqrt(float(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
 
 
 class OffsetEstimator:
@@ -158,7 +159,10 @@ class Person:
 
     def measure_size(self, joints: np.ndarray, conf: np.ndarray) -> None:
         """Fold one view's trunk length into the running mean."""
-        size = body_size(joints, conf)
+        self.add_size(body_size(joints, conf))
+
+    def add_size(self, size: float | None) -> None:
+        """Fold a trunk length (``body_size``; None: not measured) into the running mean."""
         if size is not None:
             self.size_n += 1
             self.size = size if self.size is None else self.size + (size - self.size) / self.size_n
