@@ -214,6 +214,18 @@ def test_a_stray_reference_that_goes_silent_before_any_calibration_is_replaced()
     assert engine.counts["fused_frames"] > 20
 
 
+def test_a_skeleton_needs_two_torso_joints_seen_to_count_towards_the_reference():
+    from stage.engine.clients import _two_torso_joints
+    from stage.joints import TORSO
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        conf = rng.choice([0.0, -1.0, np.nan, 0.5, 1.0], 25, p=[0.5, 0.1, 0.1, 0.15, 0.15])
+        assert _two_torso_joints(conf) == (np.count_nonzero(conf[list(TORSO)] > 0) >= 2)
+    conf = np.zeros(25)
+    conf[[j for j in range(25) if j not in TORSO]] = 1.0     # limbs alone are no person
+    assert not _two_torso_joints(conf)
+
+
 def test_the_rigs_reference_is_never_replaced():
     engine, clock = engine_with(Rig(reference="ref"))
     feed(engine, frame("ref"), ("127.0.0.1", 4000))
