@@ -11,9 +11,10 @@ from pythonosc.osc_message import OscMessage
 from stage.clock import ManualClock
 from stage.engine.engine import Engine
 from stage.joints import JOINTS, HandState
-from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
+from stage.sensors.protocol import (Inbound, decode_datagram, encode_bundle, encode_client_joints,
+                                    encode_message)
 from stage.settings import ClientSettings, FusionSettings
-from stage.rig import Rig, set_calibration
+from stage.rig import Rig, SensorConfig, set_calibration
 from stage.sensors.sim import VirtualKinect, VirtualPose, ring_poses, standing_pose
 
 FPS = 30.0
@@ -598,3 +599,101 @@ def test_stats_name_the_threads_with_their_kernel_ids():
     (msg,), = out.of("/stage/stats")
     threads = json.loads(msg)["threads"]
     assert threads[threading.current_thread().name] == threading.get_native_id()
+
+
+def test_hand_states_applied_with_their_skeleton_give_what_each_alone_gives(monkeypatch):
+    """A skeleton's /handState that follow it in its bundle are applied with it
+    (engine._with_hands). Against an engine that applies every message on its own, over
+    bundles in every order (hand states before and after their skeleton, a /lostUser in
+    between, hand states alone, other ports, late and empty skeletons, a sensor without
+    calibration, backlogs), the same datagrams reach the view, and the same drops,
+    counts and hands."""
+    from stage.engine import engine as engine_mod
+    rng = np.random.default_rng(4)
+    poses = ring_poses(3, radius=3.0)
+    pair = [make_engine(poses) for _ in range(2)]
+    for engine, _, _ in pair:       # s3 listed without a calibration; s4 not listed at all
+        engine.rig.sensors["s3"] = SensorConfig("s3")
+        engine.rig.allow_unknown_sensors = False
+    alone = engine_mod._with_hands
+    merged = [0]
+
+    def counted(timed):
+        out = alone(timed)
+        merged[0] += sum(len(h) for _, _, h in out)
+        return out
+    # every hand vote, per engine: a vote left out shows even when it changes nothing
+    from stage.engine.hands import HandVoter
+    votes: list[list] = [[], []]
+    current = [0]
+    update = HandVoter.update
+
+    def voted(self, t):
+        changed = update(self, t)
+        votes[current[0]].append((t, tuple(self.reported), tuple(changed)))
+        return changed
+    monkeypatch.setattr(HandVoter, "update", voted)
+    kinects = [VirtualKinect(p, rng=np.random.default_rng(k)) for k, p in enumerate(poses)]
+    states = ["open", "closed", "lasso", "unknown", "notTracked"]
+    t = 100.0
+    for f in range(240):
+        t += 1 / FPS
+        for s in range(5):
+            if s == 2 and 40 <= f % 60 < 50:
+                continue                     # s2 falls silent, then sends a frame too old
+            msgs = []                        # for its person's history (fusion: late)
+            for user in range(2):
+                truth = standing_pose((user - 0.5, 0.3 * np.sin(f / 20)), 0.0)
+                joints, conf = (kinects[s].observe(truth, user=user) if s < 3 else
+                                (truth, np.ones(25)))
+                if rng.random() < 0.05:
+                    conf = np.zeros(25)                            # nothing seen
+                skeleton = encode_client_joints(f"s{s}", user, joints, conf)
+                hands = [encode_message("/handState", f"s{s}", user, side,
+                                        states[int(rng.integers(5))])
+                         for side in ("left", "right") if rng.random() < 0.8]
+                if rng.random() < 0.2:
+                    msgs += hands + [skeleton]                     # hand states first
+                elif rng.random() < 0.05:
+                    msgs += [skeleton, encode_message("/lostUser", f"s{s}", user)] + hands
+                elif rng.random() < 0.05:
+                    msgs += hands                                  # no skeleton
+                else:
+                    msgs += [skeleton] + hands
+            tag = 1_700_000_000.0 + t - (2 / FPS if rng.random() < 0.03 else 0.0)   # late
+            if s == 2 and f % 60 == 50:
+                tag = 1_700_000_000.0 + t - 0.2
+            data = encode_bundle(msgs, tag)
+            port = 5000 + s + (10 if rng.random() < 0.03 else 0)  # another port: refused
+            for k, (engine, clock, _) in enumerate(pair):
+                monkeypatch.setattr(engine_mod, "_with_hands",
+                                    counted if k == 0 else
+                                    (lambda timed: [[t, item, []] for t, _, item in timed]))
+                current[0] = k
+                clock.set(t + 0.003 * s)
+                if f % 40 == 20 and s == 1 and 0 in engine.clients["s1"].tracks:
+                    # a track whose last frame our clock put later than its next one
+                    engine.clients["s1"].tracks[0].t += 0.05
+                if f % 50 == 7 and s == 0:
+                    # a backlog: the bundle twice, then its hand states alone from another
+                    # host (refused), all read at once
+                    extra = encode_bundle([m for m in msgs if b"/handState" in m[:12]], tag)
+                    engine.process([Inbound(m, clock.now(), h, tt)
+                                    for d, h in ((data, ("10.0.0.1", port)),
+                                                 (data, ("10.0.0.1", port)),
+                                                 (extra, ("10.0.0.9", port)))
+                                    for m, tt in decode_datagram(d).messages])
+                else:
+                    engine.handle_datagram(data, ("10.0.0.1", port))
+                engine.tick()
+    (a, _, out_a), (b, _, out_b) = pair
+    assert votes[0] == votes[1] and len(votes[0]) > 1000
+    assert [(addr, m.address, m.params) for addr, m in out_a.sent] == \
+        [(addr, m.address, m.params) for addr, m in out_b.sent]
+    assert a.drops.snapshot() == b.drops.snapshot() and a.counts == b.counts
+    assert {c: (v.source, v.last_seen, v.frames) for c, v in a.clients.items()} == \
+        {c: (v.source, v.last_seen, v.frames) for c, v in b.clients.items()}
+    assert {pid: p.hands for pid, p in a.persons.items()} == \
+        {pid: p.hands for pid, p in b.persons.items()}
+    assert merged[0] > 1000 and len(out_a.of("/handState")) > 50
+    assert {"late", "wrong_source", "not_allowed"} <= set().union(*a.drops.snapshot().values())

@@ -215,12 +215,16 @@ class Engine:
                  enumerate(zip(self.registry.capture_times(batch), batch)) if t is not None]
         timed.sort(key=lambda e: (e[0], e[1]))
         self.counts["messages"] += len(timed)
-        for t, _, item in timed:
+        for t, item, hands in _with_hands(timed):
             try:
-                self._apply(item, t)
+                if hands:
+                    self._apply_frame(item, t, hands)
+                else:
+                    self._apply(item, t)
             except Exception:  # a bug must not end the show: log it, drop the item
                 log.exception("error while handling %s; item dropped", type(item.message).__name__)
-                self.drops.add(_client_key(item), "internal_error")
+                for _ in range(1 + len(hands)):
+                    self.drops.add(_client_key(item), "internal_error")
         try:
             self.people.flush()
         except Exception:  # a bug must not end the show: log it, lose this batch's frames
@@ -294,6 +298,24 @@ class Engine:
             if track is not None:
                 self._drop_track(track, t)
 
+    def _apply_frame(self, item: Inbound, t: float, hands: list[Inbound]) -> None:
+        """A skeleton with the ``/handState`` of its user that followed it in its bundle
+        (``_with_hands``): the frame is applied with them, as if each were applied after it
+        (its hand votes take the new states at once, so none is voted twice). Where the
+        frame goes no further than the hand states would, they are applied on their own."""
+        msg = item.message
+        client = self.registry.client(msg, item)
+        if client is None:         # refused: the hand states are judged on their own
+            for hand in hands:
+                self._apply(hand, t)
+            return
+        # (what registry.client does for a hand state it did for the frame: same client,
+        # same source, which the frame's stricter check passed, same arrival)
+        stamp = item.arrival if item.timetag is None else item.timetag
+        if not self._on_frame(client, msg, t, item.arrival, stamp, hands):
+            for hand in hands:
+                self._on_data(client, hand.message, hand, t)
+
     def _on_data(self, client: ClientState, msg: JointCoordinates | HandStateMsg, item: Inbound,
                  t: float) -> None:
         if isinstance(msg, JointCoordinates):
@@ -342,7 +364,8 @@ class Engine:
 
     # ------------------------------------------------------------ fusion
     def _on_frame(self, client: ClientState, msg: JointCoordinates, t: float,
-                  arrival: float, stamp: float) -> None:
+                  arrival: float, stamp: float, hands: list[Inbound] | None = None) -> bool:
+        """Whether the frame reached its person with ``hands`` (``_apply_frame``)."""
         client.frames += 1
         self.counts["frames"] += 1
         if self.frame_observers:
@@ -353,7 +376,7 @@ class Engine:
                 log.warning("sensor %s has no calibration in use: its frames are not fused "
                             "until it is calibrated", client.id)
                 client.warned_uncalibrated = True
-            return
+            return False
         track = client.tracks.get(msg.user)
         if track is None:
             track = client.tracks[msg.user] = Track(client.id, msg.user)
@@ -362,10 +385,16 @@ class Engine:
         # frames can cross even though the client sent them in order
         if stamp <= track.stamp:
             self.drops.add(client.id, "late")
-            return
+            return False
         track.stamp = stamp
-        self.people.frame(track, client.transform, msg.joints, msg.conf, max(t, track.t),
-                          arrival)
+        if t < track.t:
+            # captured before the track's last frame by our clock, though after it by the
+            # client's: the frame goes in at that frame's time, its hand states at their own
+            # (older) one, on their own
+            self.people.frame(track, client.transform, msg.joints, msg.conf, track.t, arrival)
+            return False
+        return self.people.frame(track, client.transform, msg.joints, msg.conf, t, arrival,
+                                 hands)
 
     def _drop_track(self, track: Track, t: float) -> None:
         self.people.drop_track(track, t)
@@ -453,6 +482,41 @@ class Engine:
             "threads": {t.name: t.native_id for t in threading.enumerate()
                         if t.native_id is not None},
         }
+
+
+def _with_hands(timed: list[tuple[float, int, Inbound]]) -> list[list]:
+    """[t, item, hand states] in order: each skeleton with the ``/handState`` of its client
+    and user that follow it in its datagram (same arrival, sender and timetag) at its capture
+    time (a skeleton refused by its source's port has its arrival as its time, its hand
+    states need not), with no other kind of message in between (a ``/lostUser``, say), taken out of the sequence; an empty list
+    for other items. Every sensor sends its users' hand states with their skeleton;
+    applied with it, they cost no message of their own (``Engine._apply_frame``)."""
+    out: list[list] = []
+    frames: dict = {}
+    for t, _, item in timed:
+        msg = item.message
+        kind = type(msg)
+        if kind is HandStateMsg:
+            entry = frames.get((msg.client, msg.user))
+            if entry is not None:
+                frame = entry[1]
+                if (entry[0] == t and frame.arrival == item.arrival
+                        and frame.timetag == item.timetag and frame.source == item.source):
+                    entry[2].append(item)
+                    continue
+        elif kind is JointCoordinates:
+            entry = [t, item, []]
+            frames[(msg.client, msg.user)] = entry
+            out.append(entry)
+            continue
+        elif frames:
+            frames.clear()
+        out.append([t, item, _NO_HANDS])
+    return out
+
+
+#: (never appended to)
+_NO_HANDS: list = []
 
 
 def _by_datagram(batch: list[Inbound]):

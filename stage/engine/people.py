@@ -76,9 +76,15 @@ class People:
 
     # ------------------------------------------------------------ input
     def frame(self, track: Track, transform: np.ndarray, joints: np.ndarray, conf: np.ndarray,
-              t: float, arrival: float) -> None:
+              t: float, arrival: float, hands: list | None = None) -> bool:
         """One calibrated sensor frame of ``track``: sensor-space ``joints`` (25, 3), ``conf``
-        (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock)."""
+        (25,), captured at ``t``; its datagram arrived at ``arrival`` (engine clock).
+
+        ``hands``: the ``/handState`` items that followed the frame in its datagram at ``t``
+        (``engine._with_hands``). The frame's hand votes take their states, which is what
+        ``hand`` for each of them after the frame would leave. Returns whether the frame
+        reached a person; if not, nothing was done with ``hands`` (the caller gives each
+        to ``hand``)."""
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         size, sized = None, False
         if jit.ready():
@@ -103,7 +109,7 @@ class People:
         track.t = t
         seen = conf > 0
         if not np.count_nonzero(seen):   # (count_nonzero: cheaper than a reduction, per view)
-            return  # nothing tracked in this frame: no position to associate or fuse
+            return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
         if not np.count_nonzero(person.known):
             # a person found in this batch: later views of the batch associate against this
@@ -114,10 +120,15 @@ class People:
         # without the kernels, the measurement variances are computed for the batch in _fold
         view = View(track.key, t, track.joints, conf, r, arrival, size=size, sized=sized)
         self._views.append((person, view, transform[:3, 3]))
+        if hands:
+            for item in hands:
+                track.hands[item.message.hand] = item.message.state
+            self._hands_dirty.add(person.id)
         weighted = self.rig.fusion.hand_vote == "confidence"
         for hand in (0, 1):
             weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
             person.voter.add(track.key, hand, track.hands[hand ^ track.arms_traded], weight, t)
+        return True
 
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
         """A ``/handState`` of ``track`` captured at ``t`` (``hand`` as the sensor names it)."""
