@@ -222,24 +222,28 @@ class HandVoter:
         pending, counted, fresh = self._pending[hand], self._counted[hand], self._fresh[hand]
         if not fresh:
             new = []
+        elif len(fresh) == 1:             # one sensor reported since the last vote: no sort
+            key = fresh.pop()
+            rt, state, w = pending[key]
+            new = [(rt, state, w, key)] if rt > counted.get(key, _NEVER) else []
         else:
             new = [(rt, state, w, key) for key in fresh
                    for rt, state, w in (pending[key],) if rt > counted.get(key, _NEVER)]
             fresh.clear()
+            new.sort()
         current = self.reported[hand]
         if current is None or current < HandState.OPEN:
             for rt, _, _, key in new:
                 counted[key] = rt         # nothing to change from: the first state goes at once
             return None
         lead, margin, since = self._lead[hand], self._margin[hand], self._since[hand]
-        new.sort()
+        # the two other known states, in code order
+        c1, c2 = others = _OTHERS[current]
         for rt, state, w, key in new:
             counted[key] = rt
             if state < HandState.OPEN:
                 continue                  # unknown and notTracked are no evidence
-            for c in _KNOWN:
-                if c == current:
-                    continue
+            for c in others:
                 step = w if state == c else -w if state == current else 0.0
                 if step > 0.0 and since[c] < 0.0:
                     since[c] = rt         # a run begins
@@ -250,7 +254,6 @@ class HandVoter:
                 v = margin[c] + (w if state == c else -w)
                 margin[c] = v if v > 0.0 else 0.0
         # the first of the two other known states with the largest lead
-        c1, c2 = _OTHERS[current]
         best = c2 if lead[c2] > lead[c1] else c1
         if lead[best] >= EVIDENCE_LEAD and margin[best] >= EVIDENCE_MARGIN and \
                 since[best] >= 0.0 and t - since[best] >= self.hold_s - 1e-9:
