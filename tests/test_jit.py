@@ -291,8 +291,9 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
 @needs_jit
 def test_frame_kernel_gives_the_batch_variances():
     """``jit.frame_r``'s variances are, bit for bit, what ``People._variances`` computes for
-    the same stage-space joints, and its trunk length ``body_size``'s (the kernel's own, which match numpy's to rounding),
-    including inferred, continuous and unseen confidences and joints within 1 m."""
+    the same stage-space joints (the kernel's own, which match numpy's to rounding), and its
+    trunk length ``body_size``'s, including inferred, continuous and unseen confidences and
+    joints within 1 m."""
     from types import SimpleNamespace
 
     from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M

@@ -486,11 +486,12 @@ class Engine:
 
 def _with_hands(timed: list[tuple[float, int, Inbound]]) -> list[list]:
     """[t, item, hand states] in order: each skeleton with the ``/handState`` of its client
-    and user that follow it in its datagram (same arrival, sender and timetag) at its capture
-    time (a skeleton refused by its source's port has its arrival as its time, its hand
-    states need not), with no other kind of message in between (a ``/lostUser``, say), taken out of the sequence; an empty list
-    for other items. Every sensor sends its users' hand states with their skeleton;
-    applied with it, they cost no message of their own (``Engine._apply_frame``)."""
+    and user that follow it in its datagram (same arrival, sender and timetag) at its
+    capture time (a skeleton refused by its source's port has its arrival as its time, its
+    hand states need not), with no other kind of message in between (a ``/lostUser``, say),
+    taken out of the sequence; an empty list for other items. Every sensor sends its users'
+    hand states with their skeleton; applied with it, they cost no message of their own
+    (``Engine._apply_frame``)."""
     out: list[list] = []
     frames: dict = {}
     for t, _, item in timed:
