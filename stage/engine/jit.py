@@ -599,6 +599,11 @@ def _scan_sig():
 
 
 _SCAN_HELPERS = ("_starts", "_nul", "_find", "_int", "_client", "_skeleton", "_hand")
+#: the kernels that let the GIL go while they run: only the calibrator's jump gate. A
+#: kernel on the engine's or the receiver's path (a few microseconds each, several per
+#: skeleton) that let it go would hand it to the calibrator at every call and wait, on
+#: its way out, for the calibrator to give it back (up to the 5 ms switch interval).
+_NOGIL = frozenset({"_gate"})
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
@@ -618,9 +623,10 @@ def warm() -> bool:
         cache = [True]
         for name, sig in _SIGNATURES.items():
             # in order: a kernel that calls another finds it compiled under its own name
-            _compiled[name] = globals()[name] = _njit(_PYTHON[name], sig, cache)
+            _compiled[name] = globals()[name] = _njit(_PYTHON[name], sig, cache,
+                                                      name in _NOGIL)
         _compiled["scan"] = _njit(_with_helpers(scan, "scan", _SCAN_HELPERS), _scan_sig(),
-                                  cache)
+                                  cache, False)
         protocol.use_scanner(_compiled["scan"])
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
@@ -799,21 +805,21 @@ def view_joints(user: int, joints: np.ndarray, conf: np.ndarray) -> bytes:
     return out[:n].tobytes()
 
 
-def _njit(fn, sig, cache: list[bool]):
+def _njit(fn, sig, cache: list[bool], nogil: bool):
     """``fn`` compiled for ``sig``, cached on disk while ``cache[0]``; where numba finds no
     writable place for its cache (a read-only install, a service user without a home),
     one warning, and this and every later kernel are compiled at every start instead
     (docs/installing.md)."""
     if cache[0]:
         try:
-            return numba.njit(sig, cache=True, nogil=True)(fn)
+            return numba.njit(sig, cache=True, nogil=nogil)(fn)
         except RuntimeError as exc:
             if "cannot cache" not in str(exc):
                 raise
             log.warning("compiled kernels: no disk cache (%s); compiling at every start "
                         "(set NUMBA_CACHE_DIR to a writable folder)", str(exc).splitlines()[0])
             cache[0] = False
-    return numba.njit(sig, cache=False, nogil=True)(fn)
+    return numba.njit(sig, cache=False, nogil=nogil)(fn)
 
 
 def _with_helpers(module, entry: str, helpers: tuple[str, ...]):
@@ -828,5 +834,5 @@ def _with_helpers(module, entry: str, helpers: tuple[str, ...]):
         return types.FunctionType(fn.__code__, ns, name, fn.__defaults__)
 
     for name in helpers:
-        ns[name] = numba.njit(nogil=True)(copy(name))
+        ns[name] = numba.njit()(copy(name))
     return copy(entry)
