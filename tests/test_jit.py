@@ -319,6 +319,7 @@ def test_frame_kernel_gives_the_batch_variances():
         view = SimpleNamespace(joints=joints, conf=c, r=None)
         People._variances(SimpleNamespace(smoothing=s), [(view, matrix[:3, 3])])
         np.testing.assert_array_equal(r, view.r)          # NaN where unseen, on both
+        size = None if size != size else size             # NaN: body_size's None
         assert size == body_size(joints, c)               # the trunk, or None on both
         sizes += size is None
         near += int((np.linalg.norm(joints - matrix[:3, 3], axis=1) < 1.0).sum())

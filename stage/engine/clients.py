@@ -41,14 +41,11 @@ from ..stats import DropCounter
 from .tracking import OffsetEstimator, Track
 
 log = logging.getLogger("stage.engine")
-_TORSO = tuple(TORSO)
-
-
 def _two_torso_joints(conf: np.ndarray) -> bool:
     """Whether at least two torso joints have a confidence above 0 (a Python loop that stops
     at the second: a tenth of the numpy indexing's cost on 25 joints)."""
     found = False
-    for j in _TORSO:
+    for j in TORSO:
         if conf[j] > 0:
             if found:
                 return True
@@ -162,7 +159,9 @@ class ClientRegistry:
 
     # ------------------------------------------------------------ time
     def capture_times(self, batch: list[Inbound]) -> list[float | None]:
-        """``capture_time`` of each item of ``batch``, worked out once for a bundle's messages.
+        """Each item's capture time on the engine clock (None: refused, counted as
+        ``bad_time``; an item without a timetag or a client: its arrival), worked out once
+        for a bundle's messages.
 
         The messages of one bundle share its timetag, arrival and source: a second call
         with the same inputs gives the same time and leaves the clock as it was (the offset
@@ -191,18 +190,10 @@ class ClientRegistry:
             last = (tag, item.arrival, item.source, client, passed, t)
         return out
 
-    def capture_time(self, item: Inbound) -> float | None:
-        """``item``'s capture time on the engine clock; None: refuse it (bad_time, counted)."""
-        msg = item.message
-        client = getattr(msg, "client", None)
-        if item.timetag is None or client is None:
-            return item.arrival
-        return self._capture(item, msg, client)[0]
-
     def _capture(self, item: Inbound, msg: Message, client: str) -> tuple[float | None, int]:
-        """(``capture_time``, the strictest kind of message (``_level``) the time holds for
-        from this source: 2 for a new client, whose messages are not checked here; -1: not
-        a time from the client's clock)."""
+        """(the capture time of a timetagged client message, the strictest kind of message
+        (``_level``) the time holds for from this source: 2 for a new client, whose messages
+        are not checked here; -1: not a time from the client's clock)."""
         tag, arrival = item.timetag, item.arrival
         assert tag is not None
         if self.wall_minus_clock is not None and (

@@ -58,10 +58,9 @@ class View:
     #: instant's consistency check nor rejected by the gate)
     used: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
     excluded: int = 0             # joints the consistency check left out (for the stats)
-    #: its trunk length when the frame kernel measured it (``tracking.body_size``; None:
-    #: not measured, or not measurable)
+    #: its trunk length as the frame kernel measured it (``tracking.body_size``; NaN: not
+    #: measurable; None: not measured, for the fold to measure)
     size: float | None = None
-    sized: bool = False           # whether ``size`` was measured (else: measure it)
 
 
 class _Step:

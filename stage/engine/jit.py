@@ -260,7 +260,7 @@ def _settle(pos, vel, row_t, t, stale, recent_conf, recent_t, prev, known, track
     person's own, updated in place as there; the rest goes to the ``*_out`` arrays.
     Returns how many torso joints are known (0: the caller finds the centre otherwise).
     ``recent_conf``/``recent_t`` are the person's views' latest confidences and their times
-    (``Person.recent_rows``): a joint's confidence is the best among the views of the last
+    (``Person.remember``): a joint's confidence is the best among the views of the last
     ``stale`` s, 0 without one (``People._recent_conf``)."""
     n = pos.shape[0]
     rows = recent_t.shape[0]
@@ -590,7 +590,6 @@ _SIGNATURES = {
     "_view_joints": "int64(int64, float64[:, ::1], float64[::1], uint8[::1], int64[::1], "
                     "uint8[::1])",
 }
-#: ``sensors.scan.scan``, compiled with the helpers it calls and given to the decoder
 def _scan_sig():
     """``scan``'s signature: the datagram is a read-only view of its bytes."""
     t = numba.types
@@ -729,10 +728,11 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
 
 def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
             look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
-            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float | None]:
+            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float]:
     """The compiled ``_frame_r``: a frame's (stage-space joints, conf, traded bits), its
     joints' measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen),
-    new arrays, and its trunk length (``tracking.body_size``, the same float). ``look`` and
+    new arrays, and its trunk length (``tracking.body_size``, the same float; NaN for its
+    None). ``look`` and
     ``traded`` are ``fusion``'s index arrays (left, right; (arm, leg))."""
     n = len(conf)
     joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
@@ -745,8 +745,7 @@ def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bo
                                  math.sqrt(s.measurement_noise), float(s.noise_per_m),
                                  float(inferred), float(s.inferred_sd_m ** 2), joints_out,
                                  conf_out, r_out, size)
-    trunk = float(size[0])
-    return joints_out, conf_out, bits, r_out, (None if trunk != trunk else trunk)
+    return joints_out, conf_out, bits, r_out, float(size[0])
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,

@@ -86,9 +86,8 @@ class People:
         reached a person; if not, nothing was done with ``hands`` (the caller gives each
         to ``hand``)."""
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
-        size, sized = None, False
+        size = None        # the trunk: here with the kernels, else in _fold
         if jit.ready():
-            sized = True
             track.joints, conf, traded, r, size = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
                 SWAP_MARGIN_M, self.smoothing, INFERRED)
@@ -118,7 +117,7 @@ class People:
             person.known = seen.copy()
             person.t = t
         # without the kernels, the measurement variances are computed for the batch in _fold
-        view = View(track.key, t, track.joints, conf, r, arrival, size=size, sized=sized)
+        view = View(track.key, t, track.joints, conf, r, arrival, size=size)
         self._views.append((person, view, transform[:3, 3]))
         if hands:
             for item in hands:
@@ -173,10 +172,10 @@ class People:
             if id(view) in late:
                 self.drops.add(view.key[0], "late")
                 continue
-            if view.sized:
-                person.add_size(view.size)
-            else:
+            if view.size is None:
                 person.measure_size(view.joints, view.conf)
+            elif view.size == view.size:                      # (NaN: not measurable)
+                person.add_size(view.size)
             person.remember(view.key, view.t, view.conf)
             touched[person.id] = person
             self._dirty.setdefault(person.id, []).append(view.arrival)
