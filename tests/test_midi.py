@@ -12,14 +12,17 @@ import os
 import re
 import shutil
 import subprocess
+import threading
 import time
 
 import mido
 import pytest
+import rtmidi
 
 from stage.testing.jack import start_dummy_jackd, stop_jackd
 
 import stage_plugins.midi as midi_view
+import stage_plugins.midi.ports as midi_ports
 from stage_plugins.midi.ports import PortSink, choose_api, jack_server_running, match_port
 from stage_plugins.midi.schedule import MidiScheduler
 from stage_plugins.midi.smf import TICKS_PER_S, SmfWriter, varlen
@@ -158,6 +161,60 @@ def test_smf_is_valid_after_every_flush_and_keeps_real_timing(tmp_path):
                      (2.0, "note_off", 1, 62)]
     assert f.tracks[0].name == "liminal"
     assert round(1 / TICKS_PER_S * 1000, 3) == 0.521   # ms per tick
+
+
+class _Clock:
+    """time.monotonic and time.sleep for ports.py: sleeping advances the clock."""
+
+    def __init__(self):
+        self.t, self.slept = 100.0, []
+
+    def monotonic(self):
+        return self.t
+
+    def sleep(self, s):
+        self.slept.append(round(s, 6))
+        self.t += s
+
+
+class _Out:
+    def __init__(self, clock):
+        self.clock, self.calls = clock, []
+
+    def send_message(self, data):
+        self.calls.append(("send", self.clock.t))
+
+    def close_port(self):
+        self.calls.append(("close", self.clock.t))
+
+    def delete(self):
+        self.calls.append(("delete", self.clock.t))
+
+
+@pytest.mark.parametrize("api, quiet_s, slept", [
+    (rtmidi.API_UNIX_JACK, 0.0, [0.1]),       # sent just now: JACK's next periods copy it
+    (rtmidi.API_UNIX_JACK, 0.03, [0.07]),     # only the rest of the drain time
+    (rtmidi.API_UNIX_JACK, 0.5, []),          # long quiet: closes at once
+    (rtmidi.API_LINUX_ALSA, 0.0, []),         # the ALSA sequencer takes each message as sent
+])
+def test_a_jack_port_lets_its_last_messages_out_before_it_closes(monkeypatch, api, quiet_s,
+                                                                  slept):
+    """RtMidi as python-rtmidi builds it unregisters a JACK port without waiting for the
+    process callback, which lost the all-notes-off sent at stop (CI, stop 27)."""
+    clock = _Clock()
+    monkeypatch.setattr(midi_ports, "time", clock)
+    port = object.__new__(PortSink)
+    port.name, port.api_id, port.connected, port._last_send = "keys", api, True, -1e9
+    port.sent = port.errors = port.dropped = 0
+    port._out = out = _Out(clock)
+    port.send(b"\xb0\x7b\x00")
+    clock.t += quiet_s
+    port.close()
+    assert clock.slept == slept
+    assert [c for c, _ in out.calls] == ["send", "close", "delete"]
+    if api == rtmidi.API_UNIX_JACK:
+        assert out.calls[1][1] - out.calls[0][1] >= midi_ports.JACK_DRAIN_S - 1e-9
+    assert port._out is None
 
 
 # ---------------------------------------------------------------- the view, with fake ports
@@ -414,6 +471,9 @@ def start_midi_dump() -> subprocess.Popen:
 @pytest.mark.integration
 def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_server):
     dump = start_midi_dump()
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
+    reader.start()
     try:
         host = ViewHost.for_play([OutputDecl("keys", "midi"), OutputDecl("bass", "midi")],
                                  midi_port=None, plugins=False).start()
@@ -436,10 +496,17 @@ def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_ser
             time.sleep(0.7)
         finally:
             host.stop()
-        time.sleep(0.1)
+        # jack_midi_dump prints from its main thread, which a loaded machine wakes late:
+        # wait for the 15 events (up to 5 s) rather than a fixed time
+        deadline = time.monotonic() + 5
+        while sum(bool(DUMP_LINE.match(line)) for line in list(lines)) < 15 \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
     finally:
         dump.terminate()
-        out, _ = dump.communicate(timeout=5)
+        dump.wait(timeout=5)
+        reader.join(timeout=5)
+    out = "".join(lines)
     events = []
     for line in out.splitlines():
         m = DUMP_LINE.match(line)

@@ -1,0 +1,103 @@
+"""MIDI at stop over JACK: do the last messages sent before a port closes arrive?
+
+``stage play`` ends by sending all-notes-off on every channel it used and closing its
+ports. python-rtmidi builds RtMidi without its semaphore, so RtMidi's own close
+unregisters a JACK port without waiting for JACK's process callback to copy what was
+just sent. ``PortSink.close`` therefore keeps a JACK port open until ``JACK_DRAIN_S``
+after its last message. This bench opens ``--ports`` ports one after another on a dummy
+JACK server, each connected to ``jack_midi_dump``, sends two control changes on each and
+closes it, and counts what the dump received, for each drain time in ``--drains``
+(0 is RtMidi's own close, the reference) and the shipped default. ``--load N`` runs N
+busy loops meanwhile: the loss shows on a loaded machine, which a stage machine running
+a video or a DAW is.
+
+    python bench/bench_midi_stop.py                    # 30 ports, drains 0 and default, load 3
+    python bench/bench_midi_stop.py --drains 0,0.02,0.05 --load 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import rtmidi  # noqa: E402
+
+import stage_plugins.midi.ports as ports  # noqa: E402
+from stage.testing.jack import start_dummy_jackd, stop_jackd  # noqa: E402
+
+
+def run(drain: float, n: int) -> tuple[int, int]:
+    """(sent, received) for n ports closed ``drain`` s after their last message."""
+    dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 5
+    while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
+                                             text=True).stdout:
+        if time.monotonic() > deadline:
+            raise SystemExit("jack_midi_dump did not register its port")
+        time.sleep(0.05)
+    saved, ports.JACK_DRAIN_S = ports.JACK_DRAIN_S, drain
+    try:
+        for i in range(n):
+            sink = ports.PortSink(f"p{i}", rtmidi.API_UNIX_JACK, client=f"stop{i}",
+                                  existing=False)
+            subprocess.run(["jack_connect", f"stop{i}:p{i}", "dump:input"], check=True)
+            time.sleep(0.02)
+            sink.send(b"\xb0\x7b\x00")
+            sink.send(b"\xb2\x7b\x00")
+            sink.close()
+    finally:
+        ports.JACK_DRAIN_S = saved
+    time.sleep(1.0)
+    dump.terminate()
+    dump.wait(timeout=5)
+    reader.join(timeout=5)
+    return 2 * n, sum(" 7b 00" in line for line in lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--ports", type=int, default=30)
+    parser.add_argument("--drains", default=f"0,{ports.JACK_DRAIN_S}",
+                        help="drain times in s, comma-separated (0: RtMidi's own close)")
+    parser.add_argument("--load", type=int, default=3, help="busy loops running meanwhile")
+    parser.add_argument("--rounds", type=int, default=2, help="each drain this many times")
+    args = parser.parse_args()
+    for tool in ("jackd", "jack_midi_dump", "jack_connect", "jack_lsp"):
+        if shutil.which(tool) is None:
+            raise SystemExit(f"{tool} not found: apt-get install jackd2")
+    name = f"stage-bench-stop-{os.getpid()}"
+    os.environ["JACK_DEFAULT_SERVER"] = name
+    server = start_dummy_jackd(name, 256, 48000)
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in range(args.load)]
+    try:
+        print(f"{args.ports} ports x 2 messages, dummy JACK 256 frames at 48 kHz, "
+              f"{args.load} busy loop(s) on {os.cpu_count()} cores")
+        drains = [float(d) for d in args.drains.split(",")]
+        for r in range(args.rounds):
+            for drain in drains:   # alternating, so a slow phase hits every drain
+                sent, got = run(drain, args.ports)
+                label = "RtMidi's close" if drain == 0 else f"drain {drain * 1000:.0f} ms"
+                print(f"round {r + 1}  {label:>16}: sent {sent}, received {got}, "
+                      f"lost {sent - got}")
+    finally:
+        for p in busy:
+            p.kill()
+        stop_jackd(server)
+
+
+if __name__ == "__main__":
+    main()
