@@ -11,9 +11,12 @@ import logging
 import os
 import re
 import shutil
+import signal
 import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import mido
 import pytest
@@ -564,3 +567,71 @@ def test_a_port_whose_jack_server_dies_is_reopened_when_it_comes_back(jack_serve
         assert "90 3c 40" in out
     finally:
         port.close()
+
+
+def _sounding(events: list[str]) -> dict[tuple[int, int], int]:
+    """(channel, pitch) -> notes on and not yet ended after ``events`` (hex lines as
+    jack_midi_dump prints them; note-off, note-on velocity 0 and all-notes-off end notes)."""
+    on: dict[tuple[int, int], int] = {}
+    for data in events:
+        b = [int(x, 16) for x in data.split()]
+        kind, channel = b[0] & 0xF0, b[0] & 0x0F
+        if kind == 0x90 and b[2] > 0:
+            on[(channel, b[1])] = on.get((channel, b[1]), 0) + 1
+        elif kind == 0x80 or kind == 0x90:
+            if on.get((channel, b[1])):
+                on[(channel, b[1])] -= 1
+        elif kind == 0xB0 and b[1] == 123:
+            on = {k: v for k, v in on.items() if k[0] != channel}
+    return {k: v for k, v in on.items() if v}
+
+
+@pytest.mark.integration
+def test_a_performer_stopping_mid_phrase_leaves_no_note_sounding_on_jack(jack_server,
+                                                                         monkeypatch):
+    """`stage play` on a real JACK MIDI port, SIGTERM while a phrase sounds: what a synth
+    connected to the port received ends every note (the stop's all-notes-off arrives)."""
+    monkeypatch.setenv("STAGE_MIDI_API", "jack")
+    dump = start_midi_dump()
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
+    reader.start()
+    piece = str(Path(__file__).resolve().parents[1] / "pieces" / "liminal.yaml")
+    proc = subprocess.Popen([sys.executable, "-m", "stage.cli", "play", piece, "--sim",
+                             "--seed", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while "stage:cello" not in subprocess.run(["jack_lsp"], capture_output=True,
+                                                  text=True).stdout:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.05)
+        done = subprocess.run(["jack_connect", "stage:cello", "dump:input"],
+                              capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        # stop while the synth has a note sounding (as jack_midi_dump saw it)
+        while not _sounding([m.group(2).strip() for m in map(DUMP_LINE.match, list(lines))
+                             if m]):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGTERM)
+        signalled = len(lines)
+        out, err = proc.communicate(timeout=20)
+        # (jack_midi_dump prints from a thread a loaded machine wakes late)
+        quiet = time.monotonic() + 5
+        while not any(" b0 7b 00" in line for line in list(lines)) and time.monotonic() < quiet:
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        dump.terminate()
+        dump.wait(timeout=5)
+        reader.join(timeout=5)
+    assert proc.returncode == 130, err
+    events = [m.group(2).strip() for m in map(DUMP_LINE.match, lines) if m]
+    # a note was sounding when the performer stopped; it ended (its own note-off, due while
+    # the show stopped, or the stop's all-notes-off), and the stop's all-notes-off came last
+    assert _sounding([m.group(2).strip() for m in map(DUMP_LINE.match, lines[:signalled])
+                      if m]), events
+    assert _sounding(events) == {}, events
+    assert events[-1] == "b0 7b 00", events
