@@ -68,7 +68,8 @@ def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
     """
     x, w = np.asarray(x, dtype=float).reshape(-1), np.asarray(w, dtype=float).reshape(-1)
     keep = w > 0
-    x, w = x[keep], w[keep]
+    if not keep.all():
+        x, w = x[keep], w[keep]
     if not len(x):
         return float("nan")
     order = np.argsort(x, kind="stable")
@@ -143,7 +144,8 @@ class Moments:
         q = np.asarray(q, dtype=float).reshape(-1, 3)
         w = np.asarray(w, dtype=float).reshape(-1)
         keep = w > 0
-        p, q, w = p[keep], q[keep], w[keep]
+        if not keep.all():   # (a copy only where some point has no weight)
+            p, q, w = p[keep], q[keep], w[keep]
         total = float(w.sum())
         if total <= 0:
             raise ValueError("no weighted points")

@@ -186,13 +186,19 @@ class LagSearch:
 def robust_residual(ps: PairSet, rounds: int = 2) -> float:
     """Median joint distance (m) of a quick robust rigid fit: least squares, then ``rounds``
     of Cauchy re-weighting (the same weights ``methods.rigid`` uses)."""
-    m = kabsch(ps.moments())
-    w = ps.weight
+    # on the weighted joint pairs only, taken out once: the same floats as on all of them
+    # (every step below leaves out the pairs without weight, and a re-weighting keeps the
+    # weight of every pair that has one), without copying them out again at each step
+    keep = ps.weight > 0
+    if not keep.any():
+        ps.moments()                    # its CalibrationError, naming the sensors
+    p, q, w = ps.other[keep], ps.ref[keep], ps.weight[keep]
+    m = kabsch(Moments.of(p, q, w))
     for _ in range(rounds):
-        r = residuals(m, ps.other, ps.ref)
+        r = residuals(m, p, q)
         c = max(2.0 * weighted_median(r, w), 0.02)
-        m = kabsch(ps.moments(w / (1.0 + (r / c) ** 2)))
-    return weighted_median(residuals(m, ps.other, ps.ref), w)
+        m = kabsch(Moments.of(p, q, w / (1.0 + (r / c) ** 2)))
+    return weighted_median(residuals(m, p, q), w)
 
 
 def find_lag(ref: Stream, other: Stream, max_lag_s: float = 1.0, step_s: float | None = None,
