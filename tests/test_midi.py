@@ -457,6 +457,20 @@ def jack_server(monkeypatch, tmp_path):
             stop_jackd(running)
 
 
+def read_lines(proc: subprocess.Popen) -> tuple[list[str], threading.Thread]:
+    """``proc``'s output lines as they come (the thread appends them to the list), and the
+    thread, to join once ``proc`` has ended (so nothing else may read its output)."""
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    return lines, reader
+
+
+def dump_events(lines: list[str]) -> list[str]:
+    """The MIDI bytes (hex) of jack_midi_dump's lines so far."""
+    return [m.group(2).strip() for m in map(DUMP_LINE.match, list(lines)) if m]
+
+
 def start_midi_dump() -> subprocess.Popen:
     """``jack_midi_dump`` as client "dump", returned once its input port is registered."""
     dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
@@ -474,9 +488,7 @@ def start_midi_dump() -> subprocess.Popen:
 @pytest.mark.integration
 def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_server):
     dump = start_midi_dump()
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
-    reader.start()
+    lines, reader = read_lines(dump)
     try:
         host = ViewHost.for_play([OutputDecl("keys", "midi"), OutputDecl("bass", "midi")],
                                  midi_port=None, plugins=False).start()
@@ -502,8 +514,7 @@ def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_ser
         # jack_midi_dump prints from its main thread, which a loaded machine wakes late:
         # wait for the 15 events (up to 5 s) rather than a fixed time
         deadline = time.monotonic() + 5
-        while sum(bool(DUMP_LINE.match(line)) for line in list(lines)) < 15 \
-                and time.monotonic() < deadline:
+        while len(dump_events(lines)) < 15 and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
         dump.terminate()
@@ -593,9 +604,7 @@ def test_a_performer_stopping_mid_phrase_leaves_no_note_sounding_on_jack(jack_se
     connected to the port received ends every note (the stop's all-notes-off arrives)."""
     monkeypatch.setenv("STAGE_MIDI_API", "jack")
     dump = start_midi_dump()
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
-    reader.start()
+    lines, reader = read_lines(dump)
     piece = str(Path(__file__).resolve().parents[1] / "pieces" / "liminal.yaml")
     proc = subprocess.Popen([sys.executable, "-m", "stage.cli", "play", piece, "--sim",
                              "--seed", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -610,16 +619,16 @@ def test_a_performer_stopping_mid_phrase_leaves_no_note_sounding_on_jack(jack_se
                               capture_output=True, text=True)
         assert done.returncode == 0, done.stderr
         # stop while the synth has a note sounding (as jack_midi_dump saw it)
-        while not _sounding([m.group(2).strip() for m in map(DUMP_LINE.match, list(lines))
-                             if m]):
+        while not _sounding(dump_events(lines)):
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
             time.sleep(0.01)
         proc.send_signal(signal.SIGTERM)
-        signalled = len(lines)
+        before = dump_events(lines)
         out, err = proc.communicate(timeout=20)
-        # (jack_midi_dump prints from a thread a loaded machine wakes late)
+        # (jack_midi_dump prints from a thread a loaded machine wakes late: wait for the
+        # stop's all-notes-off, after what it had printed at the signal)
         quiet = time.monotonic() + 5
-        while not any(" b0 7b 00" in line for line in list(lines)) and time.monotonic() < quiet:
+        while "b0 7b 00" not in dump_events(lines)[len(before):] and time.monotonic() < quiet:
             time.sleep(0.05)
     finally:
         if proc.poll() is None:
@@ -628,10 +637,9 @@ def test_a_performer_stopping_mid_phrase_leaves_no_note_sounding_on_jack(jack_se
         dump.wait(timeout=5)
         reader.join(timeout=5)
     assert proc.returncode == 130, err
-    events = [m.group(2).strip() for m in map(DUMP_LINE.match, lines) if m]
+    events = dump_events(lines)
     # a note was sounding when the performer stopped; it ended (its own note-off, due while
     # the show stopped, or the stop's all-notes-off), and the stop's all-notes-off came last
-    assert _sounding([m.group(2).strip() for m in map(DUMP_LINE.match, lines[:signalled])
-                      if m]), events
+    assert _sounding(before), events
     assert _sounding(events) == {}, events
     assert events[-1] == "b0 7b 00", events
