@@ -22,7 +22,6 @@ import os
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -32,22 +31,12 @@ sys.path.insert(0, str(ROOT))
 import rtmidi  # noqa: E402
 
 import stage_plugins.midi.ports as ports  # noqa: E402
-from stage.testing.jack import start_dummy_jackd, stop_jackd  # noqa: E402
+from stage.testing.jack import start_dummy_jackd, start_midi_dump, stop_jackd  # noqa: E402
 
 
 def run(drain: float, n: int) -> tuple[int, int]:
     """(sent, received) for n ports closed ``drain`` s after their last message."""
-    dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
-    reader.start()
-    deadline = time.monotonic() + 5
-    while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
-                                             text=True).stdout:
-        if time.monotonic() > deadline:
-            raise SystemExit("jack_midi_dump did not register its port")
-        time.sleep(0.05)
+    dump, lines, reader = start_midi_dump()
     saved, ports.JACK_DRAIN_S = ports.JACK_DRAIN_S, drain
     try:
         for i in range(n):

@@ -22,7 +22,7 @@ import mido
 import pytest
 import rtmidi
 
-from stage.testing.jack import start_dummy_jackd, stop_jackd
+from stage.testing.jack import start_dummy_jackd, start_midi_dump, stop_jackd
 
 import stage_plugins.midi as midi_view
 import stage_plugins.midi.ports as midi_ports
@@ -457,38 +457,14 @@ def jack_server(monkeypatch, tmp_path):
             stop_jackd(running)
 
 
-def read_lines(proc: subprocess.Popen) -> tuple[list[str], threading.Thread]:
-    """``proc``'s output lines as they come (the thread appends them to the list), and the
-    thread, to join once ``proc`` has ended (so nothing else may read its output)."""
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
-    reader.start()
-    return lines, reader
-
-
 def dump_events(lines: list[str]) -> list[str]:
     """The MIDI bytes (hex) of jack_midi_dump's lines so far."""
     return [m.group(2).strip() for m in map(DUMP_LINE.match, list(lines)) if m]
 
 
-def start_midi_dump() -> subprocess.Popen:
-    """``jack_midi_dump`` as client "dump", returned once its input port is registered."""
-    dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", "dump"],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    deadline = time.monotonic() + 5
-    while "dump:input" not in subprocess.run(["jack_lsp"], capture_output=True,
-                                             text=True).stdout:
-        if time.monotonic() > deadline:
-            dump.kill()
-            raise AssertionError("jack_midi_dump did not register its port")
-        time.sleep(0.05)
-    return dump
-
-
 @pytest.mark.integration
 def test_scripted_notes_reach_jack_midi_dump_in_order_on_their_channels(jack_server):
-    dump = start_midi_dump()
-    lines, reader = read_lines(dump)
+    dump, lines, reader = start_midi_dump()
     try:
         host = ViewHost.for_play([OutputDecl("keys", "midi"), OutputDecl("bass", "midi")],
                                  midi_port=None, plugins=False).start()
@@ -565,7 +541,7 @@ def test_a_port_whose_jack_server_dies_is_reopened_when_it_comes_back(jack_serve
         jack_server_processes.append(start_dummy_jackd(jack_server, 256, 48000))
         change = port.check()
         assert change is not None and "is back" in change and port.state()["reconnects"] == 1
-        dump = start_midi_dump()
+        dump, lines, reader = start_midi_dump()
         try:
             done = subprocess.run(["jack_connect", "stage:keys", "dump:input"],
                                   capture_output=True, text=True)
@@ -574,8 +550,9 @@ def test_a_port_whose_jack_server_dies_is_reopened_when_it_comes_back(jack_serve
             time.sleep(0.3)
         finally:
             dump.terminate()
-            out, _ = dump.communicate(timeout=5)
-        assert "90 3c 40" in out
+            dump.wait(timeout=5)
+            reader.join(timeout=5)
+        assert "90 3c 40" in "".join(lines)
     finally:
         port.close()
 
@@ -603,8 +580,7 @@ def test_a_performer_stopping_mid_phrase_leaves_no_note_sounding_on_jack(jack_se
     """`stage play` on a real JACK MIDI port, SIGTERM while a phrase sounds: what a synth
     connected to the port received ends every note (the stop's all-notes-off arrives)."""
     monkeypatch.setenv("STAGE_MIDI_API", "jack")
-    dump = start_midi_dump()
-    lines, reader = read_lines(dump)
+    dump, lines, reader = start_midi_dump()
     piece = str(Path(__file__).resolve().parents[1] / "pieces" / "liminal.yaml")
     proc = subprocess.Popen([sys.executable, "-m", "stage.cli", "play", piece, "--sim",
                              "--seed", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import threading
 import time
 from typing import IO
 
@@ -48,3 +49,27 @@ def stop_jackd(proc: subprocess.Popen) -> None:
             continue
     proc.kill()
     proc.wait(5)
+
+
+def start_midi_dump(client: str = "dump", timeout: float = 5.0,
+                    ) -> tuple[subprocess.Popen, list[str], threading.Thread]:
+    """``jack_midi_dump`` as ``client`` on the current JACK server, once its input port is
+    registered: the process, its output lines as they come (a thread appends them), and
+    that thread, to join once the process has ended (nothing else may read its output).
+
+    Raises RuntimeError (with the process killed) if the port does not appear in time.
+    """
+    dump = subprocess.Popen(["stdbuf", "-oL", "jack_midi_dump", "-a", client],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + timeout
+    while f"{client}:input" not in subprocess.run(["jack_lsp"], capture_output=True,
+                                                  text=True).stdout:
+        if time.monotonic() > deadline:
+            dump.kill()
+            dump.wait(5)
+            raise RuntimeError("jack_midi_dump did not register its port")
+        time.sleep(0.05)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(dump.stdout), daemon=True)
+    reader.start()
+    return dump, lines, reader
