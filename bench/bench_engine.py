@@ -32,7 +32,11 @@ generator sent, and the CPU other processes used meanwhile.
 
 Run ``python bench/bench_engine.py`` (all 9 configurations, spread and aligned,
 relay and engine: 36 rows, 2 s warm-up + 10 s each), ``--quick`` (1 s + 2 s),
-``--configs 6x6,1x1``, ``--modes aligned``, ``--json``. ``--profile DIR`` runs
+``--configs 6x6,1x1``, ``--modes aligned``, ``--json``. ``--floor`` adds a third
+server per configuration, the floor: a relay that decodes every datagram and
+sends every skeleton on, re-encoded one datagram each as the engine sends a
+fused one, but fuses nothing (``relay_serve``) -- the least any Python server
+that keeps stage's wire API costs here. ``--profile DIR`` runs
 the server with one cProfile per thread; ``--server-cmd`` benchmarks another
 server command (A/B runs); ``--wait-idle S`` waits for a quiet machine before
 each configuration. The servers run from a snapshot of stage/ taken at the
@@ -44,6 +48,7 @@ targets; the exit status does not depend on it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -429,6 +434,7 @@ class Options:
     aligned: bool
     profile: str | None
     relay: bool = False        # run the do-nothing relay instead of stage serve
+    floor: bool = False        # with relay: the decoding relay (the Python floor), see relay_serve
     server_cmd: list[str] | None = None  # another server command; gets --port P --rig R
     src: Path = REPO                     # where the servers import stage from
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
@@ -460,7 +466,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
                trace_prefix, "--port", str(port), "--rig", rig_path]
     elif opt.relay:
         cmd = [sys.executable, os.path.abspath(__file__), "_relay-serve", "--port", str(port),
-               "--rig", rig_path]
+               "--rig", rig_path] + (["--decode"] if opt.floor else [])
     elif opt.profile:
         prof_prefix = os.path.join(opt.profile, f"{sensors}x{people}")
         cmd = [sys.executable, os.path.abspath(__file__), "_profiled-serve", prof_prefix,
@@ -544,7 +550,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     for t in tids:
         threads[_thread_label(named.get(t, str(t)))] += (threads1[t] - threads0[t]) / span
     result = {
-        "server": "relay" if opt.relay else "engine",
+        "server": ("floor" if opt.floor else "relay") if opt.relay else "engine",
         "mode": "aligned" if opt.aligned else "spread",
         "config": f"{sensors}x{people}",
         "sensors": sensors, "people": people, "stage_source": fingerprint,
@@ -580,6 +586,12 @@ def verdicts(rows: list[dict]) -> None:
     """Engine minus relay per configuration and mode, and the CPU target; adds to the rows."""
     relays = {(r["mode"], r["config"]): r for r in rows if r["server"] == "relay"}
     for r in rows:
+        if r["server"] == "floor":    # for comparison only: no verdict
+            relay, lat = relays.get((r["mode"], r["config"])), r["latency_ms"]
+            if relay is not None and lat.get("n") and relay["latency_ms"].get("n"):
+                r["diff_ms"] = {"p50": lat["p50"] - relay["latency_ms"]["p50"],
+                                "p99": lat["p99"] - relay["latency_ms"]["p99"]}
+            continue
         if r["server"] != "engine":
             continue
         relay = relays.get((r["mode"], r["config"]))
@@ -638,15 +650,30 @@ def relay_serve(argv: list[str]) -> int:
     server's thread structure (a receiver thread reads and enqueues, a second thread takes
     from a queue.Queue with the engine's 20 ms timeout and forwards every datagram as it is to
     the rig's views). It records, per datagram, arrival -> forwarded: what the two-thread
-    design costs on this machine before any decoding or fusion, under the same load."""
+    design costs on this machine before any decoding or fusion, under the same load.
+
+    With ``--decode`` (the *floor*, ``--floor``): the same threads, but every datagram is
+    decoded as the engine decodes it (``decode_datagram``, with the engine's compiled scanner)
+    and every skeleton in it is sent on at once, re-encoded as the engine encodes a fused
+    skeleton (one ``/jointCoordinates`` datagram per skeleton per view, the compiled encoder);
+    one latency sample per skeleton, as the engine records. No calibration, association or
+    fusion: what any server that keeps stage's wire API costs in Python on this machine, the
+    least the engine could cost."""
     from stage.rig import load_rig
     from stage.stats import LatencyWindow
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--rig", required=True)
+    parser.add_argument("--decode", action="store_true")
     args = parser.parse_args(argv)
     views = load_rig(args.rig).views
+    if args.decode:
+        from stage.engine import jit
+        from stage.engine.output import _encode_joints
+        from stage.sensors.messages import JointCoordinates
+        from stage.sensors.protocol import decode_datagram
+        jit.warm()   # the engine's kernels: the scanner and the encoder
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     sock.bind(("127.0.0.1", args.port))
@@ -682,6 +709,15 @@ def relay_serve(argv: list[str]) -> int:
             if not data.startswith(b"#bundle"):
                 continue
             counts["frames"] += 1
+            if args.decode:
+                for m, _ in decode_datagram(data, f"{source[0]}:{source[1]}").messages:
+                    if type(m) is JointCoordinates:
+                        out = _encode_joints(m.user, m.joints, m.conf)
+                        for view in views:
+                            sock.sendto(out, view)
+                            counts["datagrams_out"] += 1
+                        window.add(time.monotonic() - arrival)
+                continue
             for view in views:
                 sock.sendto(data, view)
                 counts["datagrams_out"] += 1
@@ -811,7 +847,8 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
               f"{100 * r['other_cpu_core_fraction']:7.1f} | {verdict}")
     print("latency: per input datagram (for the engine: per skeleton in it), its arrival at the "
           "server -> the first datagram out that includes it, samples of the window only;\n"
-          "minus relay: the engine's p50/p99 minus the relay's in the same mode and config; ext: "
+          "minus relay: the engine's (or floor's) p50/p99 minus the relay's in the same mode and "
+          "config; floor (--floor): a relay that decodes and re-encodes every skeleton; ext: "
           "send -> received by the bench's view, one-sensor configs only;\n"
           "CPU: server process utime+stime over the window (* = the config the CPU target applies "
           "to; rx+eng+cal+rest: its receiver, engine, live calibrator and other threads, as the "
@@ -872,6 +909,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="smoke run: 1 s warm-up, 2 s window")
     parser.add_argument("--no-relay", action="store_true", help="skip the relay rows (no verdict)")
     parser.add_argument("--no-offline", action="store_true", help="skip the injected-clock rows")
+    parser.add_argument("--floor", action="store_true",
+                        help="also run the floor: a relay that decodes every datagram and sends "
+                             "every skeleton on re-encoded, as the engine does, without fusing")
     parser.add_argument("--profile", metavar="DIR",
                         help="run the server with one cProfile per thread; write and print the "
                              "hot spots (figures are then inflated by the profiler)")
@@ -911,7 +951,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def run(sensors: int, people: int, o: Options) -> dict:
         label = f"{'aligned' if o.aligned else 'spread'} {sensors}x{people} " \
-                f"{'relay' if o.relay else 'engine'}"
+                f"{('floor' if o.floor else 'relay') if o.relay else 'engine'}"
         for attempt in range(args.retry_busy + 1):
             print(f"running {label} ...", file=sys.stderr, flush=True)
             result = run_config(sensors, people, o)
@@ -931,9 +971,12 @@ def main(argv: list[str] | None = None) -> int:
                              trace=args.trace)
         relay_opt = Options(args.warmup, args.duration, aligned, None, relay=True, src=src,
                             wait_idle=args.wait_idle)
+        floor_opt = dataclasses.replace(relay_opt, floor=True)
         for sensors, people in args.configs:
             if not args.no_relay:
                 results.append(run(sensors, people, relay_opt))
+            if args.floor:
+                results.append(run(sensors, people, floor_opt))
             results.append(run(sensors, people, engine_opt))
         if not args.no_offline:
             for sensors, people in args.configs:
