@@ -4,12 +4,14 @@
 inbound items (live: one datagram) the engine hands it each calibrated frame
 (``frame``) and hand state (``hand``); at the end of the batch ``flush`` folds
 every frame into its person's filter -- all persons of the batch in one numpy
-step per wave (``fuser``) -- votes hands (``hands``) and sends each updated
-person once, at once: nothing waits for a later frame. ``tick`` merges and expires persons
-and serves views that asked for a fixed rate.
+step per wave (``fuser``) -- sends each updated person's skeleton once, at
+once (nothing waits for a later frame), and then votes hands (``hands``):
+the batch's hand reports go to the voters after its skeletons are out, so no
+skeleton waits for hand work. ``tick`` merges and expires persons and serves
+views that asked for a fixed rate.
 
 Latency is recorded per input frame: from its datagram's arrival to the
-emission that includes it.
+datagram out that includes it (its person's skeleton).
 """
 
 from __future__ import annotations
@@ -68,6 +70,9 @@ class People:
         self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
+        #: the batch's hand reports (voter, sensor key, hand, state, weight, t), in the order
+        #: they came: given to the voters after the batch's skeletons are sent (``_emit``)
+        self._reports: list[tuple] = []
         self._lost: list[int] = []
 
     @property
@@ -124,9 +129,11 @@ class People:
                 track.hands[item.message.hand] = item.message.state
             self._hands_dirty.add(person.id)
         weighted = self.rig.fusion.hand_vote == "confidence"
-        for hand in (0, 1):
-            weight = float(conf[_HAND_JOINT[hand]]) if weighted else 1.0
-            person.voter.add(track.key, hand, track.hands[hand ^ track.arms_traded], weight, t)
+        traded = track.arms_traded
+        self._reports.append((person.voter, track.key, 0, track.hands[traded],
+                              float(conf[_HAND_JOINT[0]]) if weighted else 1.0, t))
+        self._reports.append((person.voter, track.key, 1, track.hands[1 ^ traded],
+                              float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
         return True
 
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
@@ -138,10 +145,17 @@ class People:
         hand ^= track.arms_traded                   # the sensor's arms traded back
         weighted = self.rig.fusion.hand_vote == "confidence"
         weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
-        person.voter.add(track.key, hand, state, weight, t)
+        self._reports.append((person.voter, track.key, hand, state, weight, t))
         self._hands_dirty.add(person.id)
 
+    def _give_reports(self) -> None:
+        """The batch's hand reports to their voters, in the order they came."""
+        reports, self._reports = self._reports, []
+        for voter, key, hand, state, weight, t in reports:
+            voter.add(key, hand, state, weight, t)
+
     def drop_track(self, track: Track, t: float) -> None:
+        self._give_reports()       # (its reports before it is forgotten, as they came)
         pid = self.tracker.unbind(track, t)
         person = self.persons.get(pid) if pid is not None else None
         if person is not None:
@@ -321,18 +335,16 @@ class People:
 
     # ------------------------------------------------------------ output
     def _emit(self) -> None:
+        """Send what the batch changed: every updated person's skeleton first, then the hand
+        votes (the batch's hand reports are given to the voters only now), so that no
+        skeleton waits for hand work. A frame's latency ends when its person's skeleton is
+        sent: the first datagram out that includes it."""
         if not self._dirty and not self._lost and not self._hands_dirty:
+            self._give_reports()     # (a late frame's: its vote comes with the next change)
             return
         now = self.clock.now()
         new: list[int] = []
-        updated: list[int] = []
-        for pid in sorted(self._hands_dirty - self._dirty.keys()):
-            # a hand message alone re-sends no joints: only a changed vote goes out
-            person = self.persons.get(pid)
-            if person is None or not person.announced:
-                continue
-            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
-                updated.append(pid)
+        sent_joints: list[Person] = []
         for pid, arrivals in self._dirty.items():
             person = self.persons.get(pid)
             if person is None or person.centre is None:
@@ -347,11 +359,22 @@ class People:
                 for horizon, targets in self.output.forecast_targets().items():
                     self.output.joints(pid, self.forecast(person, horizon).joints, person.conf,
                                        targets)
-            self._send_hands(person, person.voter.update(person.t))
-            updated.append(pid)
             sent = self.clock.now()
             for arrival in arrivals:
                 self.latency.add(sent - arrival)
+            sent_joints.append(person)
+        self._give_reports()
+        updated: list[int] = []
+        for pid in sorted(self._hands_dirty - self._dirty.keys()):
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
+                updated.append(pid)
+        for person in sent_joints:
+            self._send_hands(person, person.voter.update(person.t))
+            updated.append(person.id)
         lost = self._lost
         for pid in lost:
             self.output.lost_user(pid)
