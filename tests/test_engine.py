@@ -623,16 +623,16 @@ def test_hand_states_applied_with_their_skeleton_give_what_each_alone_gives(monk
         merged[0] += sum(len(h) for _, _, h in out)
         return out
     # every hand vote, per engine: a vote left out shows even when it changes nothing
+    from stage.engine.handbank import ArrayHandVoter
     from stage.engine.hands import HandVoter
     votes: list[list] = [[], []]
     current = [0]
-    update = HandVoter.update
-
-    def voted(self, t):
-        changed = update(self, t)
-        votes[current[0]].append((t, tuple(self.reported), tuple(changed)))
-        return changed
-    monkeypatch.setattr(HandVoter, "update", voted)
+    for cls in (HandVoter, ArrayHandVoter):     # (the second: with the compiled kernels)
+        def voted(self, t, _update=cls.update):
+            changed = _update(self, t)
+            votes[current[0]].append((t, tuple(self.reported), tuple(changed)))
+            return changed
+        monkeypatch.setattr(cls, "update", voted)
     kinects = [VirtualKinect(p, rng=np.random.default_rng(k)) for k, p in enumerate(poses)]
     states = ["open", "closed", "lasso", "unknown", "notTracked"]
     t = 100.0

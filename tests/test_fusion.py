@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stage.engine import jit
 from stage.engine.fusion import apply_transform, consistent_views, torso_centre
+from stage.engine.handbank import ArrayHandVoter
 from stage.engine.hands import HandVoter
 from stage.joints import HandState
 
@@ -62,8 +64,18 @@ def test_views_that_agree_are_all_used_and_unseen_joints_never():
     assert used[0, 0] and used.sum() == 1
 
 
-def vote_once(states, weights=None):
-    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+@pytest.fixture(params=["reference", "array"])
+def Voter(request):
+    """The voter class: ``hands.HandVoter``, and ``handbank.ArrayHandVoter`` on the compiled
+    kernels (the engine's when they compile; the plain functions otherwise)."""
+    if request.param == "reference":
+        return HandVoter
+    jit.ready()
+    return ArrayHandVoter
+
+
+def vote_once(states, weights=None, Voter=HandVoter):
+    voter = Voter(memory_s=0.05, hold_s=0.1)
     for k, state in enumerate(states):
         voter.add((f"s{k}", 0), 0, state, 1.0 if weights is None else weights[k], 0.0)
     return voter.vote(0, 0.0)
@@ -79,18 +91,18 @@ def vote_once(states, weights=None):
     ([U], U),
     ([], U),
 ])
-def test_one_instant_is_a_majority_vote(states, expected):
-    assert vote_once(states) == expected
+def test_one_instant_is_a_majority_vote(states, expected, Voter):
+    assert vote_once(states, Voter=Voter) == expected
 
 
-def test_confidence_weighted_vote_can_overrule_the_count():
-    assert vote_once([O, O, C], weights=[0.3, 0.3, 1.0]) == C
-    assert vote_once([O, O, C], weights=[1.0, 1.0, 1.0]) == O
-    assert vote_once([C, O], weights=[0.6, 0.61]) == O   # not a tie: no higher-code rule
+def test_confidence_weighted_vote_can_overrule_the_count(Voter):
+    assert vote_once([O, O, C], weights=[0.3, 0.3, 1.0], Voter=Voter) == C
+    assert vote_once([O, O, C], weights=[1.0, 1.0, 1.0], Voter=Voter) == O
+    assert vote_once([C, O], weights=[0.6, 0.61], Voter=Voter) == O   # no higher-code rule
 
 
-def test_a_misread_frame_does_not_flicker_and_a_real_change_is_reported_after_the_hold():
-    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+def test_a_misread_frame_does_not_flicker_and_a_real_change_is_reported_after_the_hold(Voter):
+    voter = Voter(memory_s=0.05, hold_s=0.1)
     reported = []
     t = 0.0
     # three sensors 11 ms apart; sensor 2 misreads "closed" for two frames at 0.3 s
@@ -121,7 +133,7 @@ def two_sensors(voter, frames):
     return out
 
 
-def test_a_change_two_sensors_dispute_is_reported_on_the_evidence_within_150_ms():
+def test_a_change_two_sensors_dispute_is_reported_on_the_evidence_within_150_ms(Voter):
     # open until 0.5 s, then closed; two sensors at 30 Hz, each misreading a fifth of the
     # time (seeded: a draw where the vote hovers near a tie after the change). The hold alone
     # reported the change 267 ms after it; the reports' evidence makes the case at 138 ms
@@ -132,13 +144,13 @@ def test_a_change_two_sensors_dispute_is_reported_on_the_evidence_within_150_ms(
         states = [truth if rng.random() >= 0.2 else
                   [x for x in (O, C, L) if x != truth][int(rng.integers(2))] for _ in range(2)]
         frames.append((k / 30, *states))
-    changes = two_sensors(HandVoter(memory_s=0.03, hold_s=0.1), frames)
+    changes = two_sensors(Voter(memory_s=0.03, hold_s=0.1), frames)
     assert changes[0] == (0.0, O) and len(changes) == 2
     t, state = changes[1]
     assert state == C and 0.5 + 0.1 <= t <= 0.5 + 0.15
 
 
-def test_a_lead_back_at_exactly_0_keeps_its_start():
+def test_a_lead_back_at_exactly_0_keeps_its_start(Voter):
     # open until 0.5 s, then closed. Sensor 0 misreads the old state twice just after the
     # change (0.5 s, 0.567 s), sensor 1 once (0.538 s). Closed's lead (+1 for closed, -1 for
     # open) goes 0, 1 (0.505 s), 2, 1, 0 (0.567 s: back to 0 but never under it), 1, 2, 3,
@@ -149,18 +161,18 @@ def test_a_lead_back_at_exactly_0_keeps_its_start():
     s0 = [O, C, O] + [C] * 7
     s1 = [C, O, C] + [C] * 7
     frames += [(0.5 + k / 30, a, b) for k, (a, b) in enumerate(zip(s0, s1))]
-    changes = two_sensors(HandVoter(memory_s=0.03, hold_s=0.1), frames)
+    changes = two_sensors(Voter(memory_s=0.03, hold_s=0.1), frames)
     assert [s for _, s in changes] == [O, C]
     assert changes[1][0] == pytest.approx(0.5 + 4 / 30 + 0.005)
-    hold_only = two_sensors(HandVoter(memory_s=0.03, hold_s=0.1, evidence=False), frames)
+    hold_only = two_sensors(Voter(memory_s=0.03, hold_s=0.1, evidence=False), frames)
     assert [s for _, s in hold_only] == [O, C] and hold_only[1][0] > changes[1][0] + 0.02
 
 
-def test_a_run_of_misreads_into_a_third_state_makes_no_case():
+def test_a_run_of_misreads_into_a_third_state_makes_no_case(Voter):
     # open until 0.5 s, then lasso, but at first the sensors say closed as often as lasso:
     # the reports against open favour closed as much as lasso (nothing says open any more);
     # closed never leads lasso, so it makes no case: lasso is reported, closed never
-    voter = HandVoter(memory_s=0.03, hold_s=0.1)
+    voter = Voter(memory_s=0.03, hold_s=0.1)
     frames = [(k / 30, O, O) for k in range(15)]
     s0 = [C, L, C, L, C, L] + [L] * 8
     s1 = [L, C, L, C, L, C] + [L] * 8
@@ -169,8 +181,8 @@ def test_a_run_of_misreads_into_a_third_state_makes_no_case():
     assert [state for _, state in changes] == [O, L]
 
 
-def test_a_hand_that_nobody_sees_goes_unknown_after_the_hold_and_comes_back_at_once():
-    voter = HandVoter(memory_s=0.05, hold_s=0.1)
+def test_a_hand_that_nobody_sees_goes_unknown_after_the_hold_and_comes_back_at_once(Voter):
+    voter = Voter(memory_s=0.05, hold_s=0.1)
     voter.add(("s0", 0), 0, O, 1.0, 0.0)
     assert voter.update(0.0) == [0, 1] and voter.reported == [O, U]
     voter.add(("s0", 0), 0, NT, 1.0, 0.05)       # an old "open" still counts: no change

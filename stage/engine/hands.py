@@ -153,6 +153,12 @@ class HandVoter:
         entry[6] = scale * sl if sl > floor else 0.0
         entry[7] = shares[1] > floor
 
+    def add_frame(self, key: tuple[str, int], left: HandState, left_weight: float,
+                  right: HandState, right_weight: float, t: float) -> None:
+        """Both hands' reports of one frame."""
+        self.add(key, 0, left, left_weight, t)
+        self.add(key, 1, right, right_weight, t)
+
     def forget(self, key: tuple[str, int]) -> None:
         """A sensor view left this person: its reports no longer vote."""
         for reports in (*self.reports, *self._pending, *self._counted):

@@ -17,7 +17,9 @@ replaces, which stays as reference and fallback:
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
   views (the same bytes);
 - ``sensors.scan.scan``: a sensor bundle's skeletons and hand states read in one pass
-  (given to ``sensors.protocol.use_scanner``; the receiver decodes with it).
+  (given to ``sensors.protocol.use_scanner``; the receiver decodes with it);
+- ``handbank``: the hand votes (``hands.HandVoter``) on one array per person (given to
+  ``handbank.use_kernels``; ``handbank.ArrayHandVoter`` calls them).
 
 The results are the numpy code's up to the last bit of exp, log and expm1, which come from
 another library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them).
@@ -43,6 +45,7 @@ from ..joints import JOINT_INDEX, JOINTS
 from ..sensors import protocol, scan
 from ..sensors.encode import _NAME_BYTES
 from ..settings import KalmanSettings
+from . import handbank
 from .imm import _MU_FLOOR, _constants
 
 log = logging.getLogger("stage.engine")
@@ -598,6 +601,15 @@ def _scan_sig():
 
 
 _SCAN_HELPERS = ("_starts", "_nul", "_find", "_int", "_client", "_skeleton", "_hand")
+#: ``handbank``'s kernels (the hand votes), given to ``handbank.use_kernels``
+_HAND_SIGNATURES = {
+    "add": "void(float64[::1], int64, int64, int64, float64, float64, float64)",
+    "add_frame": "void(float64[::1], int64, float64, int64, float64, int64, float64, float64)",
+    "forget": "void(float64[::1], int64)",
+    "update": "int64(float64[::1], float64, float64, float64, boolean)",
+    "vote": "Tuple((int64, float64))(float64[::1], int64, float64, float64)",
+    "newest": "float64(float64[::1])",
+}
 #: the kernels that let the GIL go while they run: only the calibrator's jump gate. A
 #: kernel on the engine's or the receiver's path (a few microseconds each, several per
 #: skeleton) that let it go would hand it to the calibrator at every call and wait, on
@@ -627,10 +639,15 @@ def warm() -> bool:
         _compiled["scan"] = _njit(_with_helpers(scan, "scan", _SCAN_HELPERS), _scan_sig(),
                                   cache, False)
         protocol.use_scanner(_compiled["scan"])
+        hands = {name: _njit(_with_helpers(handbank, name, handbank.HELPERS), sig, cache, False)
+                 for name, sig in _HAND_SIGNATURES.items()}
+        _compiled["hands"] = hands
+        handbank.use_kernels(hands)
     except Exception as exc:  # a numba that cannot compile here must not stop a show
         ENABLED = False
         _compiled.clear()
         protocol.use_scanner(None)
+        handbank.use_kernels(None)
         log.warning("compiled kernels unavailable (%s: %s); the engine runs its numpy code",
                     type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "")
         return False
@@ -651,12 +668,14 @@ def disabled():
     ENABLED = False
     _compiled.clear()
     protocol.use_scanner(None)
+    handbank.use_kernels(None)
     try:
         yield
     finally:
         ENABLED = saved
         _compiled.update(kernels)
         protocol.use_scanner(kernels.get("scan"))
+        handbank.use_kernels(kernels.get("hands"))
 
 
 def why_not() -> str:

@@ -70,8 +70,10 @@ class People:
         self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
-        #: the batch's hand reports (voter, sensor key, hand, state, weight, t), in the order
-        #: they came: given to the voters after the batch's skeletons are sent (``_emit``)
+        #: the batch's hand reports, in the order they came: a frame's (voter, sensor key,
+        #: left state, weight, right state, weight, t), a /handState's (voter, sensor key,
+        #: hand, state, weight, t); given to the voters after the batch's skeletons are sent
+        #: (``_emit``)
         self._reports: list[tuple] = []
         self._lost: list[int] = []
 
@@ -130,9 +132,9 @@ class People:
             self._hands_dirty.add(person.id)
         weighted = self.rig.fusion.hand_vote == "confidence"
         traded = track.arms_traded
-        self._reports.append((person.voter, track.key, 0, track.hands[traded],
-                              float(conf[_HAND_JOINT[0]]) if weighted else 1.0, t))
-        self._reports.append((person.voter, track.key, 1, track.hands[1 ^ traded],
+        self._reports.append((person.voter, track.key, track.hands[traded],
+                              float(conf[_HAND_JOINT[0]]) if weighted else 1.0,
+                              track.hands[1 ^ traded],
                               float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
         return True
 
@@ -151,8 +153,11 @@ class People:
     def _give_reports(self) -> None:
         """The batch's hand reports to their voters, in the order they came."""
         reports, self._reports = self._reports, []
-        for voter, key, hand, state, weight, t in reports:
-            voter.add(key, hand, state, weight, t)
+        for report in reports:
+            if len(report) == 7:
+                report[0].add_frame(*report[1:])
+            else:
+                report[0].add(*report[1:])
 
     def drop_track(self, track: Track, t: float) -> None:
         self._give_reports()       # (its reports before it is forgotten, as they came)

@@ -20,9 +20,10 @@ import numpy as np
 
 from ..joints import JOINT_INDEX, N_JOINTS, TORSO, HandState
 from ..settings import FusionSettings
-from . import jit
+from . import handbank, jit
 from .fuser import BodyFilter
 from .fusion import torso_centre
+from .handbank import ArrayHandVoter
 from .hands import HandVoter
 
 log = logging.getLogger("stage.engine")
@@ -100,7 +101,7 @@ class Person:
 
     id: int
     filter: BodyFilter
-    voter: HandVoter
+    voter: HandVoter | ArrayHandVoter
     created: float
     tracks: set = field(default_factory=set)   # of Track
     joints: np.ndarray = field(default_factory=lambda: np.zeros((N_JOINTS, 3)))
@@ -132,7 +133,10 @@ class Person:
 
     @classmethod
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
-        return cls(pid, BodyFilter(), HandVoter(settings.hand_memory_s, settings.hand_hold_s), t)
+        # the hand votes compiled when the engine's kernels are (the same states, cheaper)
+        voter = (ArrayHandVoter if handbank.compiled() else HandVoter)(
+            settings.hand_memory_s, settings.hand_hold_s)
+        return cls(pid, BodyFilter(), voter, t)
 
     def remember(self, key: tuple[str, int], t: float, conf: np.ndarray) -> None:
         """The latest frame of the view ``key``: its capture time and confidences."""
