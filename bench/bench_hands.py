@@ -189,24 +189,32 @@ def run(seed: int, duration: float, fusion: dict | None = None) -> dict:
     # every voter's inputs, to replay them through the hold alone (issue 10's rule) as a
     # reference on the very same reports
     calls: list[tuple] = []
-    voter_cls = tracking.HandVoter
+    # (persons get the compiled voter when the engine's kernels are, the reference otherwise:
+    # both are recorded, a frame's two reports as the two adds they are)
+    classes = (tracking.HandVoter, tracking.ArrayHandVoter)
 
-    class Recording(voter_cls):
-        __slots__ = ()
+    def recording(base):
+        class Recording(base):
+            __slots__ = ()
 
-        def add(self, key, hand, state, weight, t):
-            calls.append((id(self), "add", key, hand, state, weight, t))
-            super().add(key, hand, state, weight, t)
+            def add(self, key, hand, state, weight, t):
+                calls.append((id(self), "add", key, hand, state, weight, t))
+                super().add(key, hand, state, weight, t)
 
-        def forget(self, key):
-            calls.append((id(self), "forget", key))
-            super().forget(key)
+            def add_frame(self, key, left, left_weight, right, right_weight, t):
+                self.add(key, 0, left, left_weight, t)
+                self.add(key, 1, right, right_weight, t)
 
-        def update(self, t):
-            calls.append((id(self), "update", t, clock.now()))
-            return super().update(t)
+            def forget(self, key):
+                calls.append((id(self), "forget", key))
+                super().forget(key)
 
-    tracking.HandVoter = Recording
+            def update(self, t):
+                calls.append((id(self), "update", t, clock.now()))
+                return super().update(t)
+        return Recording
+
+    tracking.HandVoter, tracking.ArrayHandVoter = (recording(c) for c in classes)
     items = list(sim.stream(duration))
     truth = true_changes(sim, duration)
     # what the sensors said, in arrival order: for the first-seen times and the references
@@ -230,7 +238,7 @@ def run(seed: int, duration: float, fusion: dict | None = None) -> dict:
     try:
         feed(engine, clock, items, until=duration)
     finally:
-        tracking.HandVoter = voter_cls
+        tracking.HandVoter, tracking.ArrayHandVoter = classes
     cpu = time.process_time() - cpu0
     minutes = duration / 60.0
     fused = judge(transport.changes, truth, first_seen, minutes)
