@@ -187,51 +187,57 @@ def vote(buf, hand, t, memory):  # pragma: no cover
     return (1 if not_tracked else 0), 0.5
 
 
-def _evidence(buf, hand, t, hold):  # pragma: no cover
-    """``HandVoter._evidence``: the state the uncounted reports make a clear case for, or
-    -1."""
-    S = slots_of(buf)
-    rts = np.empty(S)
-    sts = np.empty(S)
-    ws = np.empty(S)
-    ks = np.empty(S, dtype=np.int64)
-    m = 0
+def _before(buf, a, b):  # pragma: no cover
+    """Whether slot block ``a``'s pending report comes before ``b``'s in (time, state,
+    weight) order (equal ones count alike in any order)."""
+    ta, tb = buf[a + P_T], buf[b + P_T]
+    if ta != tb:
+        return ta < tb
+    sa, sb = buf[a + P_STATE], buf[b + P_STATE]
+    if sa != sb:
+        return sa < sb
+    return buf[a + P_W] < buf[b + P_W]
+
+
+def _next_fresh(buf, S, hand):  # pragma: no cover
+    """The slot block of the first uncounted fresh report in (time, state, weight) order,
+    or -1; fresh reports already counted stop being fresh."""
+    first = -1
     for k in range(S):
         b = _slot(S, hand, k)
         if buf[b + FRESH] == 0.0:
             continue
-        buf[b + FRESH] = 0.0
-        rt = buf[b + P_T]
-        if rt > buf[b + COUNTED]:
-            # insertion in (t, state, weight) order (equal ones count alike in any order)
-            st = buf[b + P_STATE]
-            w = buf[b + P_W]
-            j = m
-            while j > 0 and (rts[j - 1] > rt or rts[j - 1] == rt and (
-                    sts[j - 1] > st or sts[j - 1] == st and ws[j - 1] > w)):
-                rts[j] = rts[j - 1]
-                sts[j] = sts[j - 1]
-                ws[j] = ws[j - 1]
-                ks[j] = ks[j - 1]
-                j -= 1
-            rts[j] = rt
-            sts[j] = st
-            ws[j] = w
-            ks[j] = k
-            m += 1
+        if not buf[b + P_T] > buf[b + COUNTED]:
+            buf[b + FRESH] = 0.0
+        elif first < 0 or _before(buf, b, first):
+            first = b
+    return first
+
+
+def _evidence(buf, hand, t, hold):  # pragma: no cover
+    """``HandVoter._evidence``: the state the uncounted reports make a clear case for, or
+    -1. The reports are taken in order by selection (a few sensors: no sort, nothing
+    allocated)."""
+    S = slots_of(buf)
     hb = _hand(S, hand)
     current = int(buf[hb + REPORTED])
     if current < _OPEN:
-        for j in range(m):
-            buf[_slot(S, hand, ks[j]) + COUNTED] = rts[j]
+        b = _next_fresh(buf, S, hand)
+        while b >= 0:
+            buf[b + FRESH] = 0.0
+            buf[b + COUNTED] = buf[b + P_T]
+            b = _next_fresh(buf, S, hand)
         return -1
     c1 = 3 if current == 2 else 2
     c2 = 3 if current == 4 else 4
-    for j in range(m):
-        rt = rts[j]
-        state = int(sts[j])
-        w = ws[j]
-        buf[_slot(S, hand, ks[j]) + COUNTED] = rt
+    b = _next_fresh(buf, S, hand)
+    while b >= 0:
+        buf[b + FRESH] = 0.0
+        rt = buf[b + P_T]
+        state = int(buf[b + P_STATE])
+        w = buf[b + P_W]
+        buf[b + COUNTED] = rt
+        b = _next_fresh(buf, S, hand)
         if state < _OPEN:
             continue
         for c in (c1, c2):
@@ -319,7 +325,8 @@ def newest(buf):  # pragma: no cover
 _PLAIN = {"add": add, "add_frame": add_frame, "forget": forget, "update": update,
           "vote": vote, "newest": newest}
 _K = dict(_PLAIN)
-HELPERS = ("size", "slots_of", "_hand", "_slot", "add", "vote", "_evidence", "_report")
+HELPERS = ("size", "slots_of", "_hand", "_slot", "add", "vote", "_before", "_next_fresh",
+           "_evidence", "_report")
 
 
 def compiled() -> bool:
