@@ -15,6 +15,10 @@ worker's polls run on this thread right after the datagram that made them due: s
 bench_engine_inproc.py ``--worker``) and prints its CPU share of a core, kernels and
 numpy, beside the engine's; run 12 s or more so that lag searches are in it.
 
+Last, the hand votes on their own: one sensor frame's two reports and the vote after
+it, with six sensors reporting in turn (what the engine does per skeleton at six
+sensors), ``hands.HandVoter`` against the compiled ``handbank.ArrayHandVoter``, in pairs.
+
 Run: python bench/bench_jit.py [--configs 1x1,3x3,6x6] [--seconds 4] [--reps 5]
 [--self-healing]
 """
@@ -68,7 +72,33 @@ def main() -> int:
         ratio = np.array(on) / np.array(off)
         print(f"{config:>7} {np.median(on):11.0f} {np.median(off):9.0f} {np.median(ratio):14.3f}"
               f"  {ratio.min():.3f}-{ratio.max():.3f}")
+    hand_votes(args.reps)
     return 0
+
+
+def hand_votes(reps: int, n: int = 20000) -> None:
+    """us per skeleton of the hand votes, reference and compiled, pair by pair."""
+    from stage.engine.handbank import ArrayHandVoter
+    from stage.engine.hands import HandVoter
+    from stage.joints import HandState
+
+    keys = [(f"s{k}", 0) for k in range(6)]
+    states = (HandState.OPEN, HandState.CLOSED)
+
+    def cost(cls) -> float:
+        voter = cls(0.03, 0.1)
+        c0 = time.process_time()
+        for i in range(n):
+            t = i / 180.0
+            voter.add_frame(keys[i % 6], states[(i // 97) % 2], 1.0, HandState.OPEN, 0.9, t)
+            voter.update(t)
+        return (time.process_time() - c0) / n * 1e6
+
+    pairs = np.array([(cost(HandVoter), cost(ArrayHandVoter)) for _ in range(reps)])
+    ratio = pairs[:, 1] / pairs[:, 0]
+    print(f"hand votes per skeleton (6 sensors): HandVoter {np.median(pairs[:, 0]):.2f} us, "
+          f"compiled {np.median(pairs[:, 1]):.2f} us, ratio {np.median(ratio):.3f} "
+          f"({ratio.min():.3f}-{ratio.max():.3f})")
 
 
 def healing(args) -> int:
