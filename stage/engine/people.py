@@ -70,10 +70,9 @@ class People:
         self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
-        #: the batch's hand reports, in the order they came: a frame's (voter, sensor key,
-        #: left state, weight, right state, weight, t), a /handState's (voter, sensor key,
-        #: hand, state, weight, t); given to the voters after the batch's skeletons are sent
-        #: (``_emit``)
+        #: the batch's hand reports, in the order they came, each the voter's method and its
+        #: arguments: a frame's ``add_frame``, a /handState's ``add``; given to the voters
+        #: after the batch's skeletons are sent (``_emit``)
         self._reports: list[tuple] = []
         self._lost: list[int] = []
 
@@ -132,7 +131,7 @@ class People:
             self._hands_dirty.add(person.id)
         weighted = self.rig.fusion.hand_vote == "confidence"
         traded = track.arms_traded
-        self._reports.append((person.voter, track.key, track.hands[traded],
+        self._reports.append((person.voter.add_frame, track.key, track.hands[traded],
                               float(conf[_HAND_JOINT[0]]) if weighted else 1.0,
                               track.hands[1 ^ traded],
                               float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
@@ -147,17 +146,14 @@ class People:
         hand ^= track.arms_traded                   # the sensor's arms traded back
         weighted = self.rig.fusion.hand_vote == "confidence"
         weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
-        self._reports.append((person.voter, track.key, hand, state, weight, t))
+        self._reports.append((person.voter.add, track.key, hand, state, weight, t))
         self._hands_dirty.add(person.id)
 
     def _give_reports(self) -> None:
         """The batch's hand reports to their voters, in the order they came."""
         reports, self._reports = self._reports, []
-        for report in reports:
-            if len(report) == 7:
-                report[0].add_frame(*report[1:])
-            else:
-                report[0].add(*report[1:])
+        for give, *args in reports:
+            give(*args)
 
     def drop_track(self, track: Track, t: float) -> None:
         self._give_reports()       # (its reports before it is forgotten, as they came)
