@@ -16,17 +16,19 @@ import time
 import numpy as np
 import pytest
 
-from helpers import LOCALHOST, TIMEOUT_S, Peer, free_udp_port, query_stats
-from stage.sensors.sim import standing_pose
+from helpers import (LOCALHOST, TIMEOUT_S, Peer, Sensor, free_udp_port, joint_groups,
+                     query_stats, register_view, sync)
+from stage.app.server import Server
 from stage.joints import JOINT_INDEX
 from stage.rig import Rig
-from stage.app.server import Server
+from stage.sensors.sim import standing_pose
 
 pytestmark = pytest.mark.integration
 
 #: Enough joints that the torso is defined: all five TORSO joints plus the head and a hand.
 SENT_JOINTS = ("SpineBase", "SpineMid", "SpineShoulder", "HipLeft", "HipRight", "Head",
                "HandLeft", "HandRight")
+TORSO_NAMES = ("SpineBase", "SpineMid", "SpineShoulder", "HipLeft", "HipRight")
 
 
 def _require(tool: str) -> str:
@@ -233,3 +235,54 @@ def test_oscsend_typetag_variants_are_accepted(server, dump, oscsend):
     dump.wait_for(lambda d: d.address == "/handState" and d.args == [pid, "right", "closed"],
                   what='/handState ... "right" "closed"')
     assert query_stats(server.address)["drops_total"] == 0
+
+
+def test_oscdump_registered_with_a_forecast_gets_each_body_predicted_ahead(server, dump,
+                                                                          oscsend):
+    """A liblo view registered (by oscsend) for a forecast -- rate 0: every update, then
+    0.05 s -- gets every fused update as a plain view does, each body predicted 50 ms past
+    its capture time: a person walking at 1 m/s along x arrives 5 cm further along.
+
+    The sensor sends real time-stamped bundles at 30 Hz (its capture times), so the
+    filter's velocity is that of the walk and not of the sending process's jitter."""
+    port = server.address[1]
+    oscsend(port, "/registerView", "siif", LOCALHOST, dump.port, 0, 0.05)
+    speed, horizon, frames = 1.0, 0.05, 45
+    with Peer() as plain, Sensor("kinect-f", server.address) as sensor:
+        register_view(server.address, plain)
+        sensor.register()
+        start = standing_pose((-0.7, 2.5), 0.0)
+        t0 = time.time() + 0.05
+        for k in range(frames):
+            delay = t0 + k / 30 - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            joints = start + np.array([speed * k / 30, 0.0, 0.0])
+            sensor.bundle([sensor.joints_message(1, joints)], t0 + k / 30)
+        stats = sync(server.address, plain)
+    plain_lines = [m for m in plain.received if m.address == "/jointCoordinates"]
+    assert len(plain_lines) == frames, "every frame is one update of the plain view"
+    forecast_lines = []
+    deadline = time.monotonic() + TIMEOUT_S
+    while len(forecast_lines) < frames and time.monotonic() < deadline:
+        time.sleep(0.05)
+        forecast_lines = [p for p in map(parse_dump_line, list(dump.lines))
+                          if p is not None and p.address == "/jointCoordinates"]
+    assert len(forecast_lines) == frames, "the forecast view gets every update too"
+    assert stats["forecast"]["views_s"] == {f"{LOCALHOST}:{dump.port}": horizon}
+
+    measured = joint_groups(plain_lines[-1])
+    rest = forecast_lines[-1].args[1:]
+    ahead = {rest[k]: np.array(rest[k + 1:k + 4]) for k in range(0, len(rest), 5)}
+    assert forecast_lines[-1].args[0] == plain_lines[-1].params[0]
+    assert sorted(ahead) == sorted(measured)
+    lead = np.array([ahead[name] - measured[name][0] for name in TORSO_NAMES])
+    # the filter has had 1.5 s of a steady walk: its velocity is the walk's (measured:
+    # 0.0500 m ahead on every torso joint; a tenth of that allowed for the clock estimate)
+    assert np.allclose(lead[:, 0], speed * horizon, atol=0.005), lead
+    assert np.allclose(lead[:, 1:], 0.0, atol=0.002), lead
+    # the plain view's bodies are where the sensor saw them (smoothed, a steady walk)
+    last = start + np.array([speed * (frames - 1) / 30, 0.0, 0.0])
+    for name in TORSO_NAMES:
+        assert np.allclose(measured[name][0], last[JOINT_INDEX[name]], atol=0.02), name
+
