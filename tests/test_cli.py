@@ -106,6 +106,35 @@ def test_serve_answers_stats_and_stops_cleanly_on_signal(sig):
     assert "stopped;" in err  # the shutdown summary: it went through server.stop()
 
 
+def test_view_forecast_sends_the_views_bodies_predicted_ahead():
+    """``--view-forecast S``: the --view views are sent each body S seconds ahead (the
+    server says so in /stage/stats); more than the rig's max_s is one line of bad input."""
+    port, view = free_udp_port(), free_udp_port()
+    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port),
+                             "--view", f"{LOCALHOST}:{view}", "--view-forecast", "0.05"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 20.0
+        while True:
+            assert proc.poll() is None, f"stage serve exited early: {proc.communicate()}"
+            try:
+                stats = query_stats((LOCALHOST, port), timeout=0.2)
+                break
+            except AssertionError:
+                assert time.monotonic() < deadline, "stage serve never answered /stage/stats"
+        assert stats["forecast"]["views_s"] == {f"{LOCALHOST}:{view}": 0.05}
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    done = run("serve", "--port", "0", "--view-forecast", "0.5", "--duration", "1")
+    assert done.returncode == 2
+    assert one_line_error(done.stderr) == ("stage: --view-forecast 0.5: must be between 0 and "
+                                           "the rig's forecast: max_s (0.2 s)")
+
+
 def test_stats_without_server_fails_with_one_line():
     port = free_udp_port()
     done = run("stats", "--port", str(port), "--timeout", "0.5")

@@ -42,6 +42,7 @@ class ShowOptions:
     events: str | None = None       # every event as a JSON line
     # what comes out
     views: list[tuple[str, int]] = field(default_factory=list)   # Server-to-View OSC targets
+    view_forecast_s: float | None = None  # the views' forecast (None: the rig's views_s)
     midi: str | None = None
     midi_file: str | None = None
     audio: str | None = None        # render the MIDI through FluidSynth into this WAV file

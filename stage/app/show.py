@@ -147,6 +147,13 @@ class Show:
         for view in opts.views:
             if view not in self.rig.views:
                 self.rig.views.append(view)
+        if opts.view_forecast_s is not None:
+            limit = self.rig.forecast.max_s
+            if not 0 <= opts.view_forecast_s <= limit:
+                raise ConfigError(f"--view-forecast {opts.view_forecast_s:g}: must be between 0 "
+                                  f"and the rig's forecast: max_s ({limit:g} s)")
+            self.rig.forecast = dataclasses.replace(self.rig.forecast,
+                                                    views_s=float(opts.view_forecast_s))
         self.recorded = RecordingSink(None if opts.offline else KEEP_EVENTS) if self.piece else None
         self.score: ScoreSink | None = None
         if opts.score:

@@ -7,6 +7,7 @@ one line from argparse and exit status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import math
 from enum import IntEnum
 from typing import TYPE_CHECKING
 
@@ -49,10 +50,25 @@ def positive(text: str) -> float:
     return value
 
 
+def non_negative(text: str) -> float:
+    """A finite number at least 0 (seconds ahead)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"'{text}' must be a number of seconds, 0 or more")
+    return value
+
+
 def add_show_options(p: argparse.ArgumentParser, *, status: bool = True) -> None:
     """Options every live show takes, with the same meaning everywhere."""
     p.add_argument("--view", action="append", type=hostport, default=[], metavar="HOST:PORT",
                    help="also send fused bodies to this view (Server-to-View OSC, repeatable)")
+    p.add_argument("--view-forecast", type=non_negative, metavar="S", dest="view_forecast",
+                   help="the views (--view and the rig's) get each body predicted S seconds "
+                        "past its capture time (the rig's forecast: views_s; 0: as measured; "
+                        "at most forecast: max_s, 0.2 s; docs/anticipation.md)")
     p.add_argument("--duration", type=positive, metavar="S", help="stop after S seconds")
     p.add_argument("--no-self-healing", action="store_true",
                    help="do not calibrate uncalibrated sensors or re-calibrate bumped ones")
@@ -77,7 +93,8 @@ def show_options(args: argparse.Namespace, **fields) -> "ShowOptions":
     """ShowOptions from the options ``add_show_options`` added, plus ``fields``."""
     from ..app.show import ShowOptions
     osc = getattr(args, "alert_osc", None)
-    common = dict(views=list(args.view), duration=args.duration,
+    common = dict(views=list(args.view), view_forecast_s=getattr(args, "view_forecast", None),
+                  duration=args.duration,
                   self_healing=not args.no_self_healing, plugins=not args.no_plugins,
                   fused=args.fused, status_line=getattr(args, "status", False),
                   alert_command=getattr(args, "alert_command", None),
