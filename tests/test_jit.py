@@ -275,13 +275,15 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
         matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
         matrix[:3, 3] = rng.normal(0, 2, 3)
         want_j, want_c, want_bits = unswap_limbs(apply_transform(matrix, body), conf)
-        got_j, got_c, got_bits, _, _ = jit.frame_r(matrix, body, conf, True, _LOOK, _TRADED,
-                                                SWAP_MARGIN_M, KalmanSettings(), 0.5)
+        got_j, got_c, got_bits, _, _, _ = jit.frame_r(matrix, body, conf, True, _LOOK,
+                                                   _TRADED, SWAP_MARGIN_M, KalmanSettings(),
+                                                   0.5)
         assert got_bits == want_bits
         np.testing.assert_array_equal(got_c, want_c)
         np.testing.assert_allclose(got_j, want_j, rtol=0, atol=1e-12)
-        plain_j, plain_c, none, _, _ = jit.frame_r(matrix, body, conf, False, _LOOK, _TRADED,
-                                                SWAP_MARGIN_M, KalmanSettings(), 0.5)
+        plain_j, plain_c, none, _, _, _ = jit.frame_r(matrix, body, conf, False, _LOOK,
+                                                   _TRADED, SWAP_MARGIN_M, KalmanSettings(),
+                                                   0.5)
         assert none == 0
         np.testing.assert_allclose(plain_j, apply_transform(matrix, body), rtol=0, atol=1e-12)
         bits.add(want_bits)
@@ -292,8 +294,8 @@ def test_frame_kernel_transforms_and_unswaps_as_numpy_does():
 def test_frame_kernel_gives_the_batch_variances():
     """``jit.frame_r``'s variances are, bit for bit, what ``People._variances`` computes for
     the same stage-space joints (the kernel's own, which match numpy's to rounding), and its
-    trunk length ``body_size``'s, including inferred, continuous and unseen confidences and
-    joints within 1 m."""
+    trunk length ``body_size``'s and its count of seen joints, including inferred, continuous
+    and unseen confidences and joints within 1 m."""
     from types import SimpleNamespace
 
     from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M
@@ -314,8 +316,9 @@ def test_frame_kernel_gives_the_batch_variances():
         matrix = np.eye(4)
         matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
         matrix[:3, 3] = rng.normal(0, 1.5, 3)
-        joints, c, _, r, size = jit.frame_r(matrix, body, conf, k % 3 > 0, _LOOK, _TRADED,
-                                            SWAP_MARGIN_M, s, INFERRED)
+        joints, c, _, r, size, seen = jit.frame_r(matrix, body, conf, k % 3 > 0, _LOOK,
+                                                  _TRADED, SWAP_MARGIN_M, s, INFERRED)
+        assert seen == np.count_nonzero(c > 0)            # what People.frame used to count
         view = SimpleNamespace(joints=joints, conf=c, r=None)
         People._variances(SimpleNamespace(smoothing=s), [(view, matrix[:3, 3])])
         np.testing.assert_array_equal(r, view.r)          # NaN where unseen, on both

@@ -378,7 +378,8 @@ def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, 
     ``people.People._fold`` computes it (``kalman.measurement_variance`` at the joint's
     distance from the sensor, whose stage position is the transform's translation; NaN
     where the joint is not seen) and the trunk's length into ``size_out[0]``
-    (``tracking.body_size``; NaN for its None); returns the traded bit mask."""
+    (``tracking.body_size``; NaN for its None), and how many joints it sees (confidence
+    above 0) into ``size_out[1]``; returns the traded bit mask."""
     bits = _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r,
                   margin, joints_out, conf_out)
     if conf_out[_NECK] <= 0.0 or conf_out[_BASE] <= 0.0:
@@ -389,11 +390,13 @@ def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, 
         dz = joints_out[_NECK, 2] - joints_out[_BASE, 2]
         size_out[0] = math.sqrt(dx * dx + dy * dy + dz * dz)
     tx, ty, tz = matrix[0, 3], matrix[1, 3], matrix[2, 3]
+    seen = 0
     for k in range(conf_out.shape[0]):
         c = conf_out[k]
         if not c > 0.0:
             r_out[k] = np.nan
             continue
+        seen += 1
         ox = joints_out[k, 0] - tx
         oy = joints_out[k, 1] - ty
         oz = joints_out[k, 2] - tz
@@ -403,6 +406,7 @@ def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, 
         sd = sqrt_noise + per_m * (e if e > 0.0 or e != e else 0.0)     # np.maximum(e, 0)
         guess = 1.0 / c - 1.0 if c <= inferred else 0.0
         r_out[k] = sd * sd / c + guess * inferred_var
+    size_out[1] = seen
     return bits
 
 
@@ -747,24 +751,33 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
 
 def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
             look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
-            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float]:
+            ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float, int]:
     """The compiled ``_frame_r``: a frame's (stage-space joints, conf, traded bits), its
     joints' measurement variances (25,) under the smoothing settings ``s`` (NaN: not seen),
-    new arrays, and its trunk length (``tracking.body_size``, the same float; NaN for its
-    None). ``look`` and
-    ``traded`` are ``fusion``'s index arrays (left, right; (arm, leg))."""
+    new arrays, its trunk length (``tracking.body_size``, the same float; NaN for its
+    None) and how many joints it sees (confidence above 0: ``np.count_nonzero(conf > 0)``,
+    which the caller then need not compute). ``look`` and ``traded`` are ``fusion``'s index
+    arrays (left, right; (arm, leg))."""
     n = len(conf)
     joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
-    size = np.empty(1)
+    size = np.empty(2)
+    const = _FRAME_R.get(id(s))
+    if const is None or const[0] is not s:   # (computed once per settings object)
+        if len(_FRAME_R) > 64:
+            _FRAME_R.clear()
+        const = _FRAME_R[id(s)] = (s, math.sqrt(s.measurement_noise), float(s.noise_per_m),
+                                   float(s.inferred_sd_m ** 2))
     f = np.ascontiguousarray
     (arm_l, arm_r), (leg_l, leg_r) = traded
     bits = _compiled["_frame_r"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
                                  f(conf, dtype=float), bool(unswap), look[0], look[1], arm_l,
-                                 arm_r, leg_l, leg_r, float(margin),
-                                 math.sqrt(s.measurement_noise), float(s.noise_per_m),
-                                 float(inferred), float(s.inferred_sd_m ** 2), joints_out,
-                                 conf_out, r_out, size)
-    return joints_out, conf_out, bits, r_out, float(size[0])
+                                 arm_r, leg_l, leg_r, float(margin), const[1], const[2],
+                                 float(inferred), const[3], joints_out, conf_out, r_out, size)
+    return joints_out, conf_out, bits, r_out, float(size[0]), int(size[1])
+
+
+#: ``frame_r``'s constants of each smoothing settings object (by identity, as ``_FLAT``)
+_FRAME_R: dict[int, tuple] = {}
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,

@@ -94,7 +94,7 @@ class People:
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         size = None        # the trunk: here with the kernels, else in _fold
         if jit.ready():
-            track.joints, conf, traded, r, size = jit.frame_r(
+            track.joints, conf, traded, r, size, seen = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
                 SWAP_MARGIN_M, self.smoothing, INFERRED)
         else:
@@ -102,6 +102,7 @@ class People:
             traded = 0
             if self.rig.fusion.unswap_limbs:
                 track.joints, conf, traded = unswap_limbs(track.joints, conf)
+            seen = np.count_nonzero(conf > 0)   # (count_nonzero: cheaper than a reduction)
         if self.rig.fusion.unswap_limbs:
             # the sensor's hand states follow its arms: its "left" hand is the right one
             # while it has the arms swapped (kept until a frame says otherwise, so a
@@ -112,15 +113,15 @@ class People:
                                                   + bin(traded).count("1"))
         track.conf = conf
         track.t = t
-        seen = conf > 0
-        if not np.count_nonzero(seen):   # (count_nonzero: cheaper than a reduction, per view)
+        if not seen:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
         if not np.count_nonzero(person.known):
             # a person found in this batch: later views of the batch associate against this
             # view until its filter is folded in at the end of the batch
-            person.joints = np.where(seen[:, None], track.joints, person.joints)
-            person.known = seen.copy()
+            known = conf > 0
+            person.joints = np.where(known[:, None], track.joints, person.joints)
+            person.known = known
             person.t = t
         # without the kernels, the measurement variances are computed for the batch in _fold
         view = View(track.key, t, track.joints, conf, r, arrival, size=size)
