@@ -29,6 +29,7 @@ The engine thread owns every object here.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from typing import Callable
 
@@ -379,10 +380,11 @@ class ClientRegistry:
                 client.tracks.clear()
                 if client.id == self.reference:
                     self._reference_silent(client)
-            for user, track in list(client.tracks.items()):
-                if track.t != float("-inf") and now - track.t > timeout:
-                    del client.tracks[user]  # the client is alive but forgot /lostUser
-                    self._drop_track(track, now)
+            stale = [user for user, track in client.tracks.items()
+                     if now - track.t > timeout and track.t != -math.inf]
+            for user in stale:
+                track = client.tracks.pop(user)  # the client is alive but forgot /lostUser
+                self._drop_track(track, now)
 
     def _reference_silent(self, client: ClientState) -> None:
         """A reference chosen at run time went silent: if nothing was calibrated against it

@@ -304,13 +304,22 @@ class Tracker:
         if len(live) < 2:
             self._close_since.clear()
             return
-        centres = np.array([p.centre for p in live])
-        diff = centres[:, None] - centres[None]
-        near = (diff * diff).sum(axis=2) <= fs.merge_m ** 2      # every pair at once
-        if np.count_nonzero(near) == np.count_nonzero(near.diagonal()):   # no pair: the usual
+        # every pair, in floats: a handful of persons, at every tick (numpy's arrays cost
+        # more to build than these few sums; the same floats, as dx * dx + dy * dy + dz * dz
+        # is the order numpy sums three terms in)
+        limit = fs.merge_m ** 2
+        centres = [p.centre.tolist() for p in live]
+        near = []
+        for i, (xi, yi, zi) in enumerate(centres):
+            for j in range(i + 1, len(centres)):
+                xj, yj, zj = centres[j]
+                dx, dy, dz = xi - xj, yi - yj, zi - zj
+                if dx * dx + dy * dy + dz * dz <= limit:
+                    near.append((i, j))
+        if not near:    # no pair: the usual
             self._close_since.clear()
             return
-        for i, j in zip(*np.nonzero(np.triu(near, 1))):
+        for i, j in near:
             a, b = live[i], live[j]
             if a.tracks and b.tracks:
                 if {t.client for t in a.tracks} & {t.client for t in b.tracks}:
