@@ -58,13 +58,14 @@ class FrameChecks:
         frames = [f for f, _ in group if f.transform is not None]
         if not frames:
             return
-        tracked = np.array([f.conf[_TORSO] for f in frames]) >= 1.0        # (k, P)
+        tracked = np.array([f.conf for f in frames])[:, _TORSO] >= 1.0      # (k, P)
         seen = np.flatnonzero(tracked.any(axis=1))
         if not len(seen):
             return
-        frames = [frames[k] for k in seen]
-        tracked = tracked[seen]
-        c = np.array([f.joints[_TORSO] for f in frames])                     # (k, P, 3)
+        if len(seen) < len(frames):
+            frames = [frames[k] for k in seen]
+            tracked = tracked[seen]
+        c = np.array([f.joints for f in frames])[:, _TORSO]                  # (k, P, 3)
         m = frames[0].transform
         if all(f.transform is m for f in frames):  # frames of one datagram share it
             placed = c @ m[:3, :3].T + m[:3, 3]
