@@ -54,6 +54,12 @@ log = logging.getLogger("stage.calibration")
 INF = float("inf")
 #: sensors the calibrator keeps state for; beyond, those the engine forgot are dropped
 MAX_SENSORS = 128
+#: frames the worker ingests between two yields to the engine (``_drain``): each one holds
+#: the GIL for ~30-40 us a frame at 6x6, and a datagram that comes meanwhile waits. With
+#: 72 a chunk, 4.5-4.9 % of the engine's batches spent over 1 ms not running at 6x6 spread
+#: on a quiet VM; with 12, and a yield before the first, 2.3-2.6 % (docs/reports/issue-10.md,
+#: stop 31)
+DRAIN_CHUNK = 12
 
 __all__ = ["LiveCalibrator", "LiveEvent", "attach_live"]
 
@@ -228,11 +234,17 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
 
     def _drain(self) -> None:
         """Worker: ingest the frames the engine thread queued, a chunk at a time (the lock
-        and the GIL are let go between chunks)."""
+        and the GIL are let go before and between chunks: the engine thread woke the worker
+        from within a datagram, whose frames would otherwise wait for the first chunk)."""
+        drained = False
         while self._inbox:
+            # behind by more than an eighth of the inbox (seconds of frames): catch up
+            # rather than wait for the engine to be idle
+            self._yield(wait=len(self._inbox) < self._inbox_max // 8)
+            drained = True
             with self._lock:
                 group: list[tuple[SensorFrame, SensorState]] = []  # one datagram's, to judge
-                for _ in range(min(72, len(self._inbox))):
+                for _ in range(min(DRAIN_CHUNK, len(self._inbox))):
                     entry = self._inbox.popleft()
                     frame = entry[0]
                     if group and (frame.t != group[0][0].t or frame.sensor != group[0][0].sensor
@@ -244,9 +256,8 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
                         group.append((frame, st))
                 if group:
                     self._check_jumps(group)
-            # behind by more than an eighth of the inbox (seconds of frames): catch up
-            # rather than wait for the engine to be idle
-            self._yield(wait=len(self._inbox) < self._inbox_max // 8)
+        if drained:
+            self._yield()
 
     def _ingest(self, frame: SensorFrame, track: object, person: int | None,
                 reference: str | None) -> None:
