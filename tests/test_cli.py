@@ -27,6 +27,23 @@ def run(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
     return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout)
 
 
+def start_serve(port: int, *args: str) -> tuple[subprocess.Popen, dict]:
+    """``stage serve`` on LOCALHOST:port with ``args``, and its first /stage/stats reply: it
+    is up when it answers (each try waits for a reply, no fixed sleep)."""
+    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 20.0
+    while True:
+        assert proc.poll() is None, f"stage serve exited early: {proc.communicate()}"
+        try:
+            return proc, query_stats((LOCALHOST, port), timeout=0.2)
+        except AssertionError:
+            if time.monotonic() >= deadline:
+                proc.kill()
+                proc.communicate()
+                raise AssertionError("stage serve never answered /stage/stats") from None
+
+
 def one_line_error(stderr: str) -> str:
     """The whole stderr, asserted to be exactly one line and no traceback."""
     assert "Traceback" not in stderr, stderr
@@ -78,18 +95,8 @@ def test_port_in_use():
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_serve_answers_stats_and_stops_cleanly_on_signal(sig):
     port = free_udp_port()
-    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, _ = start_serve(port)
     try:
-        deadline = time.monotonic() + 20.0
-        while True:  # up when it answers; each try waits for a reply, no fixed sleep
-            assert proc.poll() is None, f"stage serve exited early: {proc.communicate()}"
-            try:
-                query_stats((LOCALHOST, port), timeout=0.2)
-                break
-            except AssertionError:
-                assert time.monotonic() < deadline, "stage serve never answered /stage/stats"
-
         done = run("stats", "--port", str(port), "--timeout", "5")
         assert done.returncode == 0, done.stderr
         stats = json.loads(done.stdout)
@@ -110,18 +117,8 @@ def test_view_forecast_sends_the_views_bodies_predicted_ahead():
     """``--view-forecast S``: the --view views are sent each body S seconds ahead (the
     server says so in /stage/stats); more than the rig's max_s is one line of bad input."""
     port, view = free_udp_port(), free_udp_port()
-    proc = subprocess.Popen([*CLI, "serve", "--host", LOCALHOST, "--port", str(port),
-                             "--view", f"{LOCALHOST}:{view}", "--view-forecast", "0.05"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc, stats = start_serve(port, "--view", f"{LOCALHOST}:{view}", "--view-forecast", "0.05")
     try:
-        deadline = time.monotonic() + 20.0
-        while True:
-            assert proc.poll() is None, f"stage serve exited early: {proc.communicate()}"
-            try:
-                stats = query_stats((LOCALHOST, port), timeout=0.2)
-                break
-            except AssertionError:
-                assert time.monotonic() < deadline, "stage serve never answered /stage/stats"
         assert stats["forecast"]["views_s"] == {f"{LOCALHOST}:{view}": 0.05}
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=10)

@@ -39,12 +39,16 @@ def port(text: str) -> int:
     return int(text)
 
 
-def positive(text: str) -> float:
-    """A number greater than zero (seconds, speeds)."""
+def _number(text: str) -> float:
     try:
-        value = float(text)
+        return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+
+
+def positive(text: str) -> float:
+    """A number greater than zero (seconds, speeds)."""
+    value = _number(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"'{text}' must be greater than 0")
     return value
@@ -52,10 +56,7 @@ def positive(text: str) -> float:
 
 def non_negative(text: str) -> float:
     """A finite number at least 0 (seconds ahead)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    value = _number(text)
     if not (value >= 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"'{text}' must be a number of seconds, 0 or more")
     return value

@@ -689,18 +689,35 @@ def why_not() -> str:
 
 _EMPTY = np.empty(0)
 _FLAT: dict[int, tuple] = {}
+#: ``frame_r``'s constants of each smoothing settings object
+_FRAME_R: dict[int, tuple] = {}
+
+
+def _per_settings(cache: dict[int, tuple], s: KalmanSettings, make) -> tuple:
+    """``make(s)``, a tuple, computed once per settings object (kept by its identity, as
+    ``imm._constants`` keeps its own; at most 64 kept)."""
+    entry = cache.get(id(s))
+    if entry is None or entry[0] is not s:
+        if len(cache) > 64:
+            cache.clear()
+        entry = cache[id(s)] = (s, *make(s))
+    return entry
 
 
 def _flat(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
     """``imm._constants`` as the kernel takes them: writable (2,) arrays (a read-only array is
-    another type to numba), kept by the settings' identity as there."""
-    entry = _FLAT.get(id(s))
-    if entry is None or entry[0] is not s:
-        q, rates = _constants(s)
-        if len(_FLAT) > 64:
-            _FLAT.clear()
-        entry = _FLAT[id(s)] = (s, np.array(q.ravel()), np.array(rates.ravel()))
-    return entry[1], entry[2]
+    another type to numba)."""
+    _, q, rates = _per_settings(_FLAT, s, _flat_constants)
+    return q, rates
+
+
+def _flat_constants(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    q, rates = _constants(s)
+    return np.array(q.ravel()), np.array(rates.ravel())
+
+
+def _frame_constants(s: KalmanSettings) -> tuple[float, float, float]:
+    return math.sqrt(s.measurement_noise), float(s.noise_per_m), float(s.inferred_sd_m ** 2)
 
 
 def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
@@ -761,12 +778,7 @@ def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bo
     n = len(conf)
     joints_out, conf_out, r_out = np.empty((n, 3)), np.empty(n), np.empty(n)
     size = np.empty(2)
-    const = _FRAME_R.get(id(s))
-    if const is None or const[0] is not s:   # (computed once per settings object)
-        if len(_FRAME_R) > 64:
-            _FRAME_R.clear()
-        const = _FRAME_R[id(s)] = (s, math.sqrt(s.measurement_noise), float(s.noise_per_m),
-                                   float(s.inferred_sd_m ** 2))
+    const = _per_settings(_FRAME_R, s, _frame_constants)
     f = np.ascontiguousarray
     (arm_l, arm_r), (leg_l, leg_r) = traded
     bits = _compiled["_frame_r"](np.asarray(matrix, dtype=float), f(joints, dtype=float),
@@ -774,10 +786,6 @@ def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bo
                                  arm_r, leg_l, leg_r, float(margin), const[1], const[2],
                                  float(inferred), const[3], joints_out, conf_out, r_out, size)
     return joints_out, conf_out, bits, r_out, float(size[0]), int(size[1])
-
-
-#: ``frame_r``'s constants of each smoothing settings object (by identity, as ``_FLAT``)
-_FRAME_R: dict[int, tuple] = {}
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
