@@ -94,7 +94,7 @@ class People:
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         size = None        # the trunk: here with the kernels, else in _fold
         if jit.ready():
-            track.joints, conf, traded, r, size, seen = jit.frame_r(
+            track.joints, conf, traded, r, size, n_seen = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
                 SWAP_MARGIN_M, self.smoothing, INFERRED)
         else:
@@ -102,7 +102,7 @@ class People:
             traded = 0
             if self.rig.fusion.unswap_limbs:
                 track.joints, conf, traded = unswap_limbs(track.joints, conf)
-            seen = np.count_nonzero(conf > 0)   # (count_nonzero: cheaper than a reduction)
+            n_seen = np.count_nonzero(conf > 0)   # (count_nonzero: cheaper than a reduction)
         if self.rig.fusion.unswap_limbs:
             # the sensor's hand states follow its arms: its "left" hand is the right one
             # while it has the arms swapped (kept until a frame says otherwise, so a
@@ -113,7 +113,7 @@ class People:
                                                   + bin(traded).count("1"))
         track.conf = conf
         track.t = t
-        if not seen:
+        if not n_seen:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
         if not np.count_nonzero(person.known):
