@@ -10,6 +10,8 @@ returns it) on a calibrated sensor of the ring harness of test_calibration_heali
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -85,6 +87,54 @@ def test_a_tracked_lag_needs_a_clearly_better_fit(tracked):
     for k in range(3):
         _update(run, st, shallow, 10.0 + 2 * k)
     assert st.lag_s == 0.0
+
+
+def _next_due(run, st, after: float) -> float:
+    """The first whole second after ``after`` at which the tracked sensor's search is due."""
+    t = after
+    while not run.cal._lag_due(st, t):
+        t += 1.0
+    return t - after
+
+
+def test_searches_that_move_nothing_wait_longer_and_a_proposal_starts_over(tracked):
+    run, st = tracked
+    s = run.cal.settings
+    assert (s.lag_every_s, s.lag_every_max_s) == (10.0, 60.0)
+    flat = _search(-0.997, depth=0.009)            # a crowd's: confidence 0.09, moves nothing
+    confirming = _search(0.0, depth=0.05)          # one person's: sure, the lag in use
+    now, waits = 100.0, []
+    for search in (flat, confirming, flat, flat, flat):
+        _update(run, st, search, now)
+        wait = _next_due(run, st, now)
+        waits.append(wait)
+        now += wait
+    assert waits == [20.0, 40.0, 60.0, 60.0, 60.0]  # 10 s doubled per quiet search, capped
+    _update(run, st, _search(0.3, depth=0.05), now)  # a sure search proposes a lag ...
+    assert st.lag_quiet == 0 and _next_due(run, st, now) == 2.0  # ... checked 2 s later
+    _update(run, st, _search(-0.5, depth=0.05), now + 2.0)  # a disagreeing one starts over
+    assert _next_due(run, st, now + 2.0) == 2.0
+    _update(run, st, flat, now + 4.0)                # the unsure one drops the proposal
+    assert st.lag_candidate is None and _next_due(run, st, now + 4.0) == 10.0
+    assert st.lag_s == 0.0 and not run.events("lag")
+
+
+def test_a_sensor_to_calibrate_searches_every_second_whatever_its_tracked_count(tracked):
+    run, st = tracked
+    for k in range(4):
+        _update(run, st, _search(-0.997, depth=0.009), 100.0 + 100 * k)
+    assert st.lag_quiet == 4
+    st.state = "suspect"                             # bumped: searched as a sensor to calibrate
+    _update(run, st, _search(0.0, depth=0.05), 600.0)
+    assert st.lag_quiet == 0 and run.cal._lag_due(st, 601.0)
+
+
+def test_lag_every_max_s_at_or_below_lag_every_s_keeps_the_fixed_interval(tracked):
+    run, st = tracked
+    run.cal.settings = dataclasses.replace(run.cal.settings, lag_every_max_s=0.0)
+    for k in range(3):
+        _update(run, st, _search(-0.997, depth=0.009), 100.0 + 10 * k)
+        assert _next_due(run, st, 100.0 + 10 * k) == 10.0
 
 
 @pytest.fixture

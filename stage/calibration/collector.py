@@ -52,13 +52,27 @@ class Collector:
         if st.state == "ok":  # tracking: only while self-healing watches the sensors
             # the next search is due sooner while a sure one waits for another to agree; a
             # search that had nothing to compare waits for its retry time (_search_lag)
-            every = s.lag_every_s if st.lag_candidate is None else min(2.0, s.lag_every_s)
+            every = (self._lag_every(st) if st.lag_candidate is None
+                     else min(2.0, s.lag_every_s))
             return (s.heal and s.lag_every_s > 0 and now - st.lag_searched >= every
                     and now >= self._lag_retry.get(st.sensor, -np.inf))
         # a sensor to calibrate: every second, also once two searches agreed: the timing's
         # confidence judges a poor fit (Gates.too_poor), and it should be the confidence of
         # a search on what is buffered now, not of the first, short one
         return now - st.lag_searched >= 1.0
+
+    def _lag_every(self, st: SensorState) -> float:
+        """How long a tracked sensor waits for its next lag search: ``lag_every_s``, doubled
+        for every search in a row that moved and proposed nothing, up to ``lag_every_max_s``.
+
+        A crowd's searches are unsure (confidence 0.02-0.07 at 6 sensors x 6 people, where a
+        tracked lag moves only at 0.3) and one person's confirm the lag in use; either way the
+        next search most likely says the same. Measured at 6 x 6: the searches were a fifth
+        of the calibrator's CPU (docs/reports/issue-10.md, stop 32). A search that proposes
+        a lag starts the count over (and the next one is due in 2 s to confirm it)."""
+        s = self.settings
+        return min(s.lag_every_s * 2.0 ** min(st.lag_quiet, 16),
+                   max(s.lag_every_max_s, s.lag_every_s))
 
     def _search_lag(self, sid: str, views: dict[str, list[View]], trusted: list[str],
                     now: float, since: float) -> LagSearch | None:
@@ -112,6 +126,16 @@ class Collector:
             return LagSearch(0.0, np.zeros(0), np.zeros(0), 0)  # searched: no overlap
 
     def _update_lag(self, st: SensorState, search: LagSearch | None, now: float) -> None:
+        """Apply a search's result (caller holds the lock), and count a tracked sensor's
+        searches in a row that moved and proposed nothing (``_lag_every``)."""
+        if search is None:
+            return
+        tracking, before = st.state == "ok", (st.lag_s, st.lag_candidate)
+        self._move_lag(st, search, now)
+        quiet = tracking and before == (st.lag_s, st.lag_candidate)
+        st.lag_quiet = st.lag_quiet + 1 if quiet else 0
+
+    def _move_lag(self, st: SensorState, search: LagSearch, now: float) -> None:
         """Apply a search's result (caller holds the lock).
 
         A calibrated sensor's lag (tracking) is what every judgement of it rests on, so it
@@ -120,8 +144,6 @@ class Collector:
         the next search agrees within two frames: in a crowd, searches on a few seconds of
         one person read confidences of 0.05-0.1 and land anywhere in the window (a
         synchronised simulated sensor was moved by -0.997 s on confidence 0.09)."""
-        if search is None:
-            return
         s = self.settings
         st.lag_searched = now
         st.lag_last = search.confidence

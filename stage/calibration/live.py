@@ -44,7 +44,8 @@ class LiveSettings:
     ``accept_ratio`` of how close the trusted sensors agree (a first
     calibration with nobody to compare with: the gates alone). Each sensor's
     lag is searched within ``max_lag_s`` before it is calibrated and every
-    ``lag_every_s`` after, within ``track_lag_s`` of the lag in use (``lag_search``).
+    ``lag_every_s`` after, within ``track_lag_s`` of the lag in use (``lag_search``); each
+    such search that moves nothing doubles the wait for the next, up to ``lag_every_max_s``.
     """
 
     method: str = "rigid"
@@ -73,7 +74,9 @@ class LiveSettings:
     edge_m: float = Gates.edge_m
     lag_search: bool = True
     max_lag_s: float = 1.0
-    lag_every_s: float = 10.0     # re-search a calibrated sensor's lag this often (0: never)
+    lag_every_s: float = 10.0     # re-search a calibrated sensor's lag this often (0: never),
+    lag_every_max_s: float = 60.0  # ... twice as long after each search that moved nothing,
+                                   # up to this (lag_every_s or less: always lag_every_s)
     track_lag_s: float = 0.25     # ... within this of the lag in use (a clock that jumps further
                                   # makes the sensor disagree: suspect, then a full search)
     lag_min_confidence: float = 0.05

@@ -65,6 +65,8 @@ class SensorState:
     lag_overlap: int = 0                # frames the search that set the lag had
     lag_candidate: float | None = None  # a tracked sensor's lag one sure search proposed (s):
                                         # it moves only when the next search agrees
+    lag_quiet: int = 0                  # tracked searches in a row that moved and proposed
+                                        # nothing (each doubles the wait for the next)
     loop_s: float | None = None         # the period of a source that loops a take (s)
     loop_folded: bool = False           # its lag was searched on one pass of the take
     last_attempt: str | None = None     # the last calibration attempt's outcome, in words
