@@ -612,12 +612,13 @@ def test_views_built_together_are_the_views_built_one_by_one():
 
 def test_the_monitors_batched_resampling_and_pairs_match_one_view_at_a_time():
     """``Sampled.of_many`` and ``resample_many`` (one pass for a poll's views) give
-    ``Sampled.of``'s and ``pairs.resample``'s numbers to the bit, and ``Sampled.pairs``
-    the distances of every two views joint by joint: gaps, NaN rows, instants before and
-    after a view, a person with one view."""
+    ``Sampled.of``'s and ``pairs.resample``'s numbers to the bit, and ``Sampled.histograms``
+    the histograms of the distances of every two views joint by joint, pooled person by
+    person, in the order the pairs first saw a joint: gaps, NaN rows, instants before and
+    after a view, a person with one view, a pair that sees no joint in one person."""
     from stage.calibration.live import View
     from stage.calibration.pairs import resample
-    from stage.calibration.scoring import CORE, Sampled, grid, resample_many
+    from stage.calibration.scoring import CORE, Sampled, grid, histogram, resample_many
 
     rng = np.random.default_rng(5)
     for trial in range(30):
@@ -637,12 +638,12 @@ def test_the_monitors_batched_resampling_and_pairs_match_one_view_at_a_time():
                     stage[rng.integers(n)] = np.nan                  # no transform then
                 views.append(View(f"s{s}", person, t, raw, conf, stage, person=person))
             groups.append(views)
-        for one, many in zip([Sampled.of(v, at) for v in groups], Sampled.of_many(groups, at),
-                             strict=True):
+        expected: dict = {}                 # pair -> (distances, weights), laid end to end
+        many_all = Sampled.of_many(groups, at)
+        for one, many in zip([Sampled.of(v, at) for v in groups], many_all, strict=True):
             assert one.sensors == many.sensors
             assert one.joints.tobytes() == many.joints.tobytes()
             assert one.conf.tobytes() == many.conf.tobytes()
-            pairs = many.pairs()
             for i in range(len(one.sensors)):
                 for k in range(i + 1, len(one.sensors)):
                     w = one.conf[i] * one.conf[k] * CORE
@@ -650,11 +651,12 @@ def test_the_monitors_batched_resampling_and_pairs_match_one_view_at_a_time():
                     if not (w > 0).any():
                         continue
                     d = np.linalg.norm(one.joints[i][w > 0] - one.joints[k][w > 0], axis=-1)
-                    assert pairs[key][0].tobytes() == d.tobytes()
-                    assert pairs[key][1].tobytes() == w[w > 0].tobytes()
-            assert len(pairs) == sum((one.conf[i] * one.conf[k] * CORE > 0).any()
-                                     for i in range(len(one.sensors))
-                                     for k in range(i + 1, len(one.sensors)))
+                    d0, w0 = expected.get(key, (np.zeros(0), np.zeros(0)))
+                    expected[key] = (np.concatenate([d0, d]), np.concatenate([w0, w[w > 0]]))
+        found = Sampled.histograms(many_all)
+        assert list(found) == list(expected)
+        for key, (d, w) in expected.items():
+            assert found[key].tobytes() == histogram(d, w).tobytes()
         streams = [(v.t, v.raw, v.conf) for views in groups for v in views]
         j, c = resample_many(streams, at, 0.1, 0.05)
         for k, (t, raw, conf) in enumerate(streams):

@@ -1,7 +1,8 @@
 """The live verdict: which sensors disagree with the others, judged relative to the others.
 
 The monitor (``healing``) hands in, every poll, the joint distances of every
-two trusted sensors that saw one person (``scoring.distances``); this module
+two trusted sensors that saw one person (``scoring.distances``, already binned into
+weighted histograms: ``scoring.histogram``); this module
 keeps the last ``window_s`` of them and decides, per sensor:
 
 - its residual: the weighted median of its distances to the trusted sensors
@@ -35,22 +36,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .fitness import fitness_from_median
-from .scoring import Distances
+from .scoring import _BINS, BIN_M, Distances, Histograms, histogram
 
 NAN = float("nan")
-
-
-#: distances are kept as weighted histograms of BIN_M wide bins up to RANGE_M (beyond: the
-#: last bin), so pooling any set of pairs over the window is a sum, not a sort
-BIN_M = 0.001
-RANGE_M = 2.0
-_BINS = int(RANGE_M / BIN_M) + 1
-
-
-def histogram(d: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted histogram (``_BINS``,) of distances ``d`` (m)."""
-    k = np.minimum((d / BIN_M).astype(int), _BINS - 1)
-    return np.bincount(k, weights=w, minlength=_BINS)
 
 
 def histogram_median(h: np.ndarray) -> float:
@@ -73,8 +61,12 @@ class PairWindow:
         self._polls: deque[tuple[float, dict[tuple[str, str], np.ndarray]]] = deque()
 
     def add(self, t: float, distances: Distances) -> None:
-        if distances:
-            self._polls.append((t, {k: histogram(d, w) for k, (d, w) in distances.items()}))
+        self.add_histograms(t, {k: histogram(d, w) for k, (d, w) in distances.items()})
+
+    def add_histograms(self, t: float, histograms: Histograms) -> None:
+        """``add``, the distances already binned (``scoring.histogram``)."""
+        if histograms:
+            self._polls.append((t, histograms))
         while self._polls and self._polls[0][0] <= t - self.window_s:
             self._polls.popleft()
 
@@ -111,11 +103,18 @@ class PairWindow:
         return out
 
 
-def _median(totals: dict, keys) -> float:
-    keys = list(keys)
-    if not keys:
-        return NAN
-    return histogram_median(np.sum([totals[k] for k in keys], axis=0))
+class _Pooled:
+    """The window's totals of some pairs as rows of one array: the weighted median of any
+    set of them, pooled (rows summed in the order given)."""
+
+    def __init__(self, totals: dict, pairs: list) -> None:
+        self.row = {k: i for i, k in enumerate(pairs)}
+        self.rows = np.array([totals[k] for k in pairs]) if pairs else np.zeros((0, _BINS))
+
+    def median(self, keys: list) -> float:
+        if not keys:
+            return NAN
+        return histogram_median(self.rows[[self.row[k] for k in keys]].sum(axis=0))
 
 
 @dataclass
@@ -153,20 +152,21 @@ def judge(trusted: PairWindow, ok: list[str], reference: str | None, suspect_bel
     okset = set(ok)
     totals = trusted.totals()
     pairs = [k for k in totals if k[0] in okset and k[1] in okset]
+    pooled = _Pooled(totals, pairs)
     for s in ok:
         mine = [k for k in pairs if s in k]
         if not mine:
             continue
         others = [k for k in pairs if s not in k]
-        r = _median(totals, mine)
-        lvl = _median(totals, others)
+        r = pooled.median(mine)
+        lvl = pooled.median(others)
         v.residual[s], v.level[s] = r, lvl
         v.partners[s] = sorted({p for k in mine for p in k if p != s})
         low = fitness_from_median(r) < suspect_below
         base = baselines.get(s)
         base = base if base is not None and np.isfinite(base) else NAN
         if np.isfinite(lvl) or np.isfinite(base):
-            far = r > suspect_ratio * np.nanmax([lvl, base])
+            far = r > suspect_ratio * max(x for x in (lvl, base) if x == x)  # (nanmax)
         else:
             far = s != reference
         if low and far:
@@ -174,8 +174,9 @@ def judge(trusted: PairWindow, ok: list[str], reference: str | None, suspect_bel
     bad = set(v.outliers)
     for s in v.residual:
         # a sensor's own fitness is judged against the partners that are not outliers
-        mine = [k for k in pairs if s in k and not (set(k) - {s}) & bad]
-        r = _median(totals, mine) if mine and s not in bad else v.residual[s]
+        # (with none, the pairs its residual was the median of)
+        mine = [k for k in pairs if s in k and not (set(k) - {s}) & bad] if bad else []
+        r = pooled.median(mine) if mine and s not in bad else v.residual[s]
         v.fitness[s] = float(fitness_from_median(r))
         if s not in bad:
             v.residual[s] = r

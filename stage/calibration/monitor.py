@@ -45,7 +45,8 @@ class Monitor:
         trusted, suspects = distances(views, states, at, s.match_m)
         with self._lock:
             changed = {sid for sid, st in self._states.items() if st.epoch != epochs.get(sid)}
-            self._window.add(t1, {k: v for k, v in trusted.items() if not set(k) & changed})
+            self._window.add_histograms(t1, {k: v for k, v in trusted.items()
+                                             if not set(k) & changed})
             ok = [sid for sid, st in self._states.items() if st.state == "ok"
                   and st.transform is not None and st.duplicate_of is None]
             baselines = {sid: self._states[sid].baseline for sid in ok}

@@ -27,6 +27,27 @@ from .pairs import read_between, resample
 
 #: (sensor a, sensor b) -> (distances (n,) m, weights (n,)); a < b for trusted pairs
 Distances = dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]
+#: (sensor a, sensor b) -> their distances' weighted histogram (``histogram``)
+Histograms = dict[tuple[str, str], np.ndarray]
+
+#: distances are kept as weighted histograms of BIN_M wide bins up to RANGE_M (beyond: the
+#: last bin), so pooling any set of pairs over the judge's window is a sum, not a sort
+BIN_M = 0.001
+RANGE_M = 2.0
+_BINS = int(RANGE_M / BIN_M) + 1
+
+
+#: np.triu_indices(n, 1) for the usual numbers of views of one person
+_TRIU = [np.triu_indices(n, 1) for n in range(13)]
+
+
+def _bins(d: np.ndarray) -> np.ndarray:
+    return np.minimum((d / BIN_M).astype(int), _BINS - 1)
+
+
+def histogram(d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted histogram (``_BINS``,) of distances ``d`` (m)."""
+    return np.bincount(_bins(d), weights=w, minlength=_BINS)
 
 #: the joints the monitor judges by: the body's rigid core (spine, neck, head, shoulders,
 #: hips). A moved sensor moves them all; a view that turns side-on or has a person turn
@@ -103,21 +124,40 @@ class Sampled:
             first = last
         return out
 
-    def pairs(self, out: Distances | None = None) -> Distances:
-        """Joint distances of every two of these views (both seen), keyed (a, b), a < b
-        (added to ``out``, if given, as ``_add`` does)."""
-        out = {} if out is None else out
-        n = len(self.sensors)
-        if n < 2:
-            return out
-        first, second = np.triu_indices(n, 1)         # the pairs, in the order (0, 1), (0, 2)...
-        w = self.conf[first] * self.conf[second] * CORE                    # (pairs, G, 25)
+    @staticmethod
+    def histograms(persons: list["Sampled"]) -> Histograms:
+        """The weighted histogram of the joint distances of every two views of each person
+        (both joints seen; weight: the product of the confidences), keyed (a, b), a < b,
+        pooled over the persons: ``histogram`` of each pair's distances and weights laid end
+        to end person by person, joint by joint, the same numbers to the bit (a bin's
+        weights are summed in that order), in one pass of array operations."""
+        keys: dict[tuple[str, str], int] = {}
+        firsts, seconds, own, at = [], [], [], 0
+        for p in persons:
+            n = len(p.sensors)
+            first, second = _TRIU[n] if n < len(_TRIU) else np.triu_indices(n, 1)
+            for a, b in zip(first, second):        # the pairs, in the order (0, 1), (0, 2)...
+                own.append(keys.setdefault(tuple(sorted((p.sensors[a], p.sensors[b]))),
+                                           len(keys)))
+            firsts.append(first + at)
+            seconds.append(second + at)
+            at += n
+        if not own:
+            return {}
+        first, second = np.concatenate(firsts), np.concatenate(seconds)
+        joints = np.concatenate([p.joints for p in persons])
+        conf = np.concatenate([p.conf for p in persons])
+        w = conf[first] * conf[second] * CORE                                # (pairs, G, 25)
         keep = w > 0
-        d = np.linalg.norm(self.joints[first] - self.joints[second], axis=-1)
-        for p in np.flatnonzero(keep.any(axis=(1, 2))):
-            a, b = sorted((self.sensors[first[p]], self.sensors[second[p]]))
-            _add(out, (a, b), d[p][keep[p]], w[p][keep[p]])
-        return out
+        d = np.linalg.norm(joints[first] - joints[second], axis=-1)
+        owner = np.broadcast_to(np.array(own)[:, None, None], w.shape)[keep]
+        flat = np.bincount(owner * _BINS + _bins(d[keep]), weights=w[keep],
+                           minlength=len(keys) * _BINS).reshape(len(keys), _BINS)
+        # in the order each pair first had a joint both saw (the order its distances came
+        # in, which decides the order the judge sums pairs in); none: no entry
+        found, where = np.unique(owner, return_index=True)
+        names = list(keys)
+        return {names[k]: flat[k] for k in found[np.argsort(where)]}
 
     def centre(self) -> np.ndarray:
         """(G, 3) the person's torso centre on the grid, averaged over the views (NaN: none)."""
@@ -161,8 +201,8 @@ def _add(out: Distances, key: tuple[str, str], d: np.ndarray, w: np.ndarray) -> 
 
 
 def distances(views: dict[str, list[View]], states: dict, at: np.ndarray, match_m: float,
-              ) -> tuple[Distances, Distances]:
-    """Joint distances on the grid instants ``at``: (trusted pairs, suspects).
+              ) -> tuple[Histograms, Distances]:
+    """Joint distances on the grid instants ``at``: (trusted pairs, binned; suspects).
 
     states: sensor -> (state, transform, last good transform, duplicate_of).
     Trusted ("ok") views are grouped by the person the engine bound them to;
@@ -177,13 +217,9 @@ def distances(views: dict[str, list[View]], states: dict, at: np.ndarray, match_
         for v in views.get(sid, []):
             if v.person is not None and v.t[-1] > at[0] - 0.1:
                 persons.setdefault(v.person, []).append(v)
-    trusted: Distances = {}
-    sampled_persons = []
     groups = [sorted(persons[pid], key=_sensor_of) for pid in sorted(persons)]
-    for sampled in Sampled.of_many(groups, at):
-        sampled.pairs(trusted)
-        if sampled.sensors:
-            sampled_persons.append(sampled)
+    sampled_persons = [sampled for sampled in Sampled.of_many(groups, at) if sampled.sensors]
+    trusted = Sampled.histograms(sampled_persons)
     suspects: Distances = {}
     if any(state == "suspect" and last_good is not None and dup is None
            for state, _t, last_good, dup in states.values()):
