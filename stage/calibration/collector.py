@@ -1,7 +1,8 @@
 """The live calibrator's collecting side: lags, pairs, fits, acceptance (a ``healing`` part).
 
 - LAG: before collecting pairs for a sensor, and every ``lag_every_s`` for
-  every calibrated one, its clock is searched against a trusted sensor that
+  every calibrated one (twice as long after each search that moved nothing, up to
+  ``lag_every_max_s``), its clock is searched against a trusted sensor that
   sees the same person (``pairs.find_lag`` on the buffered frames: the one
   person both see alone, or, for a calibrated sensor, the person the engine
   bound both views to). ``SensorState.lag_s`` shifts that sensor's frames for
