@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .fitness import fitness_from_median
-from .scoring import _BINS, BIN_M, Distances, Histograms, histogram
+from .scoring import BIN_M, N_BINS, Distances, Histograms, histogram
 
 NAN = float("nan")
 
@@ -84,7 +84,7 @@ class PairWindow:
 
     def pooled(self, keys) -> np.ndarray:
         """The summed histogram of ``keys`` over the window."""
-        total = np.zeros(_BINS)
+        total = np.zeros(N_BINS)
         wanted = set(keys)
         for _, d in self._polls:
             for k in wanted & d.keys():
@@ -109,7 +109,7 @@ class _Pooled:
 
     def __init__(self, totals: dict, pairs: list) -> None:
         self.row = {k: i for i, k in enumerate(pairs)}
-        self.rows = np.array([totals[k] for k in pairs]) if pairs else np.zeros((0, _BINS))
+        self.rows = np.array([totals[k] for k in pairs]) if pairs else np.zeros((0, N_BINS))
 
     def median(self, keys: list) -> float:
         if not keys:

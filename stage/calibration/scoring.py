@@ -34,20 +34,20 @@ Histograms = dict[tuple[str, str], np.ndarray]
 #: last bin), so pooling any set of pairs over the judge's window is a sum, not a sort
 BIN_M = 0.001
 RANGE_M = 2.0
-_BINS = int(RANGE_M / BIN_M) + 1
-
+N_BINS = int(RANGE_M / BIN_M) + 1
 
 #: np.triu_indices(n, 1) for the usual numbers of views of one person
 _TRIU = [np.triu_indices(n, 1) for n in range(13)]
 
 
 def _bins(d: np.ndarray) -> np.ndarray:
-    return np.minimum((d / BIN_M).astype(int), _BINS - 1)
+    return np.minimum((d / BIN_M).astype(int), N_BINS - 1)
 
 
 def histogram(d: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted histogram (``_BINS``,) of distances ``d`` (m)."""
-    return np.bincount(_bins(d), weights=w, minlength=_BINS)
+    """Weighted histogram (``N_BINS``,) of distances ``d`` (m)."""
+    return np.bincount(_bins(d), weights=w, minlength=N_BINS)
+
 
 #: the joints the monitor judges by: the body's rigid core (spine, neck, head, shoulders,
 #: hips). A moved sensor moves them all; a view that turns side-on or has a person turn
@@ -151,8 +151,8 @@ class Sampled:
         keep = w > 0
         d = np.linalg.norm(joints[first] - joints[second], axis=-1)
         owner = np.broadcast_to(np.array(own)[:, None, None], w.shape)[keep]
-        flat = np.bincount(owner * _BINS + _bins(d[keep]), weights=w[keep],
-                           minlength=len(keys) * _BINS).reshape(len(keys), _BINS)
+        flat = np.bincount(owner * N_BINS + _bins(d[keep]), weights=w[keep],
+                           minlength=len(keys) * N_BINS).reshape(len(keys), N_BINS)
         # in the order each pair first had a joint both saw (the order its distances came
         # in, which decides the order the judge sums pairs in); none: no entry
         found, where = np.unique(owner, return_index=True)
