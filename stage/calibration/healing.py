@@ -103,6 +103,13 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         self._inbox_max = 1 << 16
         #: frames the worker could not keep up with (dropped from the inbox, oldest first)
         self.inbox_dropped = 0
+        # ``frame_budget`` (lock): frames ingested since ``_budget_from``, the seconds between
+        # two frames kept of one view (0: every frame) and each view's last time bin kept
+        self._budget_from, self._budget_count = -INF, 0
+        self._keep_every = 0.0
+        self._kept_bin: dict[tuple[str, int], int] = {}
+        #: frames left out of the buffers by ``frame_budget`` (copy-checked all the same)
+        self.frames_thinned = 0
         #: times the calibrator failed and was restarted, and the last failure (health)
         self.crashes = 0
         self.last_crash = ""
@@ -172,6 +179,8 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
             self._copies = CopyDetector(s.identical_frames)
             self._buffers.clear()
+            self._kept_bin.clear()
+            self._keep_every, self._budget_from, self._budget_count = 0.0, -INF, 0
             self._inbox.clear()
             self._runs.clear()
             self._tracks_seen.clear()
@@ -288,15 +297,51 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._tracks_seen[key] = track
             self._gate.forget(frame.sensor, frame.user)
             self._runs[key] = self._runs.get(key, 0) + 1
-        buf.append((frame, person, self._runs.get(key, 0)))
         self._latest = max(self._latest, frame.t)
         if s.identical_frames > 0:
             pair = self._copies.check(frame.sensor, frame.t, frame.joints, frame.conf)
             if pair is not None:
                 self._flag_identical(pair, frame.t)
+        self._budget_count += 1
+        if self._keep_every:
+            # the first frame of each time bin, so that a view is thinned evenly (frames at
+            # 30 Hz in bins of 1/15 s: every other one)
+            at = int(frame.t // self._keep_every)
+            if self._kept_bin.get(key) == at:
+                self.frames_thinned += 1
+                return None
+            self._kept_bin[key] = at
+        buf.append((frame, person, self._runs.get(key, 0)))
         if s.heal and st.state == "ok" and frame.transform is not None:
             return st
         return None
+
+    def _rebudget(self, now: float) -> None:
+        """Once a second (caller holds the lock): thin the views when the frames ingested
+        over the last second exceed ``frame_budget`` (until they fall under 90 % of it),
+        each view then to ``frame_budget / views`` frames a second, and never under 10."""
+        budget = self.settings.frame_budget
+        if self._budget_from == -INF:
+            self._budget_from, self._budget_count = now, 0
+        span = now - self._budget_from
+        if budget <= 0 or span < 1.0:
+            return
+        rate = self._budget_count / span
+        self._budget_from, self._budget_count = now, 0
+        views = sum(1 for b in self._buffers.values() if b and now - b[-1][0].t <= 1.0)
+        over = rate > (0.9 if self._keep_every else 1.0) * budget
+        # (never under 10 Hz: a view's frames 0.25 s apart would each start a new identity)
+        every = min(views / budget, 0.1) if over and views else 0.0
+        if bool(every) != bool(self._keep_every):
+            if every:
+                log.info("calibrator: %.0f frames a second from %d views, over its budget of "
+                         "%g: each view kept at %.1f Hz", rate, views, budget, 1.0 / every)
+            else:
+                log.info("calibrator: %.0f frames a second, within its budget: every frame "
+                         "kept", rate)
+        self._keep_every = every
+        for key in [k for k in self._kept_bin if k not in self._buffers]:
+            del self._kept_bin[key]
 
     def _new_state(self, frame: SensorFrame) -> SensorState:
         sid = frame.sensor
@@ -422,6 +467,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._drain()
         with self._lock:
             now = self._latest
+            self._rebudget(now)
             t1 = now - s.delay_s
             if (self._idle and t1 - self._monitored_to < s.idle_poll_s
                     and not any(self._lag_due(st, now) for st in self._states.values())):

@@ -100,6 +100,11 @@ class LiveSettings:
                                   # instead of 0.77-0.87 s), so the default keeps every poll
     delay_s: float = 0.1          # frames are judged once the partners' later frames are in
     buffer_s: float = 4.0
+    frame_budget: float = 540.0   # frames a second the calibrator keeps at most: above it (more
+                                  # than 18 views of 30 Hz sensors) each view is thinned evenly
+                                  # in time (to budget / views a second, never under 10),
+                                  # so that its cost stops growing with the crowd; every
+                                  # frame is still checked for copies. 0: every frame
     auto_calibrate: bool = True   # calibrate sensors the rig has no calibration for
     heal: bool = True
     save: bool = True

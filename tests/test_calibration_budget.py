@@ -1,0 +1,111 @@
+"""The live calibrator's frame budget (``LiveSettings.frame_budget``): in a crowd each view is
+thinned evenly in time, so that the calibrator's cost stops growing with the number of views;
+below the budget nothing changes; copies and bumps are still caught.
+
+The ring harness of test_calibration_healing (one dancer, n sensors at 30 Hz, inline
+calibrator, injected clock): with a budget of 45 frames a second, three sensors (90 a
+second) are over it, and each view is kept at 45 / 3 = 15 Hz.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from stage.rig import set_calibration
+from stage.sensors.protocol import encode_client_joints
+from test_calibration_healing import Run
+
+
+def _times(run, sensor: str) -> np.ndarray:
+    return np.array([e[0].t for e in run.cal._buffers[(sensor, 0)]])
+
+
+def test_within_the_budget_every_frame_is_kept(tmp_path):
+    run = Run(tmp_path, n=3)                   # 90 frames a second, budget 540
+    run.run_until(3.0)
+    assert run.cal.frames_thinned == 0 and run.cal._keep_every == 0.0
+    for sid in run.ids:
+        gaps = np.diff(_times(run, sid))
+        assert np.allclose(gaps, 1 / 30, atol=1e-6), sid
+
+
+def test_over_the_budget_each_view_is_thinned_evenly(tmp_path):
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    run.run_until(1.0)
+    assert run.cal.frames_thinned == 0         # a second's count before any judgement
+    run.run_until(4.0)
+    assert run.cal._keep_every == 3 / 45.0
+    thinned = run.cal.frames_thinned
+    assert 2 * 3 * 30 * 0.4 < thinned < 3 * 3 * 30 * 0.6   # about half of 2-3 s of frames
+    for sid in run.ids:
+        t = _times(run, sid)
+        gaps = np.diff(t[t > 1.5])
+        # the first frame of each 1/15 s bin: 1/30 or 1/10 s apart (a bin edge between two
+        # frames moves one), 1/15 s on average, never two frames of one bin
+        assert gaps.min() > 1 / 30 - 1e-6 and gaps.max() < 0.1 + 1e-6, sid
+        assert abs(gaps.mean() - 1 / 15) < 0.004, sid
+        assert len(np.unique(np.floor(t[t > 1.5] / (3 / 45.0)))) == len(t[t > 1.5])
+
+
+def test_the_views_are_whole_again_when_the_crowd_thins(tmp_path):
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    run.run_until(3.0)
+    assert run.cal._keep_every > 0
+    run.cal.settings = dataclasses.replace(run.cal.settings, frame_budget=120.0)
+    run.run_until(4.5)        # 90 frames a second, under 90 % of 120
+    assert run.cal._keep_every == 0.0
+    before = run.cal.frames_thinned
+    run.run_until(6.0)
+    assert run.cal.frames_thinned == before
+    gaps = np.diff(_times(run, "s1"))
+    assert np.allclose(gaps[-30:], 1 / 30, atol=1e-6)
+
+
+def test_a_copy_is_still_caught_at_its_fifth_frame_while_thinning(tmp_path):
+    """Every frame is checked for copies, kept or not (a copy's clock need not fall in the
+    same bins as the original's)."""
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    set_calibration(run.rig, "s9", run.rig.sensors["s1"].calibration.matrix, "copied")
+    last: dict[str, tuple] = {}
+    original_frame = run.frame
+
+    def frame(sensor, joints, conf, t):
+        if sensor == "s1":
+            last["s1"] = (joints, conf)
+        original_frame(sensor, joints, conf, t)
+
+    copies: list[float] = []
+
+    def copy_s1(r):
+        if r.t >= 2.0:
+            copies.append(r.clock.now())
+            r.engine.handle_datagram(encode_client_joints("s9", 0, *last["s1"]),
+                                     ("127.0.0.1", 9009))
+
+    run.frame = frame
+    run.run_until(3.5, hook=copy_s1)
+    assert run.cal._keep_every > 0 and run.cal.frames_thinned > 0
+    flagged = run.events("identical", "s9")
+    assert len(flagged) == 1 and flagged[0].t == copies[4]
+
+
+def test_a_bumped_sensor_is_caught_while_thinning(tmp_path):
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    run.run_until(3.0)
+    assert run.cal._keep_every > 0
+    run.bump("s1", 10.0)
+    run.run_until(4.0)
+    suspect = run.events("suspect")
+    assert suspect and 3.0 <= suspect[0].t <= 3.5
+    assert not run.events("suspect", "s0") and not run.events("suspect", "s2")
+
+
+def test_a_tiny_budget_still_keeps_ten_frames_a_second_of_each_view(tmp_path):
+    """Frames further apart than ``live.IDENTITY_GAP_S`` would each start a new identity."""
+    run = Run(tmp_path, n=3, frame_budget=3.0)
+    run.run_until(3.0)
+    assert run.cal._keep_every == 0.1
+    t = _times(run, "s2")
+    assert np.diff(t[t > 1.5]).max() < 0.1 + 1 / 30 + 1e-6
