@@ -250,11 +250,12 @@ class CopyDetector:
     def check(self, sensor: str, t: float, joints: np.ndarray, conf: np.ndarray,
               ) -> tuple[str, str] | None:
         """The (a, b) pair at the moment it reaches ``frames`` identical frames, else None."""
-        if np.count_nonzero(conf > 0) < 3:   # (count_nonzero: cheaper than a sum, per frame)
-            return None
         key = hash((joints.tobytes(), conf.tobytes()))
         prev = self._seen.get(key)
         if prev is not None and prev[0] != sensor and t - prev[1] <= self.within_s:
+            # (counted only here: the count of every frame was the check's largest cost)
+            if np.count_nonzero(conf > 0) < 3:
+                return None
             pair = (prev[0], sensor) if prev[0] < sensor else (sensor, prev[0])
             entry = self.pairs.setdefault(pair, [0, t])
             entry[0] += 1
