@@ -73,19 +73,24 @@ def live(scenario: str, duration: float, seed: int) -> dict:
                             "--duration", "0.1", "--out", os.path.join(tmp, "x.stagerec")],
                    check=True, capture_output=True)
     port = _free_port()
+    log_path = os.path.join(tmp, "serve.log")   # kept for a look when the run fails
+    # a file, not a pipe read at the end: a burst of log lines over the pipe's 64 KB would
+    # block the server's engine thread for the rest of the run (seen once: a 75 s stall)
+    log_file = open(log_path, "w", encoding="utf-8")
     server = subprocess.Popen(stage + ["serve", "--rig", rig, "--port", str(port),
                                        "--host", "127.0.0.1", "--no-plugins",
                                        "--fused", fused, "--duration", str(duration + 8)],
-                              stderr=subprocess.PIPE, text=True)
+                              stderr=log_file, text=True)
     time.sleep(3.0)  # let the server bind before the sensors send
     started = time.perf_counter()
     subprocess.run(stage + ["sim", "--quiet", scenario, "--seed", str(seed), "--to",
                             f"127.0.0.1:{port}", "--duration", str(duration)], check=True)
     wall = time.perf_counter() - started
     server.send_signal(signal.SIGINT)
-    _, log = server.communicate(timeout=30)
-    with open(os.path.join(tmp, "serve.log"), "w", encoding="utf-8") as f:
-        f.write(log)  # kept for a look when the run fails
+    server.wait(timeout=30)
+    log_file.close()
+    with open(log_path, encoding="utf-8") as f:
+        log = f.read()
     per_second: dict[int, set] = collections.defaultdict(set)
     t0 = None
     with open(fused, encoding="utf-8") as f:
