@@ -28,6 +28,9 @@ from .hands import HandVoter
 
 log = logging.getLogger("stage.engine")
 
+#: "person N picked up again" is logged at most once in this many seconds per person
+PICKED_UP_LOG_S = 1.0
+
 
 _TORSO_IDX = np.array(TORSO)
 _NECK, _BASE = JOINT_INDEX["Neck"], JOINT_INDEX["SpineBase"]
@@ -228,6 +231,8 @@ class Tracker:
         self._close_since: dict[tuple[int, int], float] = {}
         #: persons lost recently: (id, torso centre (3,), trunk length m, when lost)
         self.departed: list[tuple[int, np.ndarray, float, float]] = []
+        #: person id -> (when "picked up again" was last logged, picks since not logged)
+        self._picked_said: dict[int, tuple[float, int]] = {}
 
     def associate(self, track: Track, t: float) -> Person:
         """The person ``track`` (a view with fresh joints at time ``t``) belongs to."""
@@ -259,11 +264,26 @@ class Tracker:
                 self._next_id += 1
             best = self.persons[pid] = Person.new(pid, t, fs)
         elif best.orphan_since is not None:
-            log.info("person %d picked up again by sensor %s", best.id, track.client)
+            self._say_picked_up(best.id, track.client, t)
         best.tracks.add(track)
         best.orphan_since = None
         track.person, track.far_frames = best.id, 0
         return best
+
+    def _say_picked_up(self, pid: int, client: str, t: float) -> None:
+        """Log that a person was picked up again, at most once a second per person. An
+        engine that fell behind drops and picks up views every frame: 745 such lines in 5 s
+        once (bench_soak live, issue 10, stop 33), each one slowing it further."""
+        said = self._picked_said
+        last, quiet = said.get(pid, (-math.inf, 0))
+        if t - last < PICKED_UP_LOG_S:
+            said[pid] = (last, quiet + 1)
+            return
+        more = f" (and {quiet} more time(s) in the second before)" if quiet else ""
+        log.info("person %d picked up again by sensor %s%s", pid, client, more)
+        said[pid] = (t, 0)
+        if len(said) > 64:    # persons come and go for weeks: keep the recent ones only
+            self._picked_said = {k: v for k, v in said.items() if t - v[0] < PICKED_UP_LOG_S}
 
     def _rejoin(self, track: Track, t: float) -> int | None:
         """The id of a recently lost person this view is (see the class docstring), or None."""
