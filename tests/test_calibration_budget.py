@@ -14,8 +14,7 @@ import dataclasses
 import numpy as np
 
 from stage.rig import set_calibration
-from stage.sensors.protocol import encode_client_joints
-from test_calibration_healing import Run
+from test_calibration_healing import Run, copying_s1
 
 
 def _times(run, sensor: str) -> np.ndarray:
@@ -68,23 +67,7 @@ def test_a_copy_is_still_caught_at_its_fifth_frame_while_thinning(tmp_path):
     same bins as the original's)."""
     run = Run(tmp_path, n=3, frame_budget=45.0)
     set_calibration(run.rig, "s9", run.rig.sensors["s1"].calibration.matrix, "copied")
-    last: dict[str, tuple] = {}
-    original_frame = run.frame
-
-    def frame(sensor, joints, conf, t):
-        if sensor == "s1":
-            last["s1"] = (joints, conf)
-        original_frame(sensor, joints, conf, t)
-
-    copies: list[float] = []
-
-    def copy_s1(r):
-        if r.t >= 2.0:
-            copies.append(r.clock.now())
-            r.engine.handle_datagram(encode_client_joints("s9", 0, *last["s1"]),
-                                     ("127.0.0.1", 9009))
-
-    run.frame = frame
+    copy_s1, copies = copying_s1(run, 2.0)
     run.run_until(3.5, hook=copy_s1)
     assert run.cal._keep_every > 0 and run.cal.frames_thinned > 0
     flagged = run.events("identical", "s9")

@@ -261,11 +261,9 @@ def test_two_people_in_view_hold_the_calibration_back(tmp_path):
     assert len(run.events("calibrated")) == 1
 
 
-def test_bit_identical_streams_are_flagged(tmp_path):
-    run = Run(tmp_path, n=2)
-    # the copy even has a calibration (the installer duplicated s1's entry): it is fused at first
-    set_calibration(run.rig, "s9", run.rig.sensors["s1"].calibration.matrix, "copied")
-
+def copying_s1(run: Run, after: float):
+    """A hook for ``run.run_until``: from ``after`` on, sensor "s9" re-sends s1's skeleton
+    byte for byte after every frame; returns (hook, the copies' times as they are sent)."""
     last: dict[str, tuple] = {}
     original_frame = run.frame
 
@@ -277,12 +275,20 @@ def test_bit_identical_streams_are_flagged(tmp_path):
     copies: list[float] = []
 
     def copy_s1(r):
-        if r.t >= 1.0:  # "s9" re-sends s1's skeleton byte for byte
+        if r.t >= after:
             copies.append(r.clock.now())
             r.engine.handle_datagram(encode_client_joints("s9", 0, *last["s1"]),
                                      ("127.0.0.1", 9009))
 
     run.frame = frame
+    return copy_s1, copies
+
+
+def test_bit_identical_streams_are_flagged(tmp_path):
+    run = Run(tmp_path, n=2)
+    # the copy even has a calibration (the installer duplicated s1's entry): it is fused at first
+    set_calibration(run.rig, "s9", run.rig.sensors["s1"].calibration.matrix, "copied")
+    copy_s1, copies = copying_s1(run, 1.0)
     run.run_until(3.0, hook=copy_s1)
     flagged = run.events("identical", "s9")
     assert len(flagged) == 1 and "bit-identical to s1" in flagged[0].detail
