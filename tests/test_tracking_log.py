@@ -39,4 +39,4 @@ def test_a_person_picked_up_every_frame_is_logged_once_a_second(caplog):
     assert len(lines) == 2, lines          # at 0 s and at 1 s; 119 picks in all
     assert lines[0] == f"person {person.id} picked up again by sensor kinect-b"
     assert lines[1].startswith(f"person {person.id} picked up again by sensor kinect-")
-    assert "(and 59 more time(s) in the second before)" in lines[1]
+    assert "(and 59 more time(s) since the last such line)" in lines[1]

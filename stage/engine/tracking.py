@@ -279,7 +279,7 @@ class Tracker:
         if t - last < PICKED_UP_LOG_S:
             said[pid] = (last, quiet + 1)
             return
-        more = f" (and {quiet} more time(s) in the second before)" if quiet else ""
+        more = f" (and {quiet} more time(s) since the last such line)" if quiet else ""
         log.info("person %d picked up again by sensor %s%s", pid, client, more)
         said[pid] = (t, 0)
         if len(said) > 64:    # persons come and go for weeks: keep the recent ones only
