@@ -92,3 +92,15 @@ def test_a_tiny_budget_still_keeps_ten_frames_a_second_of_each_view(tmp_path):
     assert run.cal._keep_every == 0.1
     t = _times(run, "s2")
     assert np.diff(t[t > 1.5]).max() < 0.1 + 1 / 30 + 1e-6
+
+
+def test_a_budget_turned_off_while_thinning_keeps_every_frame_at_once(tmp_path):
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    run.run_until(3.0)
+    assert run.cal._keep_every > 0
+    run.cal.settings = dataclasses.replace(run.cal.settings, frame_budget=0.0)
+    run.run_until(3.2)            # the next poll
+    assert run.cal._keep_every == 0.0
+    before = run.cal.frames_thinned
+    run.run_until(4.0)
+    assert run.cal.frames_thinned == before

@@ -321,10 +321,13 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         over the last second exceed ``frame_budget`` (until they fall under 90 % of it),
         each view then to ``frame_budget / views`` frames a second, and never under 10."""
         budget = self.settings.frame_budget
+        if budget <= 0:     # (also when it is turned off while thinning: every frame at once)
+            self._keep_every = 0.0
+            return
         if self._budget_from == -INF:
             self._budget_from, self._budget_count = now, 0
         span = now - self._budget_from
-        if budget <= 0 or span < 1.0:
+        if span < 1.0:
             return
         rate = self._budget_count / span
         self._budget_from, self._budget_count = now, 0
