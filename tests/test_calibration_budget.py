@@ -104,3 +104,53 @@ def test_a_budget_turned_off_while_thinning_keeps_every_frame_at_once(tmp_path):
     before = run.cal.frames_thinned
     run.run_until(4.0)
     assert run.cal.frames_thinned == before
+
+
+def test_the_stats_say_what_the_budget_does(tmp_path):
+    """``/stage/stats`` has a ``calibrator`` section while a live calibrator is attached: the
+    frames it takes a second, its budget, the rate each view is kept at (null: every
+    frame) and what it left out."""
+    import json
+
+    run = Run(tmp_path, n=3, frame_budget=45.0)
+    run.run_until(4.0)
+    cal = run.engine.stats()["calibrator"]
+    json.dumps(cal)
+    assert 80.0 < cal["frames_per_s"] < 100.0            # three views at 30 Hz
+    assert cal["frame_budget"] == 45.0 and cal["kept_hz"] == 15.0
+    assert cal["frames_thinned"] == run.cal.frames_thinned > 0
+    assert cal["inbox_dropped"] == 0 and cal["crashes"] == 0
+    run.cal.stop()
+    assert "calibrator" not in run.engine.stats()
+
+
+def test_the_stats_say_every_frame_is_kept_within_the_budget(tmp_path):
+    run = Run(tmp_path, n=3)
+    assert run.engine.stats()["calibrator"]["frames_per_s"] is None   # not a second yet
+    run.run_until(3.0)
+    cal = run.engine.stats()["calibrator"]
+    assert 80.0 < cal["frames_per_s"] < 100.0 and cal["kept_hz"] is None
+    assert cal["frames_thinned"] == 0
+
+
+def test_frames_a_stuck_worker_cannot_take_are_counted_and_logged(tmp_path, caplog):
+    """Threaded, the engine thread only queues frames; when the worker does not empty the
+    inbox, the oldest frames go, counted in the stats and logged once per 10 s, never
+    per frame."""
+    import logging
+
+    run = Run(tmp_path, n=3, threaded=True)
+    cal = run.cal
+    cal._stop.set()               # the worker ends: nothing empties the inbox any more
+    cal._wake.set()
+    cal._worker.join(timeout=10.0)
+    cal._inbox_max = 30
+    with caplog.at_level(logging.WARNING, logger="stage.calibration"):
+        run.run_until(12.0)        # 3 sensors x 30 Hz x 12 s = 1080 frames into 30 places
+    said = [r.getMessage() for r in caplog.records if "inbox" in r.getMessage()]
+    seen = run.engine.counts["frames"]     # every frame the engine took (a few are lost)
+    assert seen > 1000 and cal.inbox_dropped == seen - 30 and len(cal._inbox) == 30
+    assert run.engine.stats()["calibrator"]["inbox_dropped"] == seen - 30
+    assert len(said) == 2, said    # at the first drop, then 10 s later
+    assert said[0].startswith("calibrator: its worker is behind: 1 frame(s) dropped")
+    assert said[1].endswith(" in all)") and "(1 in all)" not in said[1]

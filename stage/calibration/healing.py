@@ -61,6 +61,10 @@ MAX_SENSORS = 128
 #: stop 31)
 DRAIN_CHUNK = 12
 
+#: at most one log line per this many seconds (capture time) about frames dropped from the
+#: worker's full inbox
+INBOX_LOG_S = 10.0
+
 __all__ = ["LiveCalibrator", "LiveEvent", "attach_live"]
 
 
@@ -101,13 +105,16 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         # threaded: (frame, track, person, reference) the engine thread saw, for the worker
         self._inbox: deque[tuple] = deque()
         self._inbox_max = 1 << 16
-        #: frames the worker could not keep up with (dropped from the inbox, oldest first)
+        #: frames the worker could not keep up with (dropped from the inbox, oldest first;
+        #: logged at the first and then at most every ``INBOX_LOG_S`` of capture time)
         self.inbox_dropped = 0
+        self._inbox_said = (0, -INF)     # (inbox_dropped, frame time) at the last log line
         # ``frame_budget`` (lock): frames ingested since ``_budget_from``, the seconds between
         # two frames kept of one view (0: every frame) and each view's last time bin kept
         self._budget_from, self._budget_count = -INF, 0
         self._keep_every = 0.0
         self._kept_bin: dict[tuple[str, int], int] = {}
+        self._rate: float | None = None   # frames ingested a second, last measured
         #: frames left out of the buffers by ``frame_budget`` (copy-checked all the same)
         self.frames_thinned = 0
         #: times the calibrator failed and was restarted, and the last failure (health)
@@ -117,6 +124,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "LiveCalibrator":
         self.engine.frame_observers.append(self._observe)
+        self.engine.stats_sections["calibrator"] = self.stats
         self._start_worker()
         return self
 
@@ -126,7 +134,22 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self.engine.frame_observers.remove(self._observe)
         except ValueError:
             pass
+        if self.engine.stats_sections.get("calibrator") == self.stats:
+            del self.engine.stats_sections["calibrator"]
         self._stop_worker()
+
+    def stats(self) -> dict:
+        """The ``calibrator`` section of ``/stage/stats`` (any thread; counters only):
+        frames ingested a second (null before the first second), the frame budget, the
+        rate each view is kept at while over it (null: every frame kept), the frames left
+        out by the budget and dropped from a full inbox, and the restarts after a failure."""
+        every, rate = self._keep_every, self._rate
+        return {"frames_per_s": None if rate is None else round(rate, 1),
+                "frame_budget": self.settings.frame_budget,
+                "kept_hz": round(1.0 / every, 2) if every else None,
+                "frames_thinned": self.frames_thinned,
+                "inbox_dropped": self.inbox_dropped,
+                "crashes": self.crashes}
 
     def request(self, sensors: list[str] | None = None, pairs: int | None = None) -> list[str]:
         """Re-calibrate now (on demand): the sensors keep being fused meanwhile.
@@ -232,6 +255,13 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
                     self.inbox_dropped += 1
                 except IndexError:  # the worker emptied it meanwhile
                     pass
+                else:
+                    said, at = self._inbox_said
+                    if frame.t - at >= INBOX_LOG_S:
+                        log.warning("calibrator: its worker is behind: %d frame(s) dropped "
+                                    "from its inbox since the last report (%d in all)",
+                                    self.inbox_dropped - said, self.inbox_dropped)
+                        self._inbox_said = (self.inbox_dropped, frame.t)
             self._inbox.append(entry)
             if due:
                 self._wake.set()
@@ -323,14 +353,15 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         budget = self.settings.frame_budget
         if budget <= 0:     # (also when it is turned off while thinning: every frame at once)
             self._keep_every = 0.0
-            return
         if self._budget_from == -INF:
             self._budget_from, self._budget_count = now, 0
         span = now - self._budget_from
         if span < 1.0:
             return
-        rate = self._budget_count / span
+        rate = self._rate = self._budget_count / span      # (the stats' frames_per_s)
         self._budget_from, self._budget_count = now, 0
+        if budget <= 0:
+            return
         views = sum(1 for b in self._buffers.values() if b and now - b[-1][0].t <= 1.0)
         over = rate > (0.9 if self._keep_every else 1.0) * budget
         # (never under 10 Hz: a view's frames 0.25 s apart would each start a new identity)

@@ -108,6 +108,9 @@ class Engine:
         #: per sensor, what calibration says of it (e.g. {"fitness": 0.97, "state": "ok"});
         #: written on the engine thread (via call_soon), shown in stats and monitors
         self.sensor_notes: dict[str, dict] = {}
+        #: more sections of ``stats()``: name -> a callable giving a JSON-able dict, called on
+        #: the engine thread (the live calibrator adds ``calibrator``)
+        self.stats_sections: dict[str, Callable[[], dict]] = {}
         # engine clock -> wall clock, to report client clocks against ours in seconds
         self._wall_minus_clock = time.time() - self.clock.now()
         if isinstance(self.clock, MonotonicClock):  # live: timetags can be judged against it
@@ -481,6 +484,7 @@ class Engine:
             # give the kernel its thread names)
             "threads": {t.name: t.native_id for t in threading.enumerate()
                         if t.native_id is not None},
+            **{name: section() for name, section in list(self.stats_sections.items())},
         }
 
 
