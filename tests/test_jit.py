@@ -475,9 +475,10 @@ def test_no_numba_is_one_line_and_the_numpy_engine():
 
 
 @needs_jit
-def test_a_person_whose_arrays_the_kernel_does_not_take_is_updated_in_numpy():
-    """A person whose hold offsets are not float64 (no path makes one today): the kernel
-    refuses it (TypeError) and that person is updated by the numpy code, not dropped."""
+def test_a_person_whose_array_was_replaced_is_bound_to_the_bank_again():
+    """A person whose hold offsets were replaced by an array of another dtype (no path makes
+    one today) after it was bound to the person bank: its values are copied into the bank
+    at the next settle, which goes on for it in the kernel."""
     poses, data = _show(seconds=1.0)
     from stage.clock import ManualClock
     from stage.engine.engine import Engine
@@ -492,12 +493,45 @@ def test_a_person_whose_arrays_the_kernel_does_not_take_is_updated_in_numpy():
         clock.set(t)
         engine.handle_datagram(d)
     odd = next(iter(engine.people.persons.values()))
+    bank = engine.people.bank
+    assert odd.bank is bank and odd.hold.base is bank.hold
     odd.hold = odd.hold.astype(np.float32)
+    want = np.array(odd.hold, dtype=float)
     before = odd.t
-    for t, d in data[30:]:
+    clock.set(data[30][0])
+    engine.handle_datagram(data[30][1])
+    if odd.t > before:     # (settled in this datagram: its hold is the bank's again)
+        assert odd.hold.base is bank.hold and odd.hold.dtype == np.float64
+    for t, d in data[31:]:
         clock.set(t)
         engine.handle_datagram(d)
     assert odd.t > before and np.isfinite(odd.joints[odd.conf > 0]).all()
+    assert odd.hold.base is bank.hold
+    kept = np.isfinite(want) & np.isfinite(odd.hold)
+    assert kept.any()                          # offsets it had are carried on (or renewed)
+
+
+@needs_jit
+def test_a_batch_the_kernel_refuses_is_settled_by_the_numpy_code(monkeypatch):
+    """Should the batch kernel refuse its arrays (TypeError), the batch is settled by the
+    numpy code: the same show as an engine whose kernel never refuses."""
+    poses, data = _show(seconds=2.0)
+    ok, refused = [], []
+    _run_engine(poses, data, ok)
+    calls = []
+
+    def refuse(*args, **kwargs):
+        calls.append(1)
+        raise TypeError("no matching definition")
+
+    monkeypatch.setattr(jit, "settle_many", refuse)
+    _run_engine(poses, data, refused)
+    assert len(calls) > 100 and ok[-1] == refused[-1]
+    for a, b in zip(ok[:-1], refused[:-1]):
+        assert a.keys() == b.keys()
+        for pid in a:
+            np.testing.assert_array_equal(a[pid][1], b[pid][1])
+            np.testing.assert_allclose(a[pid][0], b[pid][0], rtol=0, atol=1e-6)
 
 
 @needs_jit

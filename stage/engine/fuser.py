@@ -145,6 +145,11 @@ class Fuser:
         self.s, self.f = smoothing, fusion
         self.q_scale = q_scale
         self.stats = FoldStats()
+        #: after a fold whose every view went in by the plain path in one wave: (the
+        #: filters, in order; their outputs' (P, 25, 3) position and velocity; (P, 25) row
+        #: times), so that the settle reads them as they are, not gathered person by
+        #: person; else None
+        self.plain_wave: tuple[list[BodyFilter], np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------ entry point
     def fold(self, pairs: list[tuple[BodyFilter, View]]) -> list[View]:
@@ -159,6 +164,7 @@ class Fuser:
                 waves.append([])
             waves[k].append((body, view))
         late: list[View] = []
+        self.plain_wave = None
         for wave in waves:
             plain: list[tuple[BodyFilter, View, np.ndarray | None, float]] = []
             for body, view in wave:
@@ -187,13 +193,16 @@ class Fuser:
                 self._replay(body, view)
                 self._trim(body)
             if plain:
-                self._fold_plain(plain)
+                self._fold_plain(plain, len(waves) == 1 and len(plain) == len(wave))
             for body, *_ in plain:
                 self._trim(body)
         return late
 
     # ------------------------------------------------------------ the plain path
-    def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]]) -> None:
+    def _fold_plain(self, items: list[tuple[BodyFilter, View, np.ndarray | None, float]],
+                    whole: bool = False) -> None:
+        """Fold one wave's views that need no replay in one step; ``whole``: they are all
+        of the fold's views (``plain_wave`` is set)."""
         n = N_JOINTS
         before = FilterState.concat([body.state for body, *_ in items])
         work = before.shallow()
@@ -217,6 +226,10 @@ class Fuser:
                 view.excluded = int((np.isfinite(view.r) & ~mask).sum())
                 self.stats.disagreeing += view.excluded
             body.history.append(_Step(view, (before, a, b), anchor, mask, view.excluded == 0))
+        if whole:
+            k = len(items)
+            self.plain_wave = ([body for body, *_ in items], pos.reshape(k, n, 3),
+                               vel.reshape(k, n, 3), work.t.reshape(k, n))
 
     # ------------------------------------------------------------ instants and replays
     def _instant_start(self, body: BodyFilter, i: int) -> int:

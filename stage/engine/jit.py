@@ -9,7 +9,8 @@ replaces, which stays as reference and fallback:
 - ``_step_rows``: ``kalman.step``'s usual path (``imm.fused_update`` and what the step
   keeps); rows rejected, restarted or started stay in Python;
 - ``_settle``: each updated person's output skeleton (``people.People._update``), with
-  ``_carry`` (``fusion.carry_untracked``);
+  ``_carry`` (``fusion.carry_untracked``); ``_settle_many`` runs it for a batch of persons
+  in one call, on the arrays of ``bank.PersonBank``;
 - ``_frame``: a frame's transform and ``fusion.unswap_limbs``; ``_frame_r`` adds its joints'
   measurement variances;
 - ``_distance``: ``tracking.Person.distance``;
@@ -317,6 +318,23 @@ def _settle(pos, vel, row_t, t, stale, recent_conf, recent_t, prev, known, track
     return count
 
 
+def _settle_many(slots, pos, vel, row_t, t, stale, recent_conf, recent_t, joints, velocity,
+                 conf, known, carried, tracked, hold, centre, carry_on, hold_back, inferred,
+                 parents, children, torso, counts):  # pragma: no cover (compiled)
+    """``_settle`` for P persons in one call, on the person bank (``bank.PersonBank``):
+    person i's estimate is row i of ``pos``, ``vel`` (P, 25, 3), ``row_t`` (P, 25) and
+    ``t`` (P,); everything else of it is row ``slots[i]`` of the bank's arrays, read and
+    updated in place (its output is written over its previous output, which ``_settle``
+    reads joint by joint before it writes the same joint). ``counts[i]``: ``_settle``'s
+    count of torso joints known."""
+    for i in range(slots.shape[0]):
+        s = slots[i]
+        counts[i] = _settle(pos[i], vel[i], row_t[i], t[i], stale, recent_conf[s], recent_t[s],
+                            joints[s], known[s], tracked[s], hold[s], carry_on, hold_back,
+                            inferred, parents, children, torso, joints[s], velocity[s], conf[s],
+                            known[s], carried[s], centre[s])
+
+
 def _frame(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r, margin,
            joints_out, conf_out):  # pragma: no cover (compiled)
     """``apply_transform`` then, with ``unswap``, ``fusion.unswap_limbs`` (see there) of
@@ -581,6 +599,11 @@ _SIGNATURES = {
                "float64[:, ::1], "
                "boolean, boolean, float64, int64[::1], int64[::1], int64[::1], float64[:, ::1], "
                "float64[:, ::1], float64[::1], boolean[::1], boolean[::1], float64[::1])",
+    "_settle_many": "void(int64[::1], float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], "
+                    "float64[::1], float64, float64[:, :, ::1], float64[:, ::1], "
+                    "float64[:, :, ::1], float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], "
+                    "boolean[:, ::1], boolean[:, ::1], float64[:, :, ::1], float64[:, ::1], "
+                    "boolean, boolean, float64, int64[::1], int64[::1], int64[::1], int64[::1])",
     "_frame": "int64(float64[:, :], float64[:, ::1], float64[::1], boolean, int64[::1], "
               "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, "
               "float64[:, ::1], float64[::1])",
@@ -764,6 +787,23 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
         bool(hold_back), float(inferred), parents, children, torso, joints, velocity,
         conf_out, known_out, carried, centre)
     return joints, velocity, conf_out, known_out, carried, (centre if count else None)
+
+
+def settle_many(slots: np.ndarray, pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray,
+                t: np.ndarray, stale: float, bank, carry_on: bool, hold_back: bool,
+                inferred: float, parents: np.ndarray, children: np.ndarray, torso: np.ndarray
+                ) -> np.ndarray:
+    """The compiled ``_settle_many`` (see there) over the persons in ``slots`` of ``bank``
+    (``bank.PersonBank``), whose rows it updates; returns the counts (P,) of torso joints
+    known (0: the caller finds the centre otherwise). A TypeError if an array is not one the
+    kernel takes."""
+    counts = np.empty(len(slots), dtype=np.int64)
+    _compiled["_settle_many"](
+        slots, pos, vel, row_t, t, float(stale), bank.recent_conf, bank.recent_t, bank.joints,
+        bank.velocity, bank.conf, bank.known, bank.carried, bank.tracked, bank.hold,
+        bank.centre, bool(carry_on), bool(hold_back), float(inferred), parents, children, torso,
+        counts)
+    return counts
 
 
 def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,

@@ -27,6 +27,7 @@ from ..frames import Body, FusedFrame
 from ..joints import INFERRED, JOINT_INDEX, TORSO, HandState
 from ..rig import Rig
 from ..stats import DropCounter, LatencyWindow
+from .bank import PersonBank
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
@@ -57,6 +58,8 @@ class People:
         self.rig, self.clock, self.output, self.listeners = rig, clock, output, listeners
         self.drops, self.latency, self.counts = drops, latency, counts
         self.tracker = Tracker(rig.fusion)
+        #: the arrays persons are settled from, a row per person (for the compiled settle)
+        self.bank = PersonBank()
         smoothing = rig.smoothing
         if not rig.smoothing_enabled:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
@@ -183,7 +186,6 @@ class People:
         # and a fold can start from the one before's arrays (FilterState.concat)
         ordered = sorted(live, key=_by_person) if len(live) > 1 else live
         late = {id(v) for v in self.fuser.fold([(p.filter, v) for p, v in ordered])}
-        touched: dict[int, Person] = {}
         for person, view in live:
             if id(view) in late:
                 self.drops.add(view.key[0], "late")
@@ -193,8 +195,13 @@ class People:
             elif view.size == view.size:                      # (NaN: not measurable)
                 person.add_size(view.size)
             person.remember(view.key, view.t, view.conf)
-            touched[person.id] = person
             self._dirty.setdefault(person.id, []).append(view.arrival)
+        # settled in the fold's order (each person on its own: the order changes no value),
+        # so that a fold of one plain wave hands its arrays over as they are
+        touched: dict[int, Person] = {}
+        for person, view in ordered:
+            if id(view) not in late:
+                touched[person.id] = person
         if touched:
             self._update(list(touched.values()))
             self.counts["fused_frames"] += len(touched)
@@ -250,23 +257,33 @@ class People:
             p.centre = centres[k] if n_torso[k] else torso_centre(joints[k], known[k].astype(float))
 
     def _update_compiled(self, persons: list[Person], stale: float) -> None:
-        """``_update``, person by person, each in one compiled call (``jit.settle``)."""
+        """``_update`` for all persons of the batch in one compiled call (``jit.settle_many``)
+        on the person bank (``bank.PersonBank``), which holds their outputs: their arrays
+        change in place."""
         fusion = self.rig.fusion
-        for p in persons:
-            out_t, pos, vel = p.filter.output
-            t = max(p.t, out_t)
-            try:
-                joints, velocity, conf, known, carried, centre = jit.settle(
-                    pos, vel, p.filter.state.t, t, stale, p.recent_conf, p.recent_t, p.joints,
-                    p.known, p.tracked, p.hold, fusion.carry_untracked,
-                    fusion.hold_back_inferred, INFERRED, _PARENTS, _CHILDREN, _TORSO)
-            except TypeError:    # arrays the kernel does not take: this person in numpy
-                self._update_numpy([p], stale)
-                continue
-            if fusion.carry_untracked:
-                p.carried = carried
-            p.joints, p.velocity, p.conf, p.known, p.t = joints, velocity, conf, known, t
-            p.centre = centre if centre is not None else torso_centre(joints, known.astype(float))
+        bank, alive = self.bank, self.persons
+        slots = np.array([bank.slot(p, alive) for p in persons], dtype=np.int64)
+        outputs = [p.filter.output for p in persons]
+        t = [max(p.t, o[0]) for p, o in zip(persons, outputs)]
+        wave = self.fuser.plain_wave
+        if (wave is not None and len(wave[0]) == len(persons)
+                and all(p.filter is b for p, b in zip(persons, wave[0]))):
+            _, pos, vel, row_t = wave      # the fold's own arrays: these very outputs
+        else:
+            # (np.array of a list: a new C-ordered array, several times cheaper than np.stack)
+            pos, vel = np.array([o[1] for o in outputs]), np.array([o[2] for o in outputs])
+            row_t = np.array([p.filter.state.t for p in persons])
+        try:
+            counts = jit.settle_many(slots, pos, vel, row_t, np.array(t), stale, bank,
+                                     fusion.carry_untracked, fusion.hold_back_inferred, INFERRED,
+                                     _PARENTS, _CHILDREN, _TORSO)
+        except TypeError:    # arrays the kernel does not take: the batch in numpy
+            self._update_numpy(persons, stale)
+            return
+        for k, p in enumerate(persons):
+            p.t = t[k]
+            p.centre = (bank.centre_of(slots[k]) if counts[k]
+                        else torso_centre(p.joints, p.known.astype(float)))
 
     def _untracked(self, p: Person, joints: np.ndarray, conf: np.ndarray) -> None:
         """Joints no sensor tracks now (confidence at most ``INFERRED`` in every view: a guess;

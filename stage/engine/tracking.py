@@ -133,6 +133,10 @@ class Person:
     hold: np.ndarray = field(default_factory=lambda: np.full((N_JOINTS, 3), np.nan))
     #: (25,) bool: the joints of the latest output placed by their parent (none tracked them)
     carried: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
+    #: its slot in the engine's ``bank.PersonBank`` (-1: none) and that bank: while bound,
+    #: ``tracked``, ``hold``, ``recent_conf`` and ``recent_t`` are views of its rows there
+    slot: int = -1
+    bank: object = field(default=None, repr=False)
 
     @classmethod
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
@@ -150,10 +154,12 @@ class Person:
                 row = int(free[0])
             else:               # room for more views (a few per person: a row per sensor)
                 row = len(self.recent_t)
-                grow = max(row, 2)
-                self.recent_conf = np.concatenate((self.recent_conf,
-                                                   np.zeros((grow, N_JOINTS))))
-                self.recent_t = np.concatenate((self.recent_t, np.full(grow, -np.inf)))
+                # (a person bound to the engine's bank: every person's rows, one array)
+                if self.bank is None or not self.bank.grow_rows_for(self):
+                    grow = max(row, 2)
+                    self.recent_conf = np.concatenate((self.recent_conf,
+                                                       np.zeros((grow, N_JOINTS))))
+                    self.recent_t = np.concatenate((self.recent_t, np.full(grow, -np.inf)))
             self.recent[key] = row
         self.recent_conf[row] = conf
         self.recent_t[row] = t
