@@ -134,18 +134,25 @@ def test_views_of_one_instant_that_disagree_keep_the_consistent_ones_whatever_co
 
 def test_a_wave_of_the_same_people_starts_from_the_last_waves_arrays_and_folds_the_same(
         monkeypatch):
-    """FilterState.concat gives a fold the previous fold's arrays when it takes the same
-    bodies in the same order; the result, replays of late views included, is the same as
-    with copies, and no history entry is changed by a later fold."""
+    """A fold starts from the previous fold's arrays when it takes the same bodies in the
+    same order (``Fuser._wave_before`` for filters whose rows were not cut out since,
+    ``FilterState.concat`` for states that were); the result, replays of late views
+    included, is the same as with copies, and no history entry is changed by a later fold."""
     def run(reuse: bool):
-        whole = FilterState._whole
+        whole, wave = FilterState._whole, Fuser._wave_before
         hits = [0]
 
         def counted(states):
             found = whole(states) if reuse else None
             hits[0] += found is not None
             return found
+
+        def counted_wave(items):
+            found = wave(items) if reuse else None
+            hits[0] += found is not None
+            return found
         monkeypatch.setattr(FilterState, "_whole", staticmethod(counted))
+        monkeypatch.setattr(Fuser, "_wave_before", staticmethod(counted_wave))
         people = [walk(20 + p, 30) for p in range(3)]
         # sensor 2's frames come two frames late: replays into waves of the others
         for views in people:

@@ -98,11 +98,27 @@ class BodyFilter:
     """
 
     def __init__(self, n: int = N_JOINTS) -> None:
-        self.state = FilterState.empty(n)
+        self._state = FilterState.empty(n)
+        #: (wave state, start, stop): the state is those rows of a plain fold's state, cut
+        #: out only when read (``state``); the next fold of the same persons in the same
+        #: order starts from that wave's state itself (``Fuser._fold_plain``)
+        self._rows: tuple[FilterState, int, int] | None = None
         self.history: list[_Step] = []
         #: after a fold: (t, (25, 3) position, (25, 3) velocity), the estimate at the newest
         #: view's capture time, computed for a whole wave at once
         self.output: tuple[float, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def state(self) -> FilterState:
+        rows = self._rows
+        if rows is not None:
+            self._state = rows[0].view_rows(rows[1], rows[2])
+            self._rows = None
+        return self._state
+
+    @state.setter
+    def state(self, value: FilterState) -> None:
+        self._state, self._rows = value, None
 
     @property
     def newest(self) -> float:
@@ -204,7 +220,9 @@ class Fuser:
         """Fold one wave's views that need no replay in one step; ``whole``: they are all
         of the fold's views (``plain_wave`` is set)."""
         n = N_JOINTS
-        before = FilterState.concat([body.state for body, *_ in items])
+        before = self._wave_before(items)
+        if before is None:
+            before = FilterState.concat([body.state for body, *_ in items])
         work = before.shallow()
         t = np.array([view.t for _, view, _, _ in items]).repeat(n)
         z = np.concatenate([view.joints for _, view, _, _ in items])
@@ -217,7 +235,7 @@ class Fuser:
         seen = np.isfinite(r)           # a view's rows, where it has no mask: np.isfinite(view.r)
         for k, (body, view, mask, anchor) in enumerate(items):
             a, b = k * n, (k + 1) * n
-            body.state = work.view_rows(a, b)
+            body._state, body._rows = None, (work, a, b)
             body.output = (view.t, pos[a:b], vel[a:b])
             view.used = used[a:b]
             if mask is None:
@@ -230,6 +248,22 @@ class Fuser:
             k = len(items)
             self.plain_wave = ([body for body, *_ in items], pos.reshape(k, n, 3),
                                vel.reshape(k, n, 3), work.t.reshape(k, n))
+
+    @staticmethod
+    def _wave_before(items: list) -> FilterState | None:
+        """The state of the wave the filters of ``items`` were last folded in, when they are
+        all of its rows in the same order and none has changed since (as
+        ``FilterState._whole``, without cutting the rows out first); else None."""
+        first = items[0][0]._rows
+        if first is None:
+            return None
+        wave, at = first[0], 0
+        for body, *_ in items:
+            rows = body._rows
+            if rows is None or rows[0] is not wave or rows[1] != at:
+                return None
+            at = rows[2]
+        return wave if at == wave.n else None
 
     # ------------------------------------------------------------ instants and replays
     def _instant_start(self, body: BodyFilter, i: int) -> int:
