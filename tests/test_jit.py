@@ -330,6 +330,74 @@ def test_frame_kernel_gives_the_batch_variances():
 
 
 @needs_jit
+def test_frame_kernel_of_many_frames_is_the_kernel_of_each():
+    """``jit.frame_r_many`` on K frames gives, row by row, ``jit.frame_r``'s floats for each
+    (swapped limbs, unseen joints, NaN coordinates, missing trunks included)."""
+    from stage.engine.fusion import _LOOK, _TRADED, SWAP_MARGIN_M
+    from stage.geometry import rot_y
+    from stage.joints import INFERRED
+    from stage.sensors.sim import standing_pose
+    rng = np.random.default_rng(23)
+    traded = 0
+    for trial in range(60):
+        s = KalmanSettings(measurement_noise=float(rng.uniform(1e-5, 1e-3)))
+        matrix = np.eye(4)
+        matrix[:3, :3] = rot_y(rng.uniform(-3, 3))
+        matrix[:3, 3] = rng.normal(0, 1.5, 3)
+        k = int(rng.integers(1, 8))
+        joints = np.array([standing_pose((rng.uniform(-1, 1), rng.uniform(-1, 1)),
+                                         rng.uniform(-3, 3), rng.uniform(-2, 2),
+                                         rng.uniform(-2, 2)) for _ in range(k)])
+        conf = rng.choice([0.0, 0.3, 0.5, 0.9, 1.0], (k, 25))
+        if trial % 4 == 0:                                   # limbs crossed over: swapped
+            joints[:, [4, 5, 6, 7, 8, 9, 10, 11]] = joints[:, [8, 9, 10, 11, 4, 5, 6, 7]]
+        if trial % 5 == 0:
+            joints[0, int(rng.integers(25))] = np.nan
+        unswap = trial % 3 > 0
+        many = jit.frame_r_many(matrix, joints, conf, unswap, _LOOK, _TRADED, SWAP_MARGIN_M, s,
+                                INFERRED)
+        for row in range(k):
+            one = jit.frame_r(matrix, joints[row], conf[row], unswap, _LOOK, _TRADED,
+                              SWAP_MARGIN_M, s, INFERRED)
+            np.testing.assert_array_equal(many[0][row], one[0])
+            np.testing.assert_array_equal(many[1][row], one[1])
+            assert many[2][row] == one[2]
+            np.testing.assert_array_equal(many[3][row], one[3])
+            np.testing.assert_array_equal(many[4][row], [one[4], one[5]])
+            traded += one[2] != 0
+    assert traded > 0
+
+
+@needs_jit
+def test_frames_prepared_together_fuse_what_frames_taken_one_by_one_fuse(monkeypatch):
+    """A batch's frames computed in one call (``People.prepare_frames``) give the engine the
+    very floats it computes frame by frame: the same bodies to the bit."""
+    from stage.engine.people import People
+    poses, data = _show(seconds=3.0)
+    together, alone = [], []
+    calls = []
+    prepare = People.prepare_frames
+
+    def counted(self, transform, frames):
+        calls.append(len(frames))
+        prepare(self, transform, frames)
+    monkeypatch.setattr(People, "prepare_frames", counted)
+    _run_engine(poses, data, together)
+    monkeypatch.setattr(People, "prepare_frames", lambda self, transform, frames: None)
+    _run_engine(poses, data, alone)
+    assert len(calls) > 100 and max(calls) >= 2
+    assert together[-1] == alone[-1]
+    for a, b in zip(together[:-1], alone[:-1]):
+        assert a.keys() == b.keys()
+        for pid in a:
+            for x, y in zip(a[pid], b[pid]):
+                if isinstance(x, np.ndarray):
+                    np.testing.assert_array_equal(x, y)
+                else:
+                    assert x == y
+
+
+@needs_jit
 def test_distance_kernel_is_persons_distance():
     from stage.engine.tracking import Person
     from stage.settings import FusionSettings

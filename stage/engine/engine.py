@@ -218,6 +218,11 @@ class Engine:
                  enumerate(zip(self.registry.capture_times(batch), batch)) if t is not None]
         timed.sort(key=lambda e: (e[0], e[1]))
         self.counts["messages"] += len(timed)
+        if len(timed) > 2 and jit.ready():
+            try:
+                self._prepare_frames(timed)
+            except Exception:  # only a head start: each frame is then computed on its own
+                log.exception("error while preparing a batch's frames")
         for t, item, hands in _with_hands(timed):
             try:
                 if hands:
@@ -251,6 +256,27 @@ class Engine:
                     self.output.send(data, address)
             self._health_replies.clear()
         self.batch_time.add(time.perf_counter() - started)
+
+    def _prepare_frames(self, timed: list[tuple[float, int, Inbound]]) -> None:
+        """Each known, calibrated sensor's frames of the batch computed together, in one
+        compiled call (``People.prepare_frames``): a datagram holds a sensor's skeletons of
+        one instant. Nothing else is judged here: a frame the sensor's checks then refuse
+        was computed for nothing, and a sensor whose transform changes within the batch has
+        its later frames computed again, on their own."""
+        groups: dict[str, list] = {}
+        for _, _, item in timed:
+            msg = item.message
+            if type(msg) is JointCoordinates:
+                frames = groups.get(msg.client)
+                if frames is None:
+                    groups[msg.client] = [msg]
+                else:
+                    frames.append(msg)
+        clients = self.registry.clients
+        for cid, frames in groups.items():
+            client = clients.get(cid)
+            if len(frames) > 1 and client is not None and client.transform is not None:
+                self.people.prepare_frames(client.transform, frames)
 
     def _apply(self, item: Inbound, t: float) -> None:
         msg = item.message

@@ -12,7 +12,7 @@ replaces, which stays as reference and fallback:
   ``_carry`` (``fusion.carry_untracked``); ``_settle_many`` runs it for a batch of persons
   in one call, on the arrays of ``bank.PersonBank``;
 - ``_frame``: a frame's transform and ``fusion.unswap_limbs``; ``_frame_r`` adds its joints'
-  measurement variances;
+  measurement variances; ``_frame_r_many`` does that for a datagram's frames in one call;
 - ``_distance``: ``tracking.Person.distance``;
 - ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL;
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
@@ -428,6 +428,18 @@ def _frame_r(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, 
     return bits
 
 
+def _frame_r_many(matrix, joints, conf, unswap, look_l, look_r, arm_l, arm_r, leg_l, leg_r,
+                  margin, sqrt_noise, per_m, inferred, inferred_var, joints_out, conf_out,
+                  r_out, size_out, bits_out):  # pragma: no cover (compiled)
+    """``_frame_r`` for K frames of one sensor in one call: frame k is row k of ``joints``
+    (K, 25, 3) and ``conf`` (K, 25); its results row k of the ``*_out`` arrays and
+    ``bits_out[k]``."""
+    for k in range(joints.shape[0]):
+        bits_out[k] = _frame_r(matrix, joints[k], conf[k], unswap, look_l, look_r, arm_l, arm_r,
+                               leg_l, leg_r, margin, sqrt_noise, per_m, inferred, inferred_var,
+                               joints_out[k], conf_out[k], r_out[k], size_out[k])
+
+
 def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragma: no cover
     """``tracking.Person.distance`` (see there) with ``dt`` already bounded; NaN for None:
     over the torso joints both have, or over every joint both have if they share none."""
@@ -611,6 +623,10 @@ _SIGNATURES = {
                 "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], float64, float64, "
                 "float64, float64, float64, float64[:, ::1], float64[::1], float64[::1], "
                 "float64[::1])",
+    "_frame_r_many": "void(float64[:, :], float64[:, :, ::1], float64[:, ::1], boolean, "
+                     "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], "
+                     "float64, float64, float64, float64, float64, float64[:, :, ::1], "
+                     "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
     "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
@@ -826,6 +842,25 @@ def frame_r(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bo
                                  arm_r, leg_l, leg_r, float(margin), const[1], const[2],
                                  float(inferred), const[3], joints_out, conf_out, r_out, size)
     return joints_out, conf_out, bits, r_out, float(size[0]), int(size[1])
+
+
+def frame_r_many(matrix: np.ndarray, joints: np.ndarray, conf: np.ndarray, unswap: bool,
+                 look: tuple, traded: tuple, margin: float, s: KalmanSettings, inferred: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled ``_frame_r_many``: ``frame_r`` of K frames of one sensor, ``joints``
+    (K, 25, 3) and ``conf`` (K, 25), in one call: (stage-space joints (K, 25, 3), conf
+    (K, 25), traded bits (K,), variances (K, 25), (K, 2) [trunk length, joints seen]),
+    new arrays; row k is what ``frame_r`` gives for frame k."""
+    n = len(joints)
+    joints_out, conf_out = np.empty((n, 25, 3)), np.empty((n, 25))
+    r_out, size, bits = np.empty((n, 25)), np.empty((n, 2)), np.empty(n, dtype=np.int64)
+    const = _per_settings(_FRAME_R, s, _frame_constants)
+    (arm_l, arm_r), (leg_l, leg_r) = traded
+    _compiled["_frame_r_many"](np.asarray(matrix, dtype=float), joints, conf, bool(unswap),
+                               look[0], look[1], arm_l, arm_r, leg_l, leg_r, float(margin),
+                               const[1], const[2], float(inferred), const[3], joints_out,
+                               conf_out, r_out, size, bits)
+    return joints_out, conf_out, bits, r_out, size
 
 
 def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,

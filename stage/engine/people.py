@@ -78,6 +78,9 @@ class People:
         #: after the batch's skeletons are sent (``_emit``)
         self._reports: list[tuple] = []
         self._lost: list[int] = []
+        #: this batch's frames computed together (``prepare_frames``): id of the frame's
+        #: joints array -> (joints, conf, transform, row, results)
+        self._framed: dict[int, tuple] = {}
 
     @property
     def persons(self) -> dict[int, Person]:
@@ -96,7 +99,13 @@ class People:
         to ``hand``)."""
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         size = None        # the trunk: here with the kernels, else in _fold
-        if jit.ready():
+        framed = self._framed.get(id(joints)) if self._framed else None
+        if framed is not None and framed[0] is joints and framed[1] is conf \
+                and framed[2] is transform:
+            k, (j_out, c_out, bits, r_out, sizes) = framed[3], framed[4]
+            track.joints, conf, traded, r = j_out[k], c_out[k], int(bits[k]), r_out[k]
+            size, n_seen = float(sizes[k, 0]), int(sizes[k, 1])
+        elif jit.ready():
             track.joints, conf, traded, r, size, n_seen = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
                 SWAP_MARGIN_M, self.smoothing, INFERRED)
@@ -141,6 +150,26 @@ class People:
                               float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
         return True
 
+    def prepare_frames(self, transform: np.ndarray, frames: list) -> None:
+        """What ``frame`` computes first for each frame (stage-space joints, swapped limbs,
+        variances, trunk), for ``frames`` (messages with ``joints`` (25, 3) and ``conf``
+        (25,)) of one sensor whose ``transform`` is this, all in one compiled call
+        (``jit.frame_r_many``): a datagram's frames, before they are applied. ``frame``
+        takes a frame's results from here when it is given these very arrays and
+        transform; they are forgotten at the end of the batch (``flush``)."""
+        if len(frames) < 2 or not jit.ready():
+            return
+        try:
+            out = jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
+                                   np.array([m.conf for m in frames], dtype=float),
+                                   self.rig.fusion.unswap_limbs, _LOOK, _TRADED, SWAP_MARGIN_M,
+                                   self.smoothing, INFERRED)
+        except (TypeError, ValueError):   # frames the kernel does not take: one by one
+            return
+        framed = self._framed
+        for k, m in enumerate(frames):
+            framed[id(m.joints)] = (m.joints, m.conf, transform, k, out)
+
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
         """A ``/handState`` of ``track`` captured at ``t`` (``hand`` as the sensor names it)."""
         track.hands[hand] = state
@@ -171,6 +200,8 @@ class People:
     # ------------------------------------------------------------ fusion
     def flush(self) -> None:
         """Fold the batch's frames into their persons, then send what changed."""
+        if self._framed:
+            self._framed.clear()
         if self._views:
             self._fold()
         self._emit()
