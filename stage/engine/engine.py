@@ -218,7 +218,9 @@ class Engine:
                  enumerate(zip(self.registry.capture_times(batch), batch)) if t is not None]
         timed.sort(key=lambda e: (e[0], e[1]))
         self.counts["messages"] += len(timed)
-        if len(timed) > 2 and jit.ready():
+        # (a Kinect's skeleton comes with its two hand states: fewer than four messages
+        # hold at most one skeleton, and are not worth grouping)
+        if len(timed) > 3 and jit.ready():
             try:
                 self._prepare_frames(timed)
             except Exception:  # only a head start: each frame is then computed on its own
