@@ -335,6 +335,8 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     row's time (the engine replays out-of-order frames before this happens). ``q_scale``
     (N,): per-row factor on both modes' process noise (default 1).
     """
+    if jit.ready():      # (no numpy arithmetic outside its own np.errstate: see _step_compiled)
+        return _step(state, t, z, r, s, q_scale)[0]
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         return _step(state, t, z, r, s, q_scale)[0]
 
@@ -344,10 +346,14 @@ def step_predicted(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``step``, then (outcome, position, velocity (N, 3)): ``state.predicted(t)`` after the
     step, given by the compiled step itself where it can (the same floats)."""
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+    if jit.ready():      # (no numpy arithmetic outside its own np.errstate: see _step_compiled)
         outcome, predicted = _step(state, t, z, r, s, q_scale)
-    if predicted is None:
-        predicted = state.predicted(t)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            outcome, predicted = _step(state, t, z, r, s, q_scale)
+    if predicted is None:           # (a row restarted from absurd coordinates: inf - inf)
+        with np.errstate(invalid="ignore", over="ignore"):
+            predicted = state.predicted(t)
     return outcome, predicted[0], predicted[1]
 
 
@@ -422,7 +428,11 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
                    ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """``_step`` with its usual path in one compiled loop (``jit.step_rows``): the same
     outcome and state; rejected, restarted and new rows as there. Also the kernel's
-    ``state.predicted(t)``, unless a row was restarted or started after it (None)."""
+    ``state.predicted(t)``, unless a row was restarted or started after it (None).
+
+    Called without ``np.errstate`` (entering one costs as much as a few array operations,
+    2 % of the engine at 6x6): the kernel raises no floating-point warning, and the numpy
+    arithmetic for rows rejected, restarted or started runs in its own."""
     t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
     block, new_t, held_t, outcome, n_bad, n_fresh, pos, vel = jit.step_rows(
         state.stacked(), state.t, state.held_t, t, z, r, s, q_scale)
@@ -430,6 +440,17 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
     state.x, state.P, state.mu, state.t, state.held_t, state.block = (
         keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
     predicted = (pos, vel)      # a row held (rejected once) keeps its x, P, mu and t
+    if n_bad or n_fresh:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            predicted = _fix_rows(state, outcome, t, z, r, s, n_bad, n_fresh, predicted)
+    return outcome, predicted
+
+
+def _fix_rows(state: FilterState, outcome: np.ndarray, t: np.ndarray, z: np.ndarray,
+              r: np.ndarray, s: KalmanSettings, n_bad: int, n_fresh: int,
+              predicted: tuple[np.ndarray, np.ndarray] | None
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """After the compiled step: rows it rejected held or restarted, new rows started."""
     if n_bad:
         bad = np.flatnonzero(outcome == REJECTED)
         again = bad[~np.isnan(state.held_t[bad])]
@@ -444,7 +465,7 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
         fresh = np.flatnonzero(outcome == STARTED)
         _start(state, fresh, z[fresh], t[fresh], r[fresh], s)
         predicted = None
-    return outcome, predicted
+    return predicted
 
 
 def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,
