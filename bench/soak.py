@@ -12,8 +12,8 @@ and its MIDI view writing a Standard MIDI File, with the same bounded
 event memory a live show keeps.
 
 Every simulated half hour it prints: resident memory (RSS), the clients the
-engine knows, person ids issued so far and persons on stage now, events
-kept, the engine's time per datagram (p50/p99 of that half hour's last
+engine knows, person ids issued so far and persons on stage now, the person bank's
+slots, events kept, the engine's time per datagram (p50/p99 of that half hour's last
 4096), and the wall time. The closing lines give RSS at the start and end,
 the id count, and the frame time at the start and end.
 
@@ -120,13 +120,16 @@ def main() -> int:
             gc.collect()
             row = {"sim_h": now / 3600, "rss_mb": rss_mb(), "clients": len(engine.clients),
                    "ids": engine.tracker._next_id - 1, "persons": len(engine.persons),
+                   # the person bank's slots (bank.PersonBank): they must not grow with ids
+                   "slots": len(engine.people.bank.owners),
                    "events_kept": len(kept.events), "p50_ms": lat.get("p50", float("nan")),
                    "p99_ms": lat.get("p99", float("nan")), "datagrams": datagrams,
                    "wall_s": time.monotonic() - wall_start,
                    "drops": engine.drops.total(), "calibrator_crashes": calibrator.crashes}
             rows.append(row)
             print(f"{row['sim_h']:6.2f} h  rss {row['rss_mb']:7.1f} MB  clients {row['clients']}"
-                  f"  ids {row['ids']:5d}  on stage {row['persons']}  events kept "
+                  f"  ids {row['ids']:5d}  on stage {row['persons']}  slots {row['slots']}"
+                  f"  events kept "
                   f"{row['events_kept']:5d}  per datagram p50 {row['p50_ms']:.3f} ms p99 "
                   f"{row['p99_ms']:.3f} ms  drops {row['drops']}  wall {row['wall_s']:.0f} s",
                   flush=True)

@@ -173,3 +173,23 @@ def test_settle_many_is_settle_person_by_person():
             assert bool(counts[k]) == (centre is not None)
             if centre is not None:
                 np.testing.assert_array_equal(bank.centre_of(p.slot), centre)
+
+
+def test_persons_coming_and_going_for_weeks_do_not_grow_the_bank():
+    """An installation sees thousands of persons over weeks, a few at a time: the bank keeps
+    as many slots as were ever on stage at once (rounded up to its doubling), not one per
+    person ever seen."""
+    rng = np.random.default_rng(6)
+    bank = PersonBank()
+    persons: dict = {}
+    most = 0
+    for pid in range(1, 3001):
+        if len(persons) >= int(rng.integers(1, 12)):           # someone leaves
+            del persons[int(rng.choice(list(persons)))]
+        p = Person.new(pid, 0.0, FusionSettings())
+        persons[pid] = p
+        most = max(most, len(persons))
+        for q in persons.values():
+            bank.slot(q, persons)
+        assert len({q.slot for q in persons.values()}) == len(persons)   # none shared
+    assert most <= 12 and len(bank.owners) <= 16
