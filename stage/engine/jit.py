@@ -789,9 +789,11 @@ def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale:
            parents: np.ndarray, children: np.ndarray, torso: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                       np.ndarray | None]:
-    """The compiled ``_settle`` (see there): new arrays (joints, velocity, conf, known,
-    carried, centre or None when no torso joint is known); ``tracked`` and ``hold`` (the
-    person's own, C-contiguous) are updated in place."""
+    """The compiled ``_settle`` (see there) for one person on arrays of its own: new arrays
+    (joints, velocity, conf, known, carried, centre or None when no torso joint is known);
+    ``tracked`` and ``hold`` (C-contiguous) are updated in place. The engine settles a
+    batch on the person bank (``settle_many``); this is the one-person reference that
+    tests/test_person_bank.py holds the batch kernel to."""
     n = len(pos)
     joints, velocity = np.empty((n, 3)), np.empty((n, 3))
     conf_out, known_out = np.empty(n), np.empty(n, dtype=bool)

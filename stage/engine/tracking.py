@@ -134,7 +134,8 @@ class Person:
     #: (25,) bool: the joints of the latest output placed by their parent (none tracked them)
     carried: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
     #: its slot in the engine's ``bank.PersonBank`` (-1: none) and that bank: while bound,
-    #: ``tracked``, ``hold``, ``recent_conf`` and ``recent_t`` are views of its rows there
+    #: ``joints``, ``velocity``, ``conf``, ``known``, ``carried``, ``tracked``, ``hold``,
+    #: ``recent_conf`` and ``recent_t`` are views of its rows there, changed in place
     slot: int = -1
     bank: object = field(default=None, repr=False)
 
