@@ -101,6 +101,11 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
     scaled = q_scale.shape[0] > 0
     counts[0] = 0
     counts[1] = 0
+    # a person's rows usually share dt (one frame, one state time): their mode transitions
+    # are computed once (the same floats), and exp(0) = 1 of each axis's likelier mode is
+    # not computed at all: transcendentals were most of the kernel's time
+    last_dt = -1.0
+    e0 = e1 = 0.0
     for i in range(n):
         ti = t[i]
         check = z[i, 0] + z[i, 1] + z[i, 2] + ti + 0.0 * r[i]   # NaN or inf anywhere
@@ -111,8 +116,10 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
             dt = ti - st[i]
             if dt < 0.0:
                 dt = 0.0
-            e0 = math.expm1(rates[0] * dt)
-            e1 = math.expm1(rates[1] * dt)
+            if dt != last_dt:
+                e0 = math.expm1(rates[0] * dt)
+                e1 = math.expm1(rates[1] * dt)
+                last_dt = dt
             stay0 = e0 + 1.0
             stay1 = e1 + 1.0
             sw0 = -e0
@@ -190,7 +197,10 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                 # (NaN as numpy's maximum gives it)
                 top = lik[0] if (lik[0] > lik[1] or lik[0] != lik[0]) else lik[1]
                 for m in range(2):
-                    v = cb[m, j] * math.exp(lik[m] - top)
+                    if lik[m] == top and math.isfinite(top):   # exp(0) is 1 exactly
+                        v = cb[m, j]
+                    else:
+                        v = cb[m, j] * math.exp(lik[m] - top)
                     lik[m] = v if (v > _MU_FLOOR or v != v) else _MU_FLOOR
                 tot = lik[0] + lik[1]
                 new[5, 0, j] = lik[0] / tot
