@@ -30,7 +30,7 @@ earlier ones unchanged is a plain update; otherwise the instant is replayed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -44,23 +44,37 @@ _USED = np.array([False] * 8)
 _USED[[STARTED, ACCEPTED, DOWNWEIGHTED, RESTARTED]] = True
 
 
-@dataclass(eq=False)
-class View:
-    """One sensor frame of one person, ready to fuse (arrays in stage space)."""
+#: a view's ``used`` before it is folded in (or when it is dropped as late): no joint;
+#: shared, so read-only (the fold hands each view its own array)
+_NONE_USED = np.zeros(N_JOINTS, dtype=bool)
+_NONE_USED.flags.writeable = False
 
-    key: tuple[str, int]          # (client, user)
-    t: float                      # capture time, engine clock, s
-    joints: np.ndarray            # (25, 3) metres
-    conf: np.ndarray              # (25,)
-    r: np.ndarray                 # (25,) per-axis variance, m^2; NaN where not seen
-    arrival: float                # when its datagram reached the server, engine clock
-    #: (25,) bool, after fusion: the joints that went into the filter (not dropped by the
-    #: instant's consistency check nor rejected by the gate)
-    used: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
-    excluded: int = 0             # joints the consistency check left out (for the stats)
-    #: its trunk length as the frame kernel measured it (``tracking.body_size``; NaN: not
-    #: measurable; None: not measured, for the fold to measure)
-    size: float | None = None
+
+class View:
+    """One sensor frame of one person, ready to fuse (arrays in stage space).
+
+    key (client, user); t: capture time, engine clock, s; joints (25, 3) metres; conf
+    (25,); r (25,) per-axis variance, m^2, NaN where not seen; arrival: when its datagram
+    reached the server, engine clock. After fusion, ``used`` (25,) bool: the joints that
+    went into the filter (not dropped by the instant's consistency check nor rejected by
+    the gate), and ``excluded``: how many joints the consistency check left out (for the
+    stats). ``size``: its trunk length as the frame kernel measured it
+    (``tracking.body_size``; NaN: not measurable; None: not measured, for the fold to
+    measure). A plain class with slots, not a dataclass: one is made per sensor frame
+    and person, and a dataclass's default factory made an array for ``used`` each time
+    that the fold then replaced.
+    """
+
+    __slots__ = ("key", "t", "joints", "conf", "r", "arrival", "used", "excluded", "size")
+
+    def __init__(self, key: tuple[str, int], t: float, joints: np.ndarray, conf: np.ndarray,
+                 r: np.ndarray, arrival: float, used: np.ndarray = _NONE_USED,
+                 excluded: int = 0, size: float | None = None) -> None:
+        self.key, self.t, self.joints, self.conf, self.r = key, t, joints, conf, r
+        self.arrival, self.used, self.excluded, self.size = arrival, used, excluded, size
+
+    def __repr__(self) -> str:
+        return f"View(key={self.key!r}, t={self.t!r}, arrival={self.arrival!r})"
 
 
 class _Step:
