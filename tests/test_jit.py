@@ -13,7 +13,7 @@ import pytest
 
 from stage.engine import imm, jit
 from stage.engine.kalman import (ACCEPTED, DOWNWEIGHTED, NOT_MEASURED, REJECTED, RESTARTED,
-                                 STARTED, FilterState, step, step_predicted)
+                                 STARTED, USED, FilterState, step, step_folded, step_predicted)
 from stage.engine.fusion import _CHILDREN, _PARENTS, carry_untracked, carry_untracked_numpy
 from stage.settings import KalmanSettings
 
@@ -48,8 +48,9 @@ def test_imm_kernel_gives_the_numpy_floats(n, scaled):
     r = rng.uniform(1e-6, 1e-3, n)
     q = rng.uniform(0.5, 2.0, n) if scaled else None
     want, want_d2 = imm.fused_update(S, dt, z, r, s, q, s.gate_sigma ** 2)
-    block, t, held_t, outcome, n_bad, n_fresh, pos, vel = jit.step_rows(
+    block, t, held_t, outcome, used, counts, pos, vel = jit.step_rows(
         S, st, np.full(n, np.nan), st + dt, z, r, s, q)
+    n_bad, n_fresh = counts[0], counts[1]
     # the position and velocity at t are FilterState.predicted's, bit for bit
     want_pos, want_vel = FilterState.of_block(block, t, np.full((n, 3), np.nan),
                                               held_t).predicted(st + dt)
@@ -63,6 +64,8 @@ def test_imm_kernel_gives_the_numpy_floats(n, scaled):
                         REJECTED)
     np.testing.assert_array_equal(outcome, expected)
     assert n_bad == int((~use).sum()) and n_fresh == 0
+    assert counts[2] == int((outcome == DOWNWEIGHTED).sum())
+    np.testing.assert_array_equal(used, use)
     assert np.isnan(held_t).all()
 
 
@@ -96,7 +99,13 @@ def test_compiled_step_is_the_numpy_step():
                 # state.predicted(t) after the step (from the kernel, or after a restart
                 # or a start, from the state), bit for bit
                 before = state.shallow()
-                outcome, pos, vel = step_predicted(state, t, z, r, s)
+                if k % 4:
+                    outcome, pos, vel = step_predicted(state, t, z, r, s)
+                else:   # what a fold records: the rows used and the counts, by outcome
+                    outcome, pos, vel, used, counts = step_folded(state, t, z, r, s)
+                    np.testing.assert_array_equal(used, USED[outcome])
+                    assert counts == tuple(int((outcome == o).sum())
+                                           for o in (DOWNWEIGHTED, REJECTED, RESTARTED))
                 want_pos, want_vel = state.predicted(t)
                 np.testing.assert_array_equal(pos, want_pos)
                 np.testing.assert_array_equal(vel, want_vel)

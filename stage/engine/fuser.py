@@ -37,11 +37,8 @@ import numpy as np
 from ..joints import INFERRED, N_JOINTS
 from ..settings import FusionSettings, KalmanSettings
 from .fusion import consistent_views
-from .kalman import (ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED, STARTED, FilterState, combine,
-                     mix, predict, step, step_predicted, transition)
-
-_USED = np.array([False] * 8)
-_USED[[STARTED, ACCEPTED, DOWNWEIGHTED, RESTARTED]] = True
+from .kalman import (DOWNWEIGHTED, REJECTED, RESTARTED, USED, FilterState, combine, mix, predict,
+                     step, step_folded, transition)
 
 
 #: a view's ``used`` before it is folded in (or when it is dropped as late): no joint;
@@ -243,9 +240,12 @@ class Fuser:
         r = np.concatenate([view.r if mask is None else np.where(mask, view.r, np.nan)
                             for _, view, mask, _ in items])
         q = None if self.q_scale is None else np.tile(self.q_scale, len(items))
-        outcome, pos, vel = step_predicted(work, t, z, r, self.s, q)
-        self._count(outcome)
-        used = _USED[outcome]
+        outcome, pos, vel, used, (down, rejected, restarted) = step_folded(work, t, z, r,
+                                                                           self.s, q)
+        st = self.stats
+        st.downweighted += down
+        st.rejected += rejected
+        st.restarted += restarted
         seen = np.isfinite(r)           # a view's rows, where it has no mask: np.isfinite(view.r)
         for k, (body, view, mask, anchor) in enumerate(items):
             a, b = k * n, (k + 1) * n
@@ -343,7 +343,7 @@ class Fuser:
                 outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
                                np.where(mask, v.r, np.nan), self.s, self.q_scale)
                 self._count(outcome)
-                v.used = _USED[outcome]
+                v.used = USED[outcome]
                 excluded = int((np.isfinite(v.r) & ~mask).sum())
                 self.stats.disagreeing += excluded - v.excluded
                 v.excluded = excluded

@@ -77,7 +77,7 @@ def _import() -> bool:
 
 
 def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
-               out, out_t, out_held_t, outcome, counts, pos, vel):  # pragma: no cover
+               out, out_t, out_held_t, outcome, used, counts, pos, vel):  # pragma: no cover
     """``kalman.step``'s usual path, row by row: the IMM update of ``imm.fused_update``
     (mix, predict, gate, update with the variance grown beyond the gate) of every row that
     has a state and a valid measurement, and what ``step`` keeps of it.
@@ -87,8 +87,9 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
     empty, rates (2,) minus the switching rates. Writes the new state (out, out_t,
     out_held_t), outcome (N,) int8 -- NOT_MEASURED 0, STARTED 1 (a valid measurement of a
     row without a state: for the caller to start), ACCEPTED 2, DOWNWEIGHTED 3, REJECTED 4
-    (beyond reject2: the row keeps its state, for the caller to hold or restart) -- and
-    counts [rows rejected, rows to start]; and each row's position and velocity at t as
+    (beyond reject2: the row keeps its state, for the caller to hold or restart) -- used
+    (N,) bool (ACCEPTED or DOWNWEIGHTED), counts [rows rejected, rows to start, rows
+    downweighted]; and each row's position and velocity at t as
     ``FilterState.predicted`` gives them from the new state (pos, vel (N, 3); valid for
     the caller only where no row is rejected or to start: those change the state after).
     """
@@ -101,6 +102,7 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
     scaled = q_scale.shape[0] > 0
     counts[0] = 0
     counts[1] = 0
+    counts[2] = 0
     # a person's rows usually share dt (one frame, one state time): their mode transitions
     # are computed once (the same floats), and exp(0) = 1 of each axis's likelier mode is
     # not computed at all: transcendentals were most of the kernel's time
@@ -213,15 +215,23 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                             out[c, m, i, j] = new[c, m, j]
                 out_t[i] = ti if ti > st[i] else st[i]
                 out_held_t[i] = np.nan
-                outcome[i] = 3 if acc > gate2 else 2
+                used[i] = True
+                if acc > gate2:
+                    outcome[i] = 3
+                    counts[2] += 1
+                else:
+                    outcome[i] = 2
             else:
                 outcome[i] = 4
+                used[i] = False
                 counts[0] += 1
         elif valid:
             outcome[i] = 1
+            used[i] = False
             counts[1] += 1
         else:
             outcome[i] = 0
+            used[i] = False
         if keep:
             for c in range(6):
                 for m in range(2):
@@ -612,7 +622,7 @@ _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
                   f"float64[::1], float64[::1], float64[::1], float64[::1], float64, float64, "
-                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], int64[::1], "
+                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], boolean[::1], int64[::1], "
                   f"float64[:, ::1], float64[:, ::1])",
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
@@ -771,25 +781,27 @@ def _frame_constants(s: KalmanSettings) -> tuple[float, float, float]:
 
 def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
               z: np.ndarray, r: np.ndarray, s: KalmanSettings, q_scale: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                          np.ndarray, np.ndarray]:
     """The compiled ``_step_rows`` (see there): (new block (6, 2, N, 3), its t (N,), held_t
-    (N,), outcome (N,) int8, rows rejected, rows to start, position and velocity (N, 3) at
-    t). ``warm()`` must have succeeded; ``kalman.step`` is the way to call it."""
+    (N,), outcome (N,) int8, used (N,) bool, counts [rows rejected, rows to start, rows
+    downweighted], position and velocity (N, 3) at t). ``warm()`` must have succeeded;
+    ``kalman.step`` is the way to call it."""
     q, rates = _flat(s)
     n = len(st)
     out = np.empty((6, 2, n, 3))
     out_t = np.empty(n)
     out_held_t = np.empty(n)
     outcome = np.empty(n, dtype=np.int8)
-    counts = np.empty(2, dtype=np.int64)
+    used = np.empty(n, dtype=np.bool_)
+    counts = np.empty(3, dtype=np.int64)
     pos, vel = np.empty((n, 3)), np.empty((n, 3))
     qs = _EMPTY if q_scale is None else np.ascontiguousarray(q_scale, dtype=float)
     _compiled["_step_rows"](np.ascontiguousarray(S), np.ascontiguousarray(st),
                             np.ascontiguousarray(held_t), t, z, r, q, qs, rates,
                             float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
-                            out, out_t, out_held_t, outcome, counts, pos, vel)
-    return out, out_t, out_held_t, outcome, int(counts[0]), int(counts[1]), pos, vel
+                            out, out_t, out_held_t, outcome, used, counts, pos, vel)
+    return out, out_t, out_held_t, outcome, used, counts, pos, vel
 
 
 def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,

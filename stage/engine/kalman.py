@@ -320,6 +320,9 @@ class FilterState:
 
 #: what ``step`` did with each row's measurement
 NOT_MEASURED, STARTED, ACCEPTED, DOWNWEIGHTED, REJECTED, RESTARTED = range(6)
+#: by outcome: whether the row's measurement went into its filter
+USED = np.array([False] * 8)
+USED[[STARTED, ACCEPTED, DOWNWEIGHTED, RESTARTED]] = True
 
 
 def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
@@ -346,23 +349,39 @@ def step_predicted(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``step``, then (outcome, position, velocity (N, 3)): ``state.predicted(t)`` after the
     step, given by the compiled step itself where it can (the same floats)."""
+    return step_folded(state, t, z, r, s, q_scale)[:3]
+
+
+def step_folded(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+                s: KalmanSettings, q_scale: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """``step_predicted``, and what a fold records of it: (outcome, position, velocity,
+    used (N,) bool: ``USED[outcome]``, (rows downweighted, rejected, restarted)); with
+    the compiled step, the last two come from the kernel where no row was rejected or
+    started (the usual step)."""
     if jit.ready():      # (no numpy arithmetic outside its own np.errstate: see _step_compiled)
-        outcome, predicted = _step(state, t, z, r, s, q_scale)
+        outcome, predicted, used, counts = _step(state, t, z, r, s, q_scale)
     else:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            outcome, predicted = _step(state, t, z, r, s, q_scale)
+            outcome, predicted, used, counts = _step(state, t, z, r, s, q_scale)
     if predicted is None:           # (a row restarted from absurd coordinates: inf - inf)
         with np.errstate(invalid="ignore", over="ignore"):
             predicted = state.predicted(t)
-    return outcome, predicted[0], predicted[1]
+    if used is None:
+        used = USED[outcome]
+        c = np.bincount(outcome, minlength=8)
+        counts = (int(c[DOWNWEIGHTED]), int(c[REJECTED]), int(c[RESTARTED]))
+    return outcome, predicted[0], predicted[1], used, counts
 
 
 def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
           s: KalmanSettings, q_scale: np.ndarray | None
-          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, np.ndarray | None,
+                     tuple[int, int, int] | None]:
     """``step``, inside one ``np.errstate`` (entering one costs as much as a few array
-    operations of a step); with the compiled step, also ``state.predicted(t)`` when no
-    row was rejected, restarted or started (else None)."""
+    operations of a step); with the compiled step, also ``state.predicted(t)``, the rows
+    used and the counts (``step_folded``) when no row was rejected, restarted or started
+    (else None, None, None)."""
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -420,22 +439,25 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     if fresh is not None and np.count_nonzero(fresh):
         _start(state, np.flatnonzero(fresh), z[fresh], t[fresh], r[fresh], s)
         outcome[fresh] = STARTED
-    return outcome, None
+    return outcome, None, None, None
 
 
 def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                    s: KalmanSettings, q_scale: np.ndarray | None
-                   ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+                   ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, np.ndarray | None,
+                              tuple[int, int, int] | None]:
     """``_step`` with its usual path in one compiled loop (``jit.step_rows``): the same
     outcome and state; rejected, restarted and new rows as there. Also the kernel's
-    ``state.predicted(t)``, unless a row was restarted or started after it (None).
+    ``state.predicted(t)``, unless a row was restarted or started after it (None), and
+    its rows used and counts, unless a row was rejected or started (None).
 
     Called without ``np.errstate`` (entering one costs as much as a few array operations,
     2 % of the engine at 6x6): the kernel raises no floating-point warning, and the numpy
     arithmetic for rows rejected, restarted or started runs in its own."""
     t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
-    block, new_t, held_t, outcome, n_bad, n_fresh, pos, vel = jit.step_rows(
+    block, new_t, held_t, outcome, used, counts, pos, vel = jit.step_rows(
         state.stacked(), state.t, state.held_t, t, z, r, s, q_scale)
+    n_bad, n_fresh = counts[0], counts[1]
     keep = FilterState.of_block(block, new_t, state.held_z, held_t)
     state.x, state.P, state.mu, state.t, state.held_t, state.block = (
         keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
@@ -443,7 +465,8 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
     if n_bad or n_fresh:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             predicted = _fix_rows(state, outcome, t, z, r, s, n_bad, n_fresh, predicted)
-    return outcome, predicted
+        return outcome, predicted, None, None
+    return outcome, predicted, used, (int(counts[2]), 0, 0)
 
 
 def _fix_rows(state: FilterState, outcome: np.ndarray, t: np.ndarray, z: np.ndarray,
