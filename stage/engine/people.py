@@ -42,6 +42,10 @@ log = logging.getLogger("stage.engine")
 _TORSO = np.array(TORSO)
 _HAND_JOINT = (JOINT_INDEX["HandLeft"], JOINT_INDEX["HandRight"])
 _NO_R = np.full(25, np.nan)
+#: a new person's time: it has no known joint until its first view sets its time (a
+#: person's known joints only ever grow), so testing the time tells a new person cheaper
+#: than counting its known joints
+_NEVER = float("-inf")
 #: smoothing off: a filter so loose that every joint is its latest measurement
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
 
@@ -128,7 +132,7 @@ class People:
         if not n_seen:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
-        if not np.count_nonzero(person.known):
+        if person.t == _NEVER:
             # a person found in this batch: later views of the batch associate against this
             # view until its filter is folded in at the end of the batch
             known = conf > 0
