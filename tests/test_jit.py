@@ -48,9 +48,13 @@ def test_imm_kernel_gives_the_numpy_floats(n, scaled):
     r = rng.uniform(1e-6, 1e-3, n)
     q = rng.uniform(0.5, 2.0, n) if scaled else None
     want, want_d2 = imm.fused_update(S, dt, z, r, s, q, s.gate_sigma ** 2)
-    block, t, held_t, outcome, used, counts, pos, vel = jit.step_rows(
-        S, st, np.full(n, np.nan), st + dt, z, r, s, q)
-    n_bad, n_fresh = counts[0], counts[1]
+    # rows held already (rejected once before): a second rejection is for the caller to
+    # restart; a first one is held by the kernel
+    held_before = np.where(rng.random(n) < 0.5, rng.uniform(0.0, 1.0, n), np.nan)
+    held_z_before = rng.normal(0, 1, (n, 3))
+    block, t, held_z, held_t, outcome, used, counts, pos, vel = jit.step_rows(
+        S, st, held_z_before, held_before, st + dt, z, r, s, q)
+    n_again, n_fresh, n_down, n_held = counts
     # the position and velocity at t are FilterState.predicted's, bit for bit
     want_pos, want_vel = FilterState.of_block(block, t, np.full((n, 3), np.nan),
                                               held_t).predicted(st + dt)
@@ -60,13 +64,18 @@ def test_imm_kernel_gives_the_numpy_floats(n, scaled):
     np.testing.assert_allclose(block[:, :, use], want[:, :, use], rtol=1e-11, atol=1e-300)
     np.testing.assert_array_equal(block[:, :, ~use], S[:, :, ~use])      # kept as it was
     np.testing.assert_array_equal(t, np.where(use, st + dt, st))
+    first = ~use & np.isnan(held_before)
     expected = np.where(use, np.where(want_d2 > s.gate_sigma ** 2, DOWNWEIGHTED, ACCEPTED),
-                        REJECTED)
+                        np.where(first, REJECTED, RESTARTED))
     np.testing.assert_array_equal(outcome, expected)
-    assert n_bad == int((~use).sum()) and n_fresh == 0
-    assert counts[2] == int((outcome == DOWNWEIGHTED).sum())
+    assert n < 150 or (first.any() and (~use & ~first).any())    # both cases were met
+    assert n_again == int((~use & ~first).sum()) and n_held == int(first.sum())
+    assert n_fresh == 0 and n_down == int((outcome == DOWNWEIGHTED).sum())
     np.testing.assert_array_equal(used, use)
-    assert np.isnan(held_t).all()
+    # accepted: nothing held; held now: this measurement; to restart: as it was
+    np.testing.assert_array_equal(held_t, np.where(use, np.nan, np.where(first, st + dt,
+                                                                         held_before)))
+    np.testing.assert_array_equal(held_z, np.where(first[:, None], z, held_z_before))
 
 
 @needs_jit

@@ -76,23 +76,27 @@ def _import() -> bool:
     return True
 
 
-def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
-               out, out_t, out_held_t, outcome, used, counts, pos, vel):  # pragma: no cover
+def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
+               out, out_t, out_held_z, out_held_t, outcome, used, counts, pos,
+               vel):  # pragma: no cover
     """``kalman.step``'s usual path, row by row: the IMM update of ``imm.fused_update``
     (mix, predict, gate, update with the variance grown beyond the gate) of every row that
     has a state and a valid measurement, and what ``step`` keeps of it.
 
-    S (6, 2, N, 3) [x pos, x vel, P pp, P pv, P vv, mu] and st, held_t (N,): the state;
-    t (N,), z (N, 3), r (N,): the measurements; q (2,) the modes' noise, q_scale (N,) or
-    empty, rates (2,) minus the switching rates. Writes the new state (out, out_t,
-    out_held_t), outcome (N,) int8 -- NOT_MEASURED 0, STARTED 1 (a valid measurement of a
-    row without a state: for the caller to start), ACCEPTED 2, DOWNWEIGHTED 3, REJECTED 4
-    (beyond reject2: the row keeps its state, for the caller to hold or restart) -- used
-    (N,) bool (ACCEPTED or DOWNWEIGHTED), counts [rows rejected, rows to start, rows
-    downweighted]; and each row's position and velocity at t as
+    S (6, 2, N, 3) [x pos, x vel, P pp, P pv, P vv, mu], st (N,), held_z (N, 3), held_t
+    (N,): the state; t (N,), z (N, 3), r (N,): the measurements; q (2,) the modes' noise,
+    q_scale (N,) or empty, rates (2,) minus the switching rates. Writes the new state (out,
+    out_t, out_held_z, out_held_t), outcome (N,) int8 -- NOT_MEASURED 0, STARTED 1 (a
+    valid measurement of a row without a state: for the caller to start), ACCEPTED 2,
+    DOWNWEIGHTED 3, REJECTED 4 (beyond reject2, none held: the row keeps its state and
+    holds the measurement), RESTARTED 5 (beyond reject2 with one held already: the row
+    keeps its state and its held measurement, for the caller to restart) -- used (N,)
+    bool (ACCEPTED or DOWNWEIGHTED), counts [rows to restart, rows to start, rows
+    downweighted, rows rejected and held]; and each row's position and velocity at t as
     ``FilterState.predicted`` gives them from the new state (pos, vel (N, 3); valid for
-    the caller only where no row is rejected or to start: those change the state after).
-    """
+    the caller only where no row is to restart or to start: those change the state after).
+    A rejected row is held here, not by the caller: about one row a 6 x 6 datagram is, and
+    holding it in numpy cost a fifth of the step."""
     n = S.shape[2]
     X = np.empty((5, 2, 3))
     cb = np.empty((2, 3))
@@ -103,6 +107,7 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
     counts[0] = 0
     counts[1] = 0
     counts[2] = 0
+    counts[3] = 0
     # a person's rows usually share dt (one frame, one state time): their mode transitions
     # are computed once (the same floats), and exp(0) = 1 of each axis's likelier mode is
     # not computed at all: transcendentals were most of the kernel's time
@@ -214,6 +219,8 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                         for j in range(3):
                             out[c, m, i, j] = new[c, m, j]
                 out_t[i] = ti if ti > st[i] else st[i]
+                for j in range(3):
+                    out_held_z[i, j] = held_z[i, j]
                 out_held_t[i] = np.nan
                 used[i] = True
                 if acc > gate2:
@@ -221,8 +228,21 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                     counts[2] += 1
                 else:
                     outcome[i] = 2
-            else:
+            elif held_t[i] != held_t[i]:       # the first rejection: held
+                keep = False
+                for c in range(6):
+                    for m in range(2):
+                        for j in range(3):
+                            out[c, m, i, j] = S[c, m, i, j]
+                out_t[i] = st[i]
+                for j in range(3):
+                    out_held_z[i, j] = z[i, j]
+                out_held_t[i] = ti
                 outcome[i] = 4
+                used[i] = False
+                counts[3] += 1
+            else:                              # the second: for the caller to restart
+                outcome[i] = 5
                 used[i] = False
                 counts[0] += 1
         elif valid:
@@ -238,6 +258,8 @@ def _step_rows(S, st, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                     for j in range(3):
                         out[c, m, i, j] = S[c, m, i, j]
             out_t[i] = st[i]
+            for j in range(3):
+                out_held_z[i, j] = held_z[i, j]
             out_held_t[i] = held_t[i]
         # FilterState.estimate, then .predicted(t): never backwards (NaN stays NaN)
         ahead = ti - out_t[i]
@@ -620,10 +642,10 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
 
 _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
-    "_step_rows": f"void({_F8_4}, float64[::1], float64[::1], float64[::1], float64[:, ::1], "
-                  f"float64[::1], float64[::1], float64[::1], float64[::1], float64, float64, "
-                  f"{_F8_4}, float64[::1], float64[::1], int8[::1], boolean[::1], int64[::1], "
-                  f"float64[:, ::1], float64[:, ::1])",
+    "_step_rows": f"void({_F8_4}, float64[::1], float64[:, ::1], float64[::1], float64[::1], "
+                  f"float64[:, ::1], float64[::1], float64[::1], float64[::1], float64[::1], "
+                  f"float64, float64, {_F8_4}, float64[::1], float64[:, ::1], float64[::1], "
+                  f"int8[::1], boolean[::1], int64[::1], float64[:, ::1], float64[:, ::1])",
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
     "_settle": "int64(float64[:, ::1], float64[:, ::1], float64[::1], float64, float64, "
@@ -779,29 +801,29 @@ def _frame_constants(s: KalmanSettings) -> tuple[float, float, float]:
     return math.sqrt(s.measurement_noise), float(s.noise_per_m), float(s.inferred_sd_m ** 2)
 
 
-def step_rows(S: np.ndarray, st: np.ndarray, held_t: np.ndarray, t: np.ndarray,
-              z: np.ndarray, r: np.ndarray, s: KalmanSettings, q_scale: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                         np.ndarray, np.ndarray]:
-    """The compiled ``_step_rows`` (see there): (new block (6, 2, N, 3), its t (N,), held_t
-    (N,), outcome (N,) int8, used (N,) bool, counts [rows rejected, rows to start, rows
-    downweighted], position and velocity (N, 3) at t). ``warm()`` must have succeeded;
-    ``kalman.step`` is the way to call it."""
+def step_rows(S: np.ndarray, st: np.ndarray, held_z: np.ndarray, held_t: np.ndarray,
+              t: np.ndarray, z: np.ndarray, r: np.ndarray, s: KalmanSettings,
+              q_scale: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """The compiled ``_step_rows`` (see there): (new block (6, 2, N, 3), its t (N,), held_z
+    (N, 3), held_t (N,), outcome (N,) int8, used (N,) bool, counts [rows to restart, rows
+    to start, rows downweighted, rows rejected and held], position and velocity (N, 3) at
+    t). ``warm()`` must have succeeded; ``kalman.step`` is the way to call it."""
     q, rates = _flat(s)
     n = len(st)
     out = np.empty((6, 2, n, 3))
     out_t = np.empty(n)
+    out_held_z = np.empty((n, 3))
     out_held_t = np.empty(n)
     outcome = np.empty(n, dtype=np.int8)
     used = np.empty(n, dtype=np.bool_)
-    counts = np.empty(3, dtype=np.int64)
+    counts = np.empty(4, dtype=np.int64)
     pos, vel = np.empty((n, 3)), np.empty((n, 3))
     qs = _EMPTY if q_scale is None else np.ascontiguousarray(q_scale, dtype=float)
     _compiled["_step_rows"](np.ascontiguousarray(S), np.ascontiguousarray(st),
-                            np.ascontiguousarray(held_t), t, z, r, q, qs, rates,
-                            float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
-                            out, out_t, out_held_t, outcome, used, counts, pos, vel)
-    return out, out_t, out_held_t, outcome, used, counts, pos, vel
+                            np.ascontiguousarray(held_z), np.ascontiguousarray(held_t), t, z, r,
+                            q, qs, rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
+                            out, out_t, out_held_z, out_held_t, outcome, used, counts, pos, vel)
+    return out, out_t, out_held_z, out_held_t, outcome, used, counts, pos, vel
 
 
 def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,

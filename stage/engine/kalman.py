@@ -357,7 +357,7 @@ def step_folded(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
     """``step_predicted``, and what a fold records of it: (outcome, position, velocity,
     used (N,) bool: ``USED[outcome]``, (rows downweighted, rejected, restarted)); with
-    the compiled step, the last two come from the kernel where no row was rejected or
+    the compiled step, the last two come from the kernel where no row was restarted or
     started (the usual step)."""
     if jit.ready():      # (no numpy arithmetic outside its own np.errstate: see _step_compiled)
         outcome, predicted, used, counts = _step(state, t, z, r, s, q_scale)
@@ -380,8 +380,8 @@ def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                      tuple[int, int, int] | None]:
     """``step``, inside one ``np.errstate`` (entering one costs as much as a few array
     operations of a step); with the compiled step, also ``state.predicted(t)``, the rows
-    used and the counts (``step_folded``) when no row was rejected, restarted or started
-    (else None, None, None)."""
+    used and the counts (``step_folded``) when no row was restarted or started (else None,
+    None, None)."""
     n = state.n
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
@@ -448,47 +448,36 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
                               tuple[int, int, int] | None]:
     """``_step`` with its usual path in one compiled loop (``jit.step_rows``): the same
     outcome and state; rejected, restarted and new rows as there. Also the kernel's
-    ``state.predicted(t)``, unless a row was restarted or started after it (None), and
-    its rows used and counts, unless a row was rejected or started (None).
+    ``state.predicted(t)``, its rows used and its counts, unless a row was restarted or
+    started after it (None, None, None).
 
     Called without ``np.errstate`` (entering one costs as much as a few array operations,
     2 % of the engine at 6x6): the kernel raises no floating-point warning, and the numpy
     arithmetic for rows rejected, restarted or started runs in its own."""
     t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
-    block, new_t, held_t, outcome, used, counts, pos, vel = jit.step_rows(
-        state.stacked(), state.t, state.held_t, t, z, r, s, q_scale)
-    n_bad, n_fresh = counts[0], counts[1]
-    keep = FilterState.of_block(block, new_t, state.held_z, held_t)
-    state.x, state.P, state.mu, state.t, state.held_t, state.block = (
-        keep.x, keep.P, keep.mu, keep.t, keep.held_t, keep.block)
-    predicted = (pos, vel)      # a row held (rejected once) keeps its x, P, mu and t
-    if n_bad or n_fresh:
+    block, new_t, held_z, held_t, outcome, used, counts, pos, vel = jit.step_rows(
+        state.stacked(), state.t, state.held_z, state.held_t, t, z, r, s, q_scale)
+    keep = FilterState.of_block(block, new_t, held_z, held_t)
+    state.x, state.P, state.mu, state.t, state.held_z, state.held_t, state.block = (
+        keep.x, keep.P, keep.mu, keep.t, keep.held_z, keep.held_t, keep.block)
+    # a row held (rejected once, by the kernel) keeps its x, P, mu and t
+    if counts[0] or counts[1]:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            predicted = _fix_rows(state, outcome, t, z, r, s, n_bad, n_fresh, predicted)
-        return outcome, predicted, None, None
-    return outcome, predicted, used, (int(counts[2]), 0, 0)
+            _fix_rows(state, outcome, t, z, r, s, counts[0], counts[1])
+        return outcome, None, None, None
+    return outcome, (pos, vel), used, (int(counts[2]), int(counts[3]), 0)
 
 
 def _fix_rows(state: FilterState, outcome: np.ndarray, t: np.ndarray, z: np.ndarray,
-              r: np.ndarray, s: KalmanSettings, n_bad: int, n_fresh: int,
-              predicted: tuple[np.ndarray, np.ndarray] | None
-              ) -> tuple[np.ndarray, np.ndarray] | None:
-    """After the compiled step: rows it rejected held or restarted, new rows started."""
-    if n_bad:
-        bad = np.flatnonzero(outcome == REJECTED)
-        again = bad[~np.isnan(state.held_t[bad])]
-        first = bad[np.isnan(state.held_t[bad])]
-        state.held_z = state.held_z.copy()
-        state.held_z[first], state.held_t[first] = z[first], t[first]
-        if len(again):
-            _restart(state, again, z[again], t[again], r[again], s)
-            outcome[again] = RESTARTED
-            predicted = None
+              r: np.ndarray, s: KalmanSettings, n_again: int, n_fresh: int) -> None:
+    """After the compiled step: rows it marked RESTARTED (rejected twice in a row; it kept
+    their state and held measurement) restarted, new rows started."""
+    if n_again:
+        again = np.flatnonzero(outcome == RESTARTED)
+        _restart(state, again, z[again], t[again], r[again], s)
     if n_fresh:
         fresh = np.flatnonzero(outcome == STARTED)
         _start(state, fresh, z[fresh], t[fresh], r[fresh], s)
-        predicted = None
-    return predicted
 
 
 def _start(state: FilterState, rows: np.ndarray, z: np.ndarray, t: np.ndarray, r: np.ndarray,
