@@ -79,23 +79,36 @@ class _Step:
     of the first view of its instant (``anchor``); the (25,) joints the instant's
     consistency check let through (``mask``); whether that is every joint the view sees
     (``whole``); on the first view of an instant, the filter's prediction for the instant
-    (``prior``, cached). ``before`` may be given as (state, start, stop): rows of a wave's
-    state, cut out only if a replay or a consistency check reads it (most never are)."""
+    (``prior``, cached).
 
-    __slots__ = ("view", "_before", "anchor", "mask", "whole", "prior")
+    ``before`` may be given as a wave's state and the first of the 25 rows of it that are
+    this person's, cut out only if a replay or a consistency check reads it (most never
+    are); ``mask`` as None for every joint the view sees (``np.isfinite(view.r)``, made
+    when read). A fold makes one per person and keeps it for ``replay_s``: each object
+    it holds is one more to make and, a second later, to free."""
 
-    def __init__(self, view: View, before: FilterState | tuple[FilterState, int, int],
-                 anchor: float, mask: np.ndarray, whole: bool = True,
-                 prior: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-        self.view, self._before, self.anchor = view, before, anchor
-        self.mask, self.whole, self.prior = mask, whole, prior
+    __slots__ = ("view", "_before", "_at", "anchor", "_mask", "whole", "prior")
+
+    def __init__(self, view: View, before: FilterState, anchor: float,
+                 mask: np.ndarray | None, whole: bool = True,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None, at: int = -1) -> None:
+        self.view, self._before, self._at, self.anchor = view, before, at, anchor
+        self._mask, self.whole, self.prior = mask, whole, prior
 
     @property
     def before(self) -> FilterState:
-        b = self._before
-        if type(b) is tuple:
-            b = self._before = b[0].view_rows(b[1], b[2])
-        return b
+        at = self._at
+        if at >= 0:
+            self._before = self._before.view_rows(at, at + N_JOINTS)
+            self._at = -1
+        return self._before
+
+    @property
+    def mask(self) -> np.ndarray:
+        m = self._mask
+        if m is None:
+            m = self._mask = np.isfinite(self.view.r)
+        return m
 
 
 class BodyFilter:
@@ -250,20 +263,15 @@ class Fuser:
         # each person's rows as views made by iterating the reshaped arrays (in C: cheaper
         # than slicing each in Python)
         pos, vel = pos.reshape(k, n, 3), vel.reshape(k, n, 3)
-        seen = np.isfinite(r).reshape(k, n)   # where a view has no mask: np.isfinite(view.r)
         a = 0
-        for (body, view, mask, anchor), p, v, u, sn in zip(items, pos, vel, used.reshape(k, n),
-                                                           seen):
+        for (body, view, mask, anchor), p, v, u in zip(items, pos, vel, used.reshape(k, n)):
             body._state, body._rows = None, (work, a, a + n)
             body.output = (view.t, p, v)
             view.used = u
-            if mask is None:
-                mask = sn
-            else:
+            if mask is not None:
                 view.excluded = int((np.isfinite(view.r) & ~mask).sum())
                 self.stats.disagreeing += view.excluded
-            body.history.append(_Step(view, (before, a, a + n), anchor, mask,
-                                      view.excluded == 0))
+            body.history.append(_Step(view, before, anchor, mask, view.excluded == 0, None, a))
             a += n
         if whole:
             self.plain_wave = ([body for body, *_ in items], pos, vel, work.t.reshape(k, n))

@@ -106,9 +106,7 @@ class People:
         framed = self._framed.get(id(joints)) if self._framed else None
         if framed is not None and framed[0] is joints and framed[1] is conf \
                 and framed[2] is transform:
-            k, (j_out, c_out, bits, r_out, sizes) = framed[3], framed[4]
-            track.joints, conf, traded, r = j_out[k], c_out[k], int(bits[k]), r_out[k]
-            size, n_seen = float(sizes[k, 0]), int(sizes[k, 1])
+            _, _, _, track.joints, conf, traded, r, size, n_seen = framed
         elif jit.ready():
             track.joints, conf, traded, r, size, n_seen = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
@@ -170,9 +168,13 @@ class People:
                                    self.smoothing, INFERRED)
         except (TypeError, ValueError):   # frames the kernel does not take: one by one
             return
+        # each frame's results as Python objects now, for the whole datagram in C (rows of
+        # the arrays by iterating them, the small ones as lists), not indexed per frame
+        j_out, c_out, bits, r_out, sizes = out
         framed = self._framed
-        for k, m in enumerate(frames):
-            framed[id(m.joints)] = (m.joints, m.conf, transform, k, out)
+        for m, j, c, b, r, size, n in zip(frames, j_out, c_out, bits.tolist(), r_out,
+                                          sizes[:, 0].tolist(), sizes[:, 1].tolist()):
+            framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size, int(n))
 
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
         """A ``/handState`` of ``track`` captured at ``t`` (``hand`` as the sensor names it)."""
