@@ -1,0 +1,119 @@
+"""Where an engine datagram's CPU goes, part by part, timed where it runs (not alone).
+
+py-spy's samples say which lines are hot; they do not say how long a call takes inside the
+engine, where caches are cold and every part pays for the others'. Here the engine's main
+functions are wrapped with ``time.thread_time_ns`` and a replay of ``bench_engine_inproc``'s
+datagrams (P people, each seen by S simulated Kinects) is run in process on an injected
+clock; each part's CPU per datagram and calls per datagram are printed, nested parts
+included in their callers. The same replay unwrapped, run first, is the reference: the
+difference is what the wrappers themselves cost (about 1 us a call). The first fifth of
+the datagrams (persons being found) is left out of both.
+
+Stop 36 found with it that the filter step's Python around its kernel cost 24 us a 6x6
+datagram where a microbenchmark gave 5: a rejected row's numpy path, taken on a quarter of
+the datagrams (docs/reports/issue-10.md).
+
+Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR]
+     (DIR: a directory holding stage/, e.g. a `git archive` of another commit)
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import functools
+import sys
+import time
+from pathlib import Path
+
+#: (module, object in it or None, function, label): the parts timed
+PARTS = (
+    ("stage.engine.engine", "Engine", "process", "process (one datagram)"),
+    ("stage.sensors.protocol", None, "decode_datagram", "decode"),
+    ("stage.engine.engine", "Engine", "_prepare_frames", "prepare frames"),
+    ("stage.engine.people", "People", "frame", "frame (each)"),
+    ("stage.engine.tracking", "Tracker", "associate", "  associate"),
+    ("stage.engine.people", "People", "_fold", "fold and settle"),
+    ("stage.engine.fuser", "Fuser", "fold", "  fold"),
+    ("stage.engine.fuser", "Fuser", "_fold_plain", "    plain wave"),
+    ("stage.engine.kalman", None, "step_folded", "      filter step"),
+    ("stage.engine.jit", None, "step_rows", "        its kernel"),
+    ("stage.engine.fuser", "Fuser", "_trim", "    history trim"),
+    ("stage.engine.people", "People", "_update", "  settle"),
+    ("stage.engine.people", "People", "_emit", "emit"),
+    ("stage.engine.engine", "Engine", "tick", "tick"),
+)
+
+
+def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
+    import importlib
+    for module, owner, name, label in PARTS:
+        mod = importlib.import_module(module)
+        obj = getattr(mod, owner) if owner else mod
+        fn = getattr(obj, name, None)
+        if fn is None:          # an older tree without this part: not shown
+            continue
+
+        def timed(*a, _fn=fn, _label=label, **k):
+            c = time.thread_time_ns()
+            try:
+                return _fn(*a, **k)
+            finally:
+                acc[_label] += time.thread_time_ns() - c
+                calls[_label] += 1
+        setattr(obj, name, functools.wraps(fn)(timed))
+        # callers that imported the function by name (fuser: step_folded)
+        if owner is None:
+            for other in list(sys.modules.values()):
+                if (getattr(other, "__name__", "").startswith("stage.")
+                        and getattr(other, name, None) is fn):
+                    setattr(other, name, getattr(obj, name))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default="6x6", help="SxP: sensors x people")
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--tree", help="a directory holding stage/ (default: this checkout)")
+    opt = parser.parse_args()
+    if opt.tree:
+        sys.path.insert(0, str(Path(opt.tree).resolve()))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import bench_engine_inproc as inproc
+    s, p = map(int, opt.config.split("x"))
+    poses, data = inproc.datagrams(s, p, opt.seconds)
+    skip = len(data) // 5
+
+    def replay() -> float:
+        engine, clock = inproc.make_engine(poses)
+        for t, d in data[:skip]:
+            clock.set(t)
+            engine.handle_datagram(d)
+            engine.tick()
+        acc.clear()
+        calls.clear()
+        c = time.thread_time_ns()
+        for t, d in data[skip:]:
+            clock.set(t)
+            engine.handle_datagram(d)
+            engine.tick()
+        return (time.thread_time_ns() - c) / (len(data) - skip) / 1e3
+
+    acc: collections.Counter = collections.Counter()
+    calls: collections.Counter = collections.Counter()
+    import stage
+    plain = replay()
+    _wrap(acc, calls)
+    wrapped = replay()
+    n = len(data) - skip
+    print(f"{opt.config}, {opt.seconds:g} s of show, {n} datagrams timed; stage from "
+          f"{Path(stage.__file__).parent}")
+    print(f"CPU a datagram: {plain:.0f} us unwrapped (the reference), {wrapped:.0f} us wrapped")
+    print(f"{'part':28s} {'us/datagram':>12s} {'calls/datagram':>15s}")
+    for _, _, _, label in PARTS:
+        if calls[label]:
+            print(f"{label:28s} {acc[label] / n / 1e3:12.1f} {calls[label] / n:15.2f}")
+
+
+if __name__ == "__main__":
+    main()
