@@ -132,6 +132,30 @@ def test_views_of_one_instant_that_disagree_keep_the_consistent_ones_whatever_co
         np.testing.assert_allclose(other, results[0], atol=1e-9)
 
 
+def test_a_disagreeing_view_that_leaves_the_instants_choice_alone_needs_no_replay():
+    """The first views of an instant agree, one of them not seeing a joint; a third view is
+    off on another joint. The choice for the first two does not change (the first's mask
+    is every joint it sees: a plain step's mask, made only when read), so the third is
+    folded in without a replay."""
+    truth = np.zeros((25, 3)) + [0.0, 1.0, 2.0]
+    body, fuser = BodyFilter(), Fuser(S, F)
+    rng = np.random.default_rng(5)
+    for k in range(5):
+        t = k / 30
+        for s in range(3):
+            z = truth + rng.normal(0, 0.005, size=(25, 3))
+            r = np.full(25, R)
+            if s == 0:
+                r[3] = np.nan                       # the first view does not see joint 3
+            if s == 2:
+                z[7] += [0.25, 0.0, 0.0]            # the last one's joint 7 is 25 cm off
+            view = View((f"s{s}", 0), t + 0.001 * s, z, np.where(np.isnan(r), 0.0, 1.0), r, t)
+            fuser.fold([(body, view)])
+        assert not view.used[7] and view.used[6]
+    assert fuser.stats.disagreeing == 5
+    assert fuser.stats.replays == 0
+
+
 def test_a_wave_of_the_same_people_starts_from_the_last_waves_arrays_and_folds_the_same(
         monkeypatch):
     """A fold starts from the previous fold's arrays when it takes the same bodies in the
