@@ -95,8 +95,9 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
     downweighted, rows rejected and held]; and each row's position and velocity at t as
     ``FilterState.predicted`` gives them from the new state (pos, vel (N, 3); valid for
     the caller only where no row is to restart or to start: those change the state after).
-    A rejected row is held here, not by the caller: about one row a 6 x 6 datagram is, and
-    holding it in numpy cost a fifth of the step."""
+    A first rejection is held here, not by the caller: on the simulator at 6 x 6 a quarter
+    of the steps have one, and holding them in numpy after the kernel cost about 10 us a
+    datagram (issue 10, stop 36)."""
     n = S.shape[2]
     X = np.empty((5, 2, 3))
     cb = np.empty((2, 3))
@@ -119,6 +120,7 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
         valid = (not math.isnan(check)) and (not math.isinf(check)) and r[i] > 0.0
         known = st[i] == st[i]
         keep = True
+        hold = False
         if valid and known:
             dt = ti - st[i]
             if dt < 0.0:
@@ -229,15 +231,7 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
                 else:
                     outcome[i] = 2
             elif held_t[i] != held_t[i]:       # the first rejection: held
-                keep = False
-                for c in range(6):
-                    for m in range(2):
-                        for j in range(3):
-                            out[c, m, i, j] = S[c, m, i, j]
-                out_t[i] = st[i]
-                for j in range(3):
-                    out_held_z[i, j] = z[i, j]
-                out_held_t[i] = ti
+                hold = True
                 outcome[i] = 4
                 used[i] = False
                 counts[3] += 1
@@ -258,9 +252,14 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
                     for j in range(3):
                         out[c, m, i, j] = S[c, m, i, j]
             out_t[i] = st[i]
-            for j in range(3):
-                out_held_z[i, j] = held_z[i, j]
-            out_held_t[i] = held_t[i]
+            if hold:
+                for j in range(3):
+                    out_held_z[i, j] = z[i, j]
+                out_held_t[i] = ti
+            else:
+                for j in range(3):
+                    out_held_z[i, j] = held_z[i, j]
+                out_held_t[i] = held_t[i]
         # FilterState.estimate, then .predicted(t): never backwards (NaN stays NaN)
         ahead = ti - out_t[i]
         if not (ahead > 0.0 or ahead != ahead):

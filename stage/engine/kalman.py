@@ -453,7 +453,7 @@ def _step_compiled(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarr
 
     Called without ``np.errstate`` (entering one costs as much as a few array operations,
     2 % of the engine at 6x6): the kernel raises no floating-point warning, and the numpy
-    arithmetic for rows rejected, restarted or started runs in its own."""
+    arithmetic for rows restarted or started runs in its own."""
     t, z, r = np.ascontiguousarray(t), np.ascontiguousarray(z), np.ascontiguousarray(r)
     block, new_t, held_z, held_t, outcome, used, counts, pos, vel = jit.step_rows(
         state.stacked(), state.t, state.held_z, state.held_t, t, z, r, s, q_scale)
