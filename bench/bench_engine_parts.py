@@ -10,8 +10,8 @@ difference is what the wrappers themselves cost (about 1 us a call). The first f
 the datagrams (persons being found) is left out of both.
 
 Issue 10's stop 36 found this way that the filter step's Python around its kernel cost 29 us
-a 6x6 datagram where a microbenchmark gave 5: mostly a rejected row's numpy path, taken on a
-quarter of the datagrams (docs/reports/issue-10.md).
+a 6x6 datagram where a microbenchmark gave 5; a third of it was a rejected row's numpy
+path, taken on a quarter of the datagrams (docs/reports/issue-10.md).
 
 Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR]
      (DIR: a directory holding stage/, e.g. a `git archive` of another commit)
