@@ -13,7 +13,7 @@ import pytest
 
 from stage.engine import imm, jit
 from stage.engine.kalman import (ACCEPTED, DOWNWEIGHTED, NOT_MEASURED, REJECTED, RESTARTED,
-                                 STARTED, USED, FilterState, step, step_folded, step_predicted)
+                                 STARTED, USED, FilterState, step, step_folded)
 from stage.engine.fusion import _CHILDREN, _PARENTS, carry_untracked, carry_untracked_numpy
 from stage.settings import KalmanSettings
 
@@ -104,17 +104,15 @@ def test_compiled_step_is_the_numpy_step():
                 if k % 2:
                     outcomes.append(step(state, t, z, r, s))
                     continue
-                # every other frame: step_predicted, whose position and velocity are
+                # every other frame: step_folded, whose position and velocity are
                 # state.predicted(t) after the step (from the kernel, or after a restart
-                # or a start, from the state), bit for bit
+                # or a start, from the state), bit for bit, and whose rows used and
+                # counts are the outcome's
                 before = state.shallow()
-                if k % 4:
-                    outcome, pos, vel = step_predicted(state, t, z, r, s)
-                else:   # what a fold records: the rows used and the counts, by outcome
-                    outcome, pos, vel, used, counts = step_folded(state, t, z, r, s)
-                    np.testing.assert_array_equal(used, USED[outcome])
-                    assert counts == tuple(int((outcome == o).sum())
-                                           for o in (DOWNWEIGHTED, REJECTED, RESTARTED))
+                outcome, pos, vel, used, counts = step_folded(state, t, z, r, s)
+                np.testing.assert_array_equal(used, USED[outcome])
+                assert counts == tuple(int((outcome == o).sum())
+                                       for o in (DOWNWEIGHTED, REJECTED, RESTARTED))
                 want_pos, want_vel = state.predicted(t)
                 np.testing.assert_array_equal(pos, want_pos)
                 np.testing.assert_array_equal(vel, want_vel)
@@ -149,7 +147,7 @@ def test_compiled_step_warns_of_nothing_even_on_absurd_measurements():
             z[::4] = rng.choice([-1.5e308, 1.5e308], (10, 3))   # a jump beyond the float range
             r = rng.choice([2.5e-5, 1e-300, 1e300, 1e306], 40)
             r[rng.random(40) < 0.1] = np.nan
-            outcome, pos, vel = step_predicted(state, t, z, r, s)
+            outcome, pos, vel, _, _ = step_folded(state, t, z, r, s)
             restarted += int((outcome == RESTARTED).sum())
             with np.errstate(over="ignore"):                    # (the test's own overflow)
                 far = z * 2.0

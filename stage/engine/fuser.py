@@ -270,7 +270,7 @@ class Fuser:
             view.used = u
             if mask is not None:
                 view.excluded = int((np.isfinite(view.r) & ~mask).sum())
-                self.stats.disagreeing += view.excluded
+                st.disagreeing += view.excluded
             body.history.append(_Step(view, before, anchor, mask, view.excluded == 0, None, a))
             a += n
         if whole:

@@ -344,21 +344,14 @@ def step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
         return _step(state, t, z, r, s, q_scale)[0]
 
 
-def step_predicted(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
-                   s: KalmanSettings, q_scale: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``step``, then (outcome, position, velocity (N, 3)): ``state.predicted(t)`` after the
-    step, given by the compiled step itself where it can (the same floats)."""
-    return step_folded(state, t, z, r, s, q_scale)[:3]
-
-
 def step_folded(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                 s: KalmanSettings, q_scale: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int]]:
-    """``step_predicted``, and what a fold records of it: (outcome, position, velocity,
-    used (N,) bool: ``USED[outcome]``, (rows downweighted, rejected, restarted)); with
-    the compiled step, the last two come from the kernel where no row was restarted or
-    started (the usual step)."""
+    """``step``, then what a fold records of it: (outcome, position and velocity (N, 3):
+    ``state.predicted(t)`` after the step, used (N,) bool: ``USED[outcome]``, (rows
+    downweighted, rejected, restarted)). With the compiled step, all but the outcome come
+    from the kernel itself where no row was restarted or started (the usual step; the
+    same floats)."""
     if jit.ready():      # (no numpy arithmetic outside its own np.errstate: see _step_compiled)
         outcome, predicted, used, counts = _step(state, t, z, r, s, q_scale)
     else:

@@ -83,7 +83,8 @@ class People:
         self._reports: list[tuple] = []
         self._lost: list[int] = []
         #: this batch's frames computed together (``prepare_frames``): id of the frame's
-        #: joints array -> (joints, conf, transform, row, results)
+        #: joints array -> (joints, conf, transform, then what ``jit.frame_r`` gives for it:
+        #: stage-space joints, conf, traded bits, variances, trunk length, joints seen)
         self._framed: dict[int, tuple] = {}
 
     @property
