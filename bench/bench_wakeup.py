@@ -1,0 +1,239 @@
+"""What a call costs when the thread has been away for a while, beside the same call back to back.
+
+Live, the engine's threads wake once per sensor datagram: every 5.5 ms at 6 sensors x 30
+Hz, every 33 ms at one sensor. ``bench_engine_inproc.py --paced`` showed that a datagram then
+costs about twice its back-to-back CPU (issue 10, stops 20 and 31), and stop 31 found that a
+busy wait costs as much as a sleep. This bench measures that penalty on a ladder of calls,
+from one that does nothing to a whole engine datagram, so that the cost of a design (how
+many threads wake per datagram, how much code and data a datagram touches) can be judged
+on the machine at hand:
+
+- ``b2b``: the call repeated back to back (the reference, measured in the same run);
+- ``sleep 5.5``/``sleep 33``: after ``time.sleep`` of 5.5 ms / 33 ms;
+- ``spin 5.5``: after 5.5 ms of a busy wait (a ``perf_counter`` loop: the thread never idle).
+
+Each figure is the median over the calls of the thread's CPU time (``time.thread_time_ns``)
+for the call alone; the modes are alternated in rounds so that a change in the machine's
+load falls on all of them. The engine rows replay ``bench_engine_inproc``'s 6 x 6 datagrams
+through one engine on an injected clock, each mode taking the next datagrams in turn.
+
+Then the same question for the live server's two threads. Live, a sensor datagram wakes the
+receiver thread (which decodes it) and then the engine thread (which fuses it): two threads
+come back from sleep for each datagram. ``--threads`` replays 6 x 6 datagrams at their real
+spacing both ways, alternated in rounds: one thread that sleeps, decodes and fuses; and a
+receiver thread that sleeps, decodes and puts the datagram's messages on a queue that an
+engine thread waits on, as ``stage serve`` does. Printed: each thread's CPU per datagram
+(median) and their sum.
+
+Run: python bench/bench_wakeup.py [--calls 200] [--rounds 2] [--threads] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+MODES = (("b2b", 0.0, False), ("sleep 5.5", 0.0055, False), ("spin 5.5", 0.0055, True),
+         ("sleep 33", 0.033, False))
+
+
+def _spin(seconds: float) -> None:
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        pass
+
+
+def _measure(call, n: int, gap: float, spin: bool) -> list[int]:
+    out = []
+    for i in range(n):
+        if gap:
+            if spin:
+                _spin(gap)
+            else:
+                time.sleep(gap)
+        c = time.thread_time_ns()
+        call(i)
+        out.append(time.thread_time_ns() - c)
+    return out
+
+
+def _workloads(calls: int):
+    """(name, call(i)) from the smallest to a whole engine datagram; ``calls``: how many
+    times the engine row is called in all (each call takes the next datagram)."""
+    import bench_engine_inproc as inproc
+    from stage.engine import jit
+    from stage.sensors.protocol import decode_datagram
+    jit.warm()
+    small = np.ones(4096)                          # 32 KB, 512 cache lines
+    warm = 360                                     # 2 s of 6 x 6: persons found
+    poses, data = inproc.datagrams(6, 6, (warm + calls) / 180.0 + 1.0)
+    datagrams = [d for _, d in data]
+
+    # the IMM kernel's own arguments, captured from a replay (one call per datagram)
+    engine, clock = inproc.make_engine(poses)
+    captured = []
+    kernel = jit._compiled.get("_step_rows")
+
+    def record(*a):
+        captured.append(tuple(x.copy() if isinstance(x, np.ndarray) else x for x in a))
+        return kernel(*a)
+
+    if kernel is not None:
+        jit._compiled["_step_rows"] = record
+    try:
+        for t, d in data[: len(data) // 2]:
+            clock.set(t)
+            engine.handle_datagram(d)
+    finally:
+        if kernel is not None:
+            jit._compiled["_step_rows"] = kernel
+    steady = captured[len(captured) // 2:]
+
+    # one engine for the engine rows: each call takes the next datagram, at its own time
+    engine, clock = inproc.make_engine(poses)
+    feed = iter(data)
+    for _ in range(warm):        # persons found first
+        t, d = next(feed)
+        clock.set(t)
+        engine.handle_datagram(d)
+
+    def engine_datagram(_i):
+        t, d = next(feed)
+        clock.set(t)
+        engine.handle_datagram(d)
+
+    rows = [
+        ("a Python call that returns", lambda i: i + 1),
+        ("np.empty(10)", lambda i: np.empty(10)),
+        ("sum of 32 KB (512 lines)", lambda i: small.sum()),
+        ("decode one 6x6 datagram", lambda i: decode_datagram(datagrams[i % len(datagrams)])),
+    ]
+    if steady:
+        rows.append(("IMM kernel, one 6x6 wave", lambda i: kernel(*steady[i % len(steady)])))
+    rows.append(("engine: one 6x6 datagram", engine_datagram))
+    return rows
+
+
+def _threads(rounds: int, per_round: int) -> dict:
+    """CPU per 6 x 6 datagram at the sensors' real spacing: decoded and fused on one thread,
+    or decoded on a receiver thread and fused on an engine thread (a queue between)."""
+    import queue
+    import threading
+
+    import bench_engine_inproc as inproc
+    from stage.engine import jit
+    from stage.sensors.protocol import Inbound, decode_datagram
+    jit.warm()
+    warm = 360
+    poses, data = inproc.datagrams(6, 6, (warm + 2 * rounds * per_round) / 180.0 + 1.0)
+    engine, clock = inproc.make_engine(poses)
+    feed = iter(data)
+    for _ in range(warm):
+        t, d = next(feed)
+        clock.set(t)
+        engine.handle_datagram(d)
+    source = ("127.0.0.1", 0)          # handle_datagram's: the clients' source stays the same
+    spacing = 1.0 / 180.0
+    out: dict[str, list[int]] = {"one thread": [], "receiver": [], "engine": [], "two threads": []}
+
+    def decode(t, d):
+        clock.set(t)
+        decoded = decode_datagram(d, "127.0.0.1:0")
+        return [Inbound(m, t, source, tt) for m, tt in decoded.messages]
+
+    drops_before = sum(sum(v.values()) for v in engine.drops.snapshot().values())
+    for _ in range(rounds):
+        for _ in range(per_round):              # one thread: sleep, decode, fuse
+            time.sleep(spacing)
+            t, d = next(feed)
+            c = time.thread_time_ns()
+            engine.process(decode(t, d))
+            out["one thread"].append(time.thread_time_ns() - c)
+        q: queue.SimpleQueue = queue.SimpleQueue()
+        rx: list[int] = []
+        eng: list[int] = []
+
+        def engine_thread():
+            while True:
+                batch = q.get()
+                if batch is None:
+                    return
+                c = time.thread_time_ns()
+                engine.process(batch)
+                eng.append(time.thread_time_ns() - c)
+
+        worker = threading.Thread(target=engine_thread)
+        worker.start()
+        for _ in range(per_round):              # two threads: the receiver hands over
+            time.sleep(spacing)
+            t, d = next(feed)
+            c = time.thread_time_ns()
+            q.put(decode(t, d))
+            rx.append(time.thread_time_ns() - c)
+        q.put(None)
+        worker.join()
+        out["receiver"] += rx
+        out["engine"] += eng
+        out["two threads"] += [a + b for a, b in zip(rx, eng)]
+    result = {k: float(np.median(v)) / 1e3 for k, v in out.items()}
+    # a check that every datagram was fused: none dropped (a wrong source would be), six
+    # persons at the end
+    result["drops"] = sum(sum(v.values()) for v in engine.drops.snapshot().values()) - drops_before
+    result["persons"] = len(engine.persons)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--calls", type=int, default=200, help="calls per mode and round")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--threads", action="store_true",
+                        help="only the one-thread against two-thread replay (see above)")
+    parser.add_argument("--json", action="store_true")
+    opt = parser.parse_args()
+    if opt.threads:
+        r = _threads(opt.rounds, opt.calls)
+        if opt.json:
+            print(json.dumps(r, indent=1))
+            return
+        print("6x6 datagrams at their real spacing (5.5 ms), CPU per datagram, median us")
+        print(f"  one thread (sleep, decode, fuse):       {r['one thread']:8.1f}")
+        print(f"  two threads: receiver (sleep, decode)   {r['receiver']:8.1f}")
+        print(f"               engine (wait, fuse)        {r['engine']:8.1f}")
+        print(f"               sum                        {r['two threads']:8.1f}"
+              f"  (x{r['two threads'] / r['one thread']:.2f} the one thread)")
+        print(f"  (check: {r['drops']} messages dropped, {r['persons']} persons at the end)")
+        return
+    rows = _workloads(opt.calls * opt.rounds * len(MODES))
+    results = {}
+    for name, call in rows:
+        samples: dict[str, list[int]] = {m: [] for m, _, _ in MODES}
+        for _ in range(opt.rounds):
+            for mode, gap, spin in MODES:
+                s = _measure(call, opt.calls, gap, spin)
+                samples[mode] += s[opt.calls // 10:]      # the first calls of a round: out
+        results[name] = {m: float(np.median(v)) / 1e3 for m, v in samples.items()}
+    if opt.json:
+        print(json.dumps(results, indent=1))
+        return
+    print("CPU per call, median us (ratio to back to back)")
+    print(f"{'call':30s}" + "".join(f"{m:>18s}" for m, _, _ in MODES))
+    for name, r in results.items():
+        b = r["b2b"]
+        cells = [f"{b:10.1f}        "] + [f"{r[m]:10.1f} (x{r[m] / b:4.1f})" for m, _, _ in MODES[1:]]
+        print(f"{name:30s}" + "".join(f"{c:>18s}" for c in cells))
+    line = results["sum of 32 KB (512 lines)"]
+    extra = line["sleep 5.5"] - line["b2b"]
+    print(f"sum of 32 KB after 5.5 ms asleep: +{extra:.1f} us, {extra / 512 * 1e3:.0f} ns a "
+          f"cache line it reads")
+
+
+if __name__ == "__main__":
+    main()
