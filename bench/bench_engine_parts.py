@@ -13,7 +13,12 @@ Issue 10's stop 36 found this way that the filter step's Python around its kerne
 a 6x6 datagram where a microbenchmark gave 5; a third of it was a rejected row's numpy
 path, taken on a quarter of the datagrams (docs/reports/issue-10.md).
 
-Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR]
+``--paced`` replays the timed datagrams at their real spacing, sleeping between them as the
+engine thread does live: each part then also pays for what it finds cold after the sleep
+(issue 10, stop 37: a 6x6 datagram costs 2.4 times its back-to-back CPU then; see
+bench_wakeup.py), and the table shows where that goes.
+
+Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR] [--paced]
      (DIR: a directory holding stage/, e.g. a `git archive` of another commit)
 """
 
@@ -75,6 +80,8 @@ def main() -> None:
     parser.add_argument("--config", default="6x6", help="SxP: sensors x people")
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--tree", help="a directory holding stage/ (default: this checkout)")
+    parser.add_argument("--paced", action="store_true",
+                        help="the timed datagrams at their real spacing, asleep in between")
     opt = parser.parse_args()
     if opt.tree:
         sys.path.insert(0, str(Path(opt.tree).resolve()))
@@ -92,12 +99,19 @@ def main() -> None:
             engine.tick()
         acc.clear()
         calls.clear()
-        c = time.thread_time_ns()
+        spent = 0
+        start = time.perf_counter() - data[skip][0]
         for t, d in data[skip:]:
+            if opt.paced:      # asleep until the datagram's time, as the engine thread live
+                wait = start + t - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
             clock.set(t)
+            c = time.thread_time_ns()
             engine.handle_datagram(d)
             engine.tick()
-        return (time.thread_time_ns() - c) / (len(data) - skip) / 1e3
+            spent += time.thread_time_ns() - c
+        return spent / (len(data) - skip) / 1e3
 
     acc: collections.Counter = collections.Counter()
     calls: collections.Counter = collections.Counter()
@@ -106,7 +120,8 @@ def main() -> None:
     _wrap(acc, calls)
     wrapped = replay()
     n = len(data) - skip
-    print(f"{opt.config}, {opt.seconds:g} s of show, {n} datagrams timed; stage from "
+    print(f"{opt.config}, {opt.seconds:g} s of show, {n} datagrams timed "
+          f"{'at their real spacing' if opt.paced else 'back to back'}; stage from "
           f"{Path(stage.__file__).parent}")
     print(f"CPU a datagram: {plain:.0f} us unwrapped (the reference), {wrapped:.0f} us wrapped")
     print(f"{'part':28s} {'us/datagram':>12s} {'calls/datagram':>15s}")
