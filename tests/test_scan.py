@@ -177,6 +177,30 @@ def test_a_bytearray_decodes_as_its_bytes():
         assert len(got.messages) == 6 and not got.drops
 
 
+def test_a_datagrams_messages_keep_their_values_after_the_next_datagram():
+    """The scanner writes into arrays each thread keeps from datagram to datagram; the
+    messages of one datagram must hold copies, so that decoding the next (here in the same
+    thread, and in another) leaves them as they were, and a message's arrays keep alive
+    only its own datagram's skeletons (the calibrator buffers seconds of frames)."""
+    import threading
+
+    rng = np.random.default_rng(11)
+    first, second = _sensor_bundle(rng, 3), _sensor_bundle(rng, 5)
+    for name, scanner in _scanners():
+        got = _decode(first, scanner)
+        kept = _flat(got)
+        _decode(second, scanner)
+        thread = threading.Thread(target=_decode, args=(second, scanner))
+        thread.start()
+        thread.join()
+        assert _flat(got) == kept, name
+        skeletons = [m for m, _ in got.messages if isinstance(m, JointCoordinates)]
+        assert len(skeletons) == 3
+        for m in skeletons:
+            assert m.joints.base is not None and m.joints.base.shape == (3, 25, 3), name
+            assert m.conf.base.shape == (3, 25), name
+
+
 def test_edge_cases_give_what_the_api_says():
     """A few of them spelled out (the reference could be wrong too)."""
     ok = check_same(EDGE_CASES["int client"]).messages

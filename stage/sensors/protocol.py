@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -103,14 +104,28 @@ def use_scanner(scanner) -> None:
     _scanner = scanner
 
 
+#: each thread's scanner output arrays (``_decode_scanned``), the largest it asks for:
+#: made once, not for every datagram
+_SCRATCH = threading.local()
+
+
 def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
     """``decode_datagram`` of a bundle by the scanner: the same messages and drops as
     ``_walk_bundle`` gives (elements the scanner does not read are decoded here as there);
-    False, having added nothing, where the bundle needs the Python walker (nested)."""
+    False, having added nothing, where the bundle needs the Python walker (nested).
+
+    The scanner writes into arrays this thread keeps from datagram to datagram, and what
+    the messages hold is copied out of them before anything else runs. Live, the receiver
+    thread wakes for every datagram and finds its caches cold: each numpy call less is
+    then worth tens of microseconds (issue 10, stop 37, ``bench/bench_wakeup.py``), so
+    the skeletons are also counted from the rows rather than with a numpy reduction."""
     n = len(data)
-    info = np.empty((min(n // 8, 128), scan.COLUMNS), dtype=np.int64)
+    scratch = getattr(_SCRATCH, "arrays", None)
+    if scratch is None:
+        scratch = _SCRATCH.arrays = (np.empty((128, scan.COLUMNS), dtype=np.int64),
+                                     np.empty((64, N_JOINTS, 3)), np.empty((64, N_JOINTS)))
     rows = min(n // scan.SMALLEST_SKELETON + 1, 64)
-    joints, conf = np.empty((rows, N_JOINTS, 3)), np.empty((rows, N_JOINTS))
+    info, joints, conf = scratch[0][:min(n // 8, 128)], scratch[1][:rows], scratch[2][:rows]
     if type(data) is not bytes:      # a bytearray: hashable client names, a read-only view
         data = bytes(data)
     buf = np.frombuffer(data, dtype=np.uint8)
@@ -124,14 +139,18 @@ def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
         raise ValueError("bundle element size out of bounds")
     (stamp,) = struct.unpack_from(">Q", data, 8)
     timetag = None if stamp == 1 else ntp.ntp_to_system_time(data[8:16])
-    skeletons = int(np.count_nonzero(info[:count, scan.KIND] == scan.SKELETON))
-    if skeletons < rows:
-        # the messages' arrays are views of these, and a view keeps its whole base alive
-        # (the calibrator buffers seconds of frames): arrays of the skeletons' size only
-        joints, conf = joints[:skeletons].copy(), conf[:skeletons].copy()
+    elements = info[:count].tolist()
+    skeletons = 0
+    for element in elements:
+        if element[0] == scan.SKELETON:
+            skeletons += 1
+    # the messages' arrays are views of these copies (never of the scratch arrays, which
+    # the next datagram overwrites), of the skeletons' size only: a view keeps its whole
+    # base alive, and the calibrator buffers seconds of frames
+    joints, conf = joints[:skeletons].copy(), conf[:skeletons].copy()
     messages = out.messages
     clients: dict[bytes, str] = {}
-    for kind, start, end, c0, c1, c_int, user, hand, state, row in info[:count].tolist():
+    for kind, start, end, c0, c1, c_int, user, hand, state, row in elements:
         if kind == scan.OTHER:
             _decode_element(data[start:end], timetag, out, source)
             continue
