@@ -119,13 +119,13 @@ def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
     thread wakes for every datagram and finds its caches cold: each numpy call less is
     then worth tens of microseconds (issue 10, stop 37, ``bench/bench_wakeup.py``), so
     the skeletons are also counted from the rows rather than with a numpy reduction."""
-    n = len(data)
     scratch = getattr(_SCRATCH, "arrays", None)
     if scratch is None:
         scratch = _SCRATCH.arrays = (np.empty((128, scan.COLUMNS), dtype=np.int64),
                                      np.empty((64, N_JOINTS, 3)), np.empty((64, N_JOINTS)))
-    rows = min(n // scan.SMALLEST_SKELETON + 1, 64)
-    info, joints, conf = scratch[0][:min(n // 8, 128)], scratch[1][:rows], scratch[2][:rows]
+    # whole: a datagram of n bytes holds at most n // 8 elements and n // 60 + 1 skeletons,
+    # so only the 128 elements and 64 skeletons of the arrays bound what the scanner takes
+    info, joints, conf = scratch
     if type(data) is not bytes:      # a bytearray: hashable client names, a read-only view
         data = bytes(data)
     buf = np.frombuffer(data, dtype=np.uint8)
