@@ -296,11 +296,13 @@ def source_fingerprint(root: Path) -> str:
     return h.hexdigest()[:10]
 
 
-def snapshot_sources(into: str) -> Path:
-    """Copy stage/ so that every configuration of a run measures the same code even while
-    it is being edited; the servers run from the copy (cwd and PYTHONPATH)."""
+def snapshot_sources(into: str, tree: Path = REPO) -> Path:
+    """Copy ``tree``'s stage/ (this checkout's by default) so that every configuration of a
+    run measures the same code even while it is being edited; the servers run from the
+    copy (cwd and PYTHONPATH). PYTHONPATH given to the bench itself does not choose the
+    servers' code: ``--tree`` does."""
     root = Path(into) / "src"
-    shutil.copytree(REPO / "stage", root / "stage", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(tree / "stage", root / "stage", ignore=shutil.ignore_patterns("__pycache__"))
     return root
 
 
@@ -437,6 +439,7 @@ class Options:
     floor: bool = False        # with relay: the decoding relay (the Python floor), see relay_serve
     server_cmd: list[str] | None = None  # another server command; gets --port P --rig R
     src: Path = REPO                     # where the servers import stage from
+    tree: str | None = None              # --tree: the directory src was snapshotted from
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
     trace: str | None = None             # a directory: run the traced server (stalltrace.py)
 
@@ -868,7 +871,8 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
               "rows measured different code.")
     elif sources:
         print(f"stage/**/*.py source hash: {sources[0]}"
-              f" ({'working tree' if opt.src == REPO else 'snapshot taken at the start'})")
+              f" ({'working tree' if opt.src == REPO else 'snapshot taken at the start'}"
+              f"{'' if opt.tree is None else f' of {opt.tree}'})")
     if offline:
         print("\nthe same load on the injected clock (engine offline, datagrams fed on a manual "
               "clock): per input skeleton, arrival -> emission")
@@ -925,6 +929,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--retry-busy", type=int, default=0, metavar="N",
                         help="run a config again (up to N times) when other processes used more "
                              "than 10 %% of a core during its window; the last try is kept")
+    parser.add_argument("--tree", metavar="DIR",
+                        help="run the servers from a snapshot of DIR/stage (e.g. a `git archive` "
+                             "of another commit) instead of this checkout's, for an A/B")
     parser.add_argument("--live", action="store_true",
                         help="run the servers from the working tree instead of a snapshot of "
                              "stage/ taken at the start")
@@ -946,8 +953,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.trace:
         os.makedirs(args.trace, exist_ok=True)
         args.trace = os.path.abspath(args.trace)
+    tree = REPO if args.tree is None else Path(args.tree).resolve()
+    if not (tree / "stage" / "__init__.py").is_file():
+        parser.error(f"--tree {args.tree}: no stage/ package there")
+    if args.live and args.tree:
+        parser.error("--live runs this checkout's working tree; --tree takes a snapshot of another")
     snapshot_dir = None if args.live else tempfile.TemporaryDirectory(prefix="stage-bench-src-")
-    src = REPO if snapshot_dir is None else snapshot_sources(snapshot_dir.name)
+    src = REPO if snapshot_dir is None else snapshot_sources(snapshot_dir.name, tree)
 
     def run(sensors: int, people: int, o: Options) -> dict:
         label = f"{'aligned' if o.aligned else 'spread'} {sensors}x{people} " \
@@ -991,7 +1003,8 @@ def main(argv: list[str] | None = None) -> int:
                                       "cpu_config": "%dx%d" % CPU_TARGET_CONFIG},
                           "results": results, "offline": offline}, indent=2, default=_json_default))
     else:
-        print_table(results, offline, Options(args.warmup, args.duration, False, None, src=src))
+        print_table(results, offline, Options(args.warmup, args.duration, False, None, src=src,
+                                              tree=args.tree))
     if args.profile:
         for sensors, people in args.configs:
             print_profile(os.path.join(args.profile, f"{sensors}x{people}"))
