@@ -74,6 +74,14 @@ def datagrams(n_sensors: int, n_people: int, seconds: float, seed: int = 0):
     return poses, out
 
 
+def sleep_until(start: float, t: float) -> None:
+    """Sleep until ``t`` s of show after ``start`` (a ``perf_counter`` reading): a datagram
+    replayed at its real time, the thread asleep in between as the engine thread is live."""
+    wait = start + t - time.perf_counter()
+    if wait > 0:
+        time.sleep(wait)
+
+
 def _timed(fn, acc: list):
     """``fn`` adding its CPU time to acc[0]; acc[1] is the nesting depth (offline, the
     observer runs the poll inline: counted once)."""
@@ -123,9 +131,7 @@ def run(n_sensors: int, n_people: int, seconds: float, healing: bool = False,
     start = time.perf_counter()
     for t, d in data:
         if paced:  # at the datagram's real time: the thread sleeps between them, as live
-            wait = start + t - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
+            sleep_until(start, t)
         clock.set(t)
         c0 = time.thread_time()
         engine.handle_datagram(d)

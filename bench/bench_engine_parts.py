@@ -102,10 +102,8 @@ def main() -> None:
         spent = 0
         start = time.perf_counter() - data[skip][0]
         for t, d in data[skip:]:
-            if opt.paced:      # asleep until the datagram's time, as the engine thread live
-                wait = start + t - time.perf_counter()
-                if wait > 0:
-                    time.sleep(wait)
+            if opt.paced:
+                inproc.sleep_until(start, t)
             clock.set(t)
             c = time.thread_time_ns()
             engine.handle_datagram(d)

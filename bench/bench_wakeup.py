@@ -64,6 +64,19 @@ def _measure(call, n: int, gap: float, spin: bool) -> list[int]:
     return out
 
 
+def _engine_after(poses, data: list, warm: int):
+    """(engine, its clock, an iterator over the rest of ``data``) after the first ``warm``
+    datagrams, in which the persons are found (``handle_datagram``: from 127.0.0.1:0)."""
+    import bench_engine_inproc as inproc
+    engine, clock = inproc.make_engine(poses)
+    feed = iter(data)
+    for _ in range(warm):
+        t, d = next(feed)
+        clock.set(t)
+        engine.handle_datagram(d)
+    return engine, clock, feed
+
+
 def _workloads(calls: int):
     """(name, call(i)) from the smallest to a whole engine datagram; ``calls``: how many
     times the engine row is called in all (each call takes the next datagram)."""
@@ -97,12 +110,7 @@ def _workloads(calls: int):
     steady = captured[len(captured) // 2:]
 
     # one engine for the engine rows: each call takes the next datagram, at its own time
-    engine, clock = inproc.make_engine(poses)
-    feed = iter(data)
-    for _ in range(warm):        # persons found first
-        t, d = next(feed)
-        clock.set(t)
-        engine.handle_datagram(d)
+    engine, clock, feed = _engine_after(poses, data, warm)
 
     def engine_datagram(_i):
         t, d = next(feed)
@@ -133,12 +141,7 @@ def _threads(rounds: int, per_round: int) -> dict:
     jit.warm()
     warm = 360
     poses, data = inproc.datagrams(6, 6, (warm + 2 * rounds * per_round) / 180.0 + 1.0)
-    engine, clock = inproc.make_engine(poses)
-    feed = iter(data)
-    for _ in range(warm):
-        t, d = next(feed)
-        clock.set(t)
-        engine.handle_datagram(d)
+    engine, clock, feed = _engine_after(poses, data, warm)
     source = ("127.0.0.1", 0)          # handle_datagram's: the clients' source stays the same
     spacing = 1.0 / 180.0
     out: dict[str, list[int]] = {"one thread": [], "receiver": [], "engine": [], "two threads": []}
