@@ -15,8 +15,8 @@ path, taken on a quarter of the datagrams (docs/reports/issue-10.md).
 
 ``--paced`` replays the timed datagrams at their real spacing, sleeping between them as the
 engine thread does live: each part then also pays for what it finds cold after the sleep
-(issue 10, stop 37: a 6x6 datagram costs 2.4 times its back-to-back CPU then; see
-bench_wakeup.py), and the table shows where that goes.
+(issue 10, stop 37: a 6x6 datagram then costs 2.0-2.2 times its back-to-back CPU here,
+2.4 times in bench_wakeup.py), and the table shows where that goes.
 
 Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR] [--paced]
      (DIR: a directory holding stage/, e.g. a `git archive` of another commit)

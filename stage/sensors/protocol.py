@@ -116,9 +116,10 @@ def _decode_scanned(data: bytes, out: Decoded, source: str) -> bool:
 
     The scanner writes into arrays this thread keeps from datagram to datagram, and what
     the messages hold is copied out of them before anything else runs. Live, the receiver
-    thread wakes for every datagram and finds its caches cold: five numpy calls fewer
-    took 50-70 us off a 6x6 datagram then (issue 10, stop 37, ``bench/bench_wakeup.py``),
-    so the skeletons are also counted from the rows rather than with a numpy reduction."""
+    thread wakes for every datagram and finds its caches cold: with three allocations and
+    a numpy comparison, count and slice fewer, a 6x6 datagram took 50-70 us less then
+    (issue 10, stop 37, ``bench/bench_wakeup.py``), so the skeletons are also counted
+    from the rows rather than with a numpy reduction."""
     scratch = getattr(_SCRATCH, "arrays", None)
     if scratch is None:
         scratch = _SCRATCH.arrays = (np.empty((128, scan.COLUMNS), dtype=np.int64),
