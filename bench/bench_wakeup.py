@@ -6,7 +6,12 @@ costs about twice its back-to-back CPU (issue 10, stops 20 and 31), and stop 31 
 busy wait costs as much as a sleep. This bench measures that penalty on a ladder of calls,
 from one that does nothing to a whole engine datagram, so that the cost of a design (how
 many threads wake per datagram, how much code and data a datagram touches) can be judged
-on the machine at hand:
+on the machine at hand. One row calls, in turn, every compiled kernel a 6 x 6 datagram
+calls in the engine (the scanner, frames, association distances, the IMM step, settling,
+hand votes, encoding), each with the arguments it had there, captured from a replay: what a
+datagram's arithmetic costs without the engine's Python between the calls, the most a native
+per-datagram path could save against the engine row (it still dispatches each call from
+Python, as the native path would not).
 
 - ``b2b``: the call repeated back to back (the reference, measured in the same run);
 - ``sleep 5.5``/``sleep 33``: after ``time.sleep`` of 5.5 ms / 33 ms;
@@ -77,6 +82,72 @@ def _engine_after(poses, data: list, warm: int):
     return engine, clock, feed
 
 
+def _captured_kernels(poses, data: list) -> list[list[tuple]]:
+    """For each datagram of ``data`` replayed through a new engine, the compiled calls it
+    made, in order: (name, kernel, its arguments copied before the call). The kernels are
+    the engine's (``jit``), the receiver's scanner and the hand votes' (``handbank``)."""
+    import bench_engine_inproc as inproc
+    from stage.engine import handbank, jit
+    from stage.sensors import protocol
+    engine, clock = inproc.make_engine(poses)
+    per_datagram: list[list[tuple]] = []
+
+    def recorder(name, kernel):
+        def record(*a):
+            per_datagram[-1].append((name, kernel, tuple(_copy(x) for x in a)))
+            return kernel(*a)
+        return record
+
+    saved_jit = dict(jit._compiled)
+    saved_hands = dict(handbank._K)
+    scanner = protocol._scanner
+    try:
+        for name, kernel in saved_jit.items():
+            if callable(kernel) and name != "scan":
+                jit._compiled[name] = recorder(name, kernel)
+        for name, kernel in saved_hands.items():
+            handbank._K[name] = recorder("hands." + name, kernel)
+        if scanner is not None:
+            protocol.use_scanner(recorder("scan", scanner))
+        for t, d in data:
+            per_datagram.append([])
+            clock.set(t)
+            engine.handle_datagram(d)
+    finally:
+        jit._compiled.clear()
+        jit._compiled.update(saved_jit)
+        handbank._K.clear()
+        handbank._K.update(saved_hands)
+        protocol.use_scanner(scanner)
+    return per_datagram
+
+
+def _copy(x):
+    """An argument as it was at the call: arrays copied, read-only ones kept read-only (a
+    kernel compiled for a read-only array takes no other)."""
+    if not isinstance(x, np.ndarray):
+        return x
+    c = x.copy()
+    c.flags.writeable = x.flags.writeable
+    return c
+
+
+def _call(captured: tuple) -> None:
+    captured[1](*captured[2])
+
+
+def _call_all(calls: list[tuple]) -> None:
+    """One datagram's compiled calls, in turn, from Python: what a datagram's arithmetic
+    costs without the engine's Python between the calls (each call still dispatched from
+    Python; a native path would make one)."""
+    for _, kernel, args in calls:
+        kernel(*args)
+
+
+def _mean_calls(steady: list[list[tuple]]) -> float:
+    return float(np.mean([len(c) for c in steady]))
+
+
 def _workloads(calls: int):
     """(name, call(i)) from the smallest to a whole engine datagram; ``calls``: how many
     times the engine row is called in all (each call takes the next datagram)."""
@@ -89,25 +160,10 @@ def _workloads(calls: int):
     poses, data = inproc.datagrams(6, 6, (warm + calls) / 180.0 + 1.0)
     datagrams = [d for _, d in data]
 
-    # the IMM kernel's own arguments, captured from a replay (one call per datagram)
-    engine, clock = inproc.make_engine(poses)
-    captured = []
-    kernel = jit._compiled.get("_step_rows")
-
-    def record(*a):
-        captured.append(tuple(x.copy() if isinstance(x, np.ndarray) else x for x in a))
-        return kernel(*a)
-
-    if kernel is not None:
-        jit._compiled["_step_rows"] = record
-    try:
-        for t, d in data[: len(data) // 2]:
-            clock.set(t)
-            engine.handle_datagram(d)
-    finally:
-        if kernel is not None:
-            jit._compiled["_step_rows"] = kernel
-    steady = captured[len(captured) // 2:]
+    # every compiled call a datagram makes, with its own arguments, captured from a replay
+    steady = _captured_kernels(poses, data[: len(data) // 2])
+    steady = steady[len(steady) // 2:]
+    imm = [c for calls in steady for c in calls if c[0] == "_step_rows"]
 
     # one engine for the engine rows: each call takes the next datagram, at its own time
     engine, clock, feed = _engine_after(poses, data, warm)
@@ -123,8 +179,10 @@ def _workloads(calls: int):
         ("sum of 32 KB (512 lines)", lambda i: small.sum()),
         ("decode one 6x6 datagram", lambda i: decode_datagram(datagrams[i % len(datagrams)])),
     ]
-    if steady:
-        rows.append(("IMM kernel, one 6x6 wave", lambda i: kernel(*steady[i % len(steady)])))
+    if imm:
+        rows.append(("IMM kernel, one 6x6 wave", lambda i: _call(imm[i % len(imm)])))
+        rows.append((f"its kernels in turn ({_mean_calls(steady):.0f} calls)",
+                     lambda i: _call_all(steady[i % len(steady)])))
     rows.append(("engine: one 6x6 datagram", engine_datagram))
     return rows
 
