@@ -11,7 +11,9 @@ calls in the engine (the scanner, frames, association distances, the IMM step, s
 hand votes, encoding), each with the arguments it had there, captured from a replay: what a
 datagram's arithmetic costs without the engine's Python between the calls, about what a
 native per-datagram path would keep of the engine row (a little more: it still dispatches
-each call from Python, which the native path would do once).
+each call from Python, which the native path would do once). The row after it makes the
+same calls, with the same arguments, to a compiled function that does nothing: numba's
+dispatch alone.
 
 - ``b2b``: the call repeated back to back (the reference, measured in the same run);
 - ``sleep 5.5``/``sleep 33``: after ``time.sleep`` of 5.5 ms / 33 ms;
@@ -144,6 +146,22 @@ def _call_all(calls: list[tuple]) -> None:
         kernel(*args)
 
 
+def _as_no_ops(steady: list[list[tuple]]) -> list[list[tuple]]:
+    """The same calls with the same arguments to a compiled function that does nothing:
+    what numba's dispatch of them costs (typing and unboxing every argument), compiled
+    here for each kernel's argument types before it is timed."""
+    from stage.engine import jit
+
+    @jit.numba.njit
+    def no_op(*args):
+        return 0
+
+    calls = [[(name, no_op, args) for name, _, args in datagram] for datagram in steady]
+    for name, fn, args in {c[0]: c for datagram in calls for c in datagram}.values():
+        fn(*args)
+    return calls
+
+
 def _kernel_counts(steady: list[list[tuple]]) -> dict[str, float]:
     """How many calls of each kernel a datagram made, on average."""
     counts: dict[str, int] = {}
@@ -191,6 +209,8 @@ def _workloads(calls: int):
             f"{name} {n:.1f}" for name, n in kernels.items()), file=sys.stderr)
         rows.append((f"its kernels in turn ({sum(kernels.values()):.0f} calls)",
                      lambda i: _call_all(steady[i % len(steady)])))
+        dispatch = _as_no_ops(steady)
+        rows.append(("the same calls to a no-op", lambda i: _call_all(dispatch[i % len(dispatch)])))
     rows.append(("engine: one 6x6 datagram", engine_datagram))
     return rows
 
