@@ -14,10 +14,13 @@ floats shows here if it does not.
 
 ``--timetags`` stamps each bundle with its capture time (as a Unix time), as live sensor
 clients and ``bench_engine.py`` do; without it the bundles are "immediately", as in
-``bench_engine_inproc``, and the engine's per-message clock work is left out.
+``bench_engine_inproc``, and the engine's per-message clock work is left out. ``--aligned``
+sends every sensor's frame at the frame's instant (sensors in step), so each person's views
+of a frame form one instant that the fold checks for agreement (``fuser``), as live aligned
+sensors do; the simulated Kinects' errors make those views disagree, and replays follow.
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick] [--timetags]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags] [--aligned]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
@@ -50,8 +53,9 @@ EPOCH = 1.7e9
 
 
 def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: int = 0,
-              timetags: bool = False):
-    """bench_engine_inproc's input, built with one tree's simulator and encoders."""
+              timetags: bool = False, aligned: bool = False):
+    """bench_engine_inproc's input, built with one tree's simulator and encoders (``aligned``:
+    every sensor's frame at the frame's instant, as ``bench_engine_inproc.datagrams``)."""
     sim, proto = mods["sensors.sim"], mods["sensors.protocol"]
     rng = np.random.default_rng(seed)
     poses = sim.ring_poses(n_sensors, radius=4.5)
@@ -67,7 +71,7 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
                 msgs += [proto.encode_client_joints(f"s{s}", u, joints, conf),
                          proto.encode_message("/handState", f"s{s}", u, "left", "open"),
                          proto.encode_message("/handState", f"s{s}", u, "right", "closed")]
-            t = f / 30 + s / (30 * n_sensors)
+            t = f / 30 if aligned else f / 30 + s / (30 * n_sensors)
             out.append((t, proto.encode_bundle(msgs, EPOCH + t if timetags else None)))
     return poses, out
 
@@ -84,8 +88,8 @@ def engine(mods: dict, poses):
 
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
-        timetags: bool = False) -> dict:
-    poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags)
+        timetags: bool = False, aligned: bool = False) -> dict:
+    poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
     (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses)
     ta: list[float] = []
     tb: list[float] = []
@@ -117,6 +121,8 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="1 s of show per config")
     parser.add_argument("--timetags", action="store_true",
                         help="bundles stamped with their capture time, as live sensors send them")
+    parser.add_argument("--aligned", action="store_true",
+                        help="sensors in step: each frame's datagrams at one instant")
     args = parser.parse_args()
     seconds = 1.0 if args.quick else args.seconds
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,11 +131,12 @@ def main() -> int:
         b = load(args.tree_b, "stage_b", Path(tmp))
         print(f"A = {args.tree_a}, B = {args.tree_b}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
-              f"{'capture-time timetags' if args.timetags else 'no timetags'}; load {open('/proc/loadavg').read().split()[0]}")
+              f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
+              f"{'aligned' if args.aligned else 'spread'}; load {open('/proc/loadavg').read().split()[0]}")
         print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
               f"{'median B/A':>10}  final joints identical")
         for config in args.configs.split(","):
-            r = run(a, b, *map(int, config.split("x")), seconds, args.timetags)
+            r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}")
     return 0

@@ -55,7 +55,11 @@ class NullTransport:
         pass
 
 
-def datagrams(n_sensors: int, n_people: int, seconds: float, seed: int = 0):
+def datagrams(n_sensors: int, n_people: int, seconds: float, seed: int = 0,
+              aligned: bool = False):
+    """(poses, [(t, datagram)]): P people standing on a grid, each of S simulated Kinects on a
+    ring sending one bundle a frame; the sensors' frames spread over the frame period, or
+    all at the frame's instant (``aligned``: sensors in step, a burst of S datagrams)."""
     rng = np.random.default_rng(seed)
     poses = ring_poses(n_sensors, radius=4.5)
     kinects = [VirtualKinect(p, KinectModel(far=7.0), rng) for p in poses]
@@ -70,7 +74,8 @@ def datagrams(n_sensors: int, n_people: int, seconds: float, seed: int = 0):
                 msgs += [encode_client_joints(f"s{s}", u, joints, conf),
                          encode_message("/handState", f"s{s}", u, "left", "open"),
                          encode_message("/handState", f"s{s}", u, "right", "closed")]
-            out.append((f / FPS + s / (FPS * n_sensors), encode_bundle(msgs, None)))
+            t = f / FPS if aligned else f / FPS + s / (FPS * n_sensors)
+            out.append((t, encode_bundle(msgs, None)))
     return poses, out
 
 

@@ -19,6 +19,7 @@ engine thread does live: each part then also pays for what it finds cold after t
 2.4 times in bench_wakeup.py), and the table shows where that goes.
 
 Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR] [--paced]
+     [--aligned]
      (DIR: a directory holding stage/, e.g. a `git archive` of another commit)
 """
 
@@ -82,13 +83,15 @@ def main() -> None:
     parser.add_argument("--tree", help="a directory holding stage/ (default: this checkout)")
     parser.add_argument("--paced", action="store_true",
                         help="the timed datagrams at their real spacing, asleep in between")
+    parser.add_argument("--aligned", action="store_true",
+                        help="sensors in step: a frame's S datagrams at one instant (a burst)")
     opt = parser.parse_args()
     if opt.tree:
         sys.path.insert(0, str(Path(opt.tree).resolve()))
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import bench_engine_inproc as inproc
     s, p = map(int, opt.config.split("x"))
-    poses, data = inproc.datagrams(s, p, opt.seconds)
+    poses, data = inproc.datagrams(s, p, opt.seconds, aligned=opt.aligned)
     skip = len(data) // 5
 
     def replay() -> float:
@@ -118,7 +121,7 @@ def main() -> None:
     _wrap(acc, calls)
     wrapped = replay()
     n = len(data) - skip
-    print(f"{opt.config}, {opt.seconds:g} s of show, {n} datagrams timed "
+    print(f"{opt.config} {'aligned' if opt.aligned else 'spread'}, {opt.seconds:g} s of show, {n} datagrams timed "
           f"{'at their real spacing' if opt.paced else 'back to back'}; stage from "
           f"{Path(stage.__file__).parent}")
     print(f"CPU a datagram: {plain:.0f} us unwrapped (the reference), {wrapped:.0f} us wrapped")
