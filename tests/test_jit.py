@@ -223,9 +223,10 @@ def test_stage_jit_0_turns_the_kernels_off():
     assert out.startswith("False") and "STAGE_JIT=0" in out
 
 
-def _show(seed: int = 5, seconds: float = 6.0):
+def _show(seed: int = 5, seconds: float = 6.0, aligned: bool = False):
     """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
-    walk to the edge of the sensors' range (inferred and lost joints: carried joints)."""
+    walk to the edge of the sensors' range (inferred and lost joints: carried joints);
+    ``aligned``: the sensors in step, each frame's views of a person one instant."""
     from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
     from stage.sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
     rng = np.random.default_rng(seed)
@@ -248,7 +249,7 @@ def _show(seed: int = 5, seconds: float = 6.0):
                 msgs += [encode_client_joints(f"s{s}", u, joints, conf),
                          encode_message("/handState", f"s{s}", u, "left", state),
                          encode_message("/handState", f"s{s}", u, "right", "open")]
-            out.append((f / 30 + s / 90, encode_bundle(msgs, None)))
+            out.append((f / 30 + (0.0 if aligned else s / 90), encode_bundle(msgs, None)))
     return poses, out
 
 
@@ -273,16 +274,21 @@ def _run_engine(poses, data, snapshots: list) -> None:
 
 
 @needs_jit
-def test_the_engine_with_kernels_fuses_what_the_numpy_engine_fuses():
+@pytest.mark.parametrize("aligned", [False, True])
+def test_the_engine_with_kernels_fuses_what_the_numpy_engine_fuses(aligned):
     """Whole shows through two engines, kernels on and off: the same persons, the same
-    confidences, hands and filter outcomes, positions within a micrometre."""
-    poses, data = _show()
+    confidences, hands and filter outcomes, positions within a micrometre. Sensors in step
+    (``aligned``) make every frame an instant whose views are checked against each other
+    (the consistency and prior kernels), and replays when they disagree."""
+    poses, data = _show(aligned=aligned)
     on, off = [], []
     _run_engine(poses, data, on)
     with jit.disabled():
         _run_engine(poses, data, off)
     assert on[-1] == off[-1]                              # gate outcomes, replays, rejections
     assert on[-1]["joints_downweighted"] > 0
+    if aligned:
+        assert on[-1]["replays"] > 0 and on[-1]["joints_disagreeing"] > 0
     carried = 0
     for a, b in zip(on[:-1], off[:-1]):
         assert a.keys() == b.keys()
@@ -716,3 +722,46 @@ def test_recent_confidence_is_the_best_of_the_views_of_the_last_stale_seconds():
         np.testing.assert_array_equal(out[2], np.where(want > 0, np.minimum(want, 1.0), 0.0))
         checked += bool(heard)
     assert checked > 200 and len(person.recent_t) <= 16     # forgotten rows are used again
+
+
+@needs_jit
+def test_consistency_kernel_picks_the_numpy_views():
+    """``jit.consistent`` against ``fusion.consistent_views``'s numpy code on random instants:
+    2-6 views, unseen joints (NaN, inf), no prior, views that only infer a joint."""
+    from stage.engine.fusion import consistent_views
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        G, J = int(rng.integers(2, 7)), int(rng.integers(1, 26))
+        z = rng.normal(0, 0.05, (G, J, 3))
+        r = rng.uniform(1e-4, 3e-3, (G, J))
+        r[rng.random((G, J)) < 0.2] = np.nan
+        r[rng.random((G, J)) < 0.05] = np.inf
+        prior = np.full((J, 3), np.nan) if rng.random() < 0.3 else rng.normal(0, 0.05, (J, 3))
+        var = rng.uniform(1e-4, 3e-3, J)
+        tracked = rng.random((G, J)) < 0.7 if rng.random() < 0.5 else None
+        got = jit.consistent(z, r, prior, var, 0.02 ** 2, 2.5 ** 2, tracked)
+        with jit.disabled():
+            want = consistent_views(z, r, prior, var, 0.02 ** 2, 2.5 ** 2, tracked)
+        np.testing.assert_array_equal(got, want)
+
+
+@needs_jit
+def test_prior_kernel_gives_the_numpy_floats():
+    """``jit.prior`` against the numpy ``fuser.prior_of``, bit for bit, rows never measured
+    (NaN times) and times before a row's own included; on a block's rows (a strided view)."""
+    from stage.engine.fuser import prior_of
+    from stage.engine.kalman import FilterState
+    rng = np.random.default_rng(12)
+    s = KalmanSettings()
+    for _ in range(200):
+        block = _stack(rng, 75)
+        t = rng.uniform(0.0, 1.0, 75)
+        t[rng.random(75) < 0.1] = np.nan
+        state = FilterState.of_block(block, t, np.full((75, 3), np.nan),
+                                     np.full(75, np.nan)).view_rows(25, 50)
+        at = float(rng.uniform(0.8, 1.2))
+        mean, var = jit.prior(state.stacked(), state.t, at, s)
+        with jit.disabled():
+            want_mean, want_var = prior_of(state, at, s)
+        np.testing.assert_array_equal(mean, want_mean)
+        np.testing.assert_array_equal(var, want_var)

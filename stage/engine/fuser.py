@@ -36,6 +36,7 @@ import numpy as np
 
 from ..joints import INFERRED, N_JOINTS
 from ..settings import FusionSettings, KalmanSettings
+from . import jit
 from .fusion import consistent_views
 from .kalman import (DOWNWEIGHTED, REJECTED, RESTARTED, USED, FilterState, combine, mix, predict,
                      step, step_folded, transition)
@@ -157,13 +158,21 @@ class BodyFilter:
     def prior(self, t: float, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
         """The IMM prediction for ``t``: ((25, 3) mean, (25,) per-axis variance, mean of
         the three axes); NaN for joints never measured."""
-        st = self.state
-        dt = np.maximum(t - st.t, 0.0)
-        dt = np.where(np.isnan(dt), 0.0, dt)
-        x0, P0, cbar = mix(st.x, st.P, st.mu, *transition(dt, s))
-        xp, Pp = predict(x0, P0, dt, np.array([s.quiet_noise, s.fast_noise]))
-        xm, Pm = combine(xp, Pp, cbar)
-        return xm[0], Pm[0].mean(axis=1)
+        return prior_of(self.state, t, s)
+
+
+def prior_of(st: FilterState, t: float, s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    """``BodyFilter.prior`` of the state ``st``: compiled (``jit.prior``, the same floats)
+    when the kernels are used. An instant whose views disagree needs it for each person
+    (``Fuser._choose``); in numpy it was a third of the fold's time with sensors in step."""
+    if jit.ready():
+        return jit.prior(st.stacked(), st.t, t, s)
+    dt = np.maximum(t - st.t, 0.0)
+    dt = np.where(np.isnan(dt), 0.0, dt)
+    x0, P0, cbar = mix(st.x, st.P, st.mu, *transition(dt, s))
+    xp, Pp = predict(x0, P0, dt, np.array([s.quiet_noise, s.fast_noise]))
+    xm, Pm = combine(xp, Pp, cbar)
+    return xm[0], Pm[0].mean(axis=1)
 
 
 @dataclass
@@ -317,10 +326,7 @@ class Fuser:
         if len(views) == 1:
             return np.isfinite(views[0].r)[None]
         if first.prior is None:
-            saved = body.state
-            body.state = first.before
-            first.prior = body.prior(anchor, self.s)
-            body.state = saved
+            first.prior = prior_of(first.before, anchor, self.s)
         prior, var = first.prior
         z = np.array([v.joints for v in views])
         r = np.array([v.r for v in views])

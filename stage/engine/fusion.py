@@ -38,8 +38,13 @@ def consistent_views(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var:
     """
     z = np.asarray(z, dtype=float)
     r = np.asarray(r, dtype=float)
-    seen = np.isfinite(r) & (r > 0)
     G = z.shape[0]
+    if G > 1 and jit.ready():
+        try:     # the same masks (tests/test_jit.py), about a tenth of the numpy code's time
+            return jit.consistent(z, r, prior, prior_var, bias_var, chi2, tracked)
+        except TypeError:    # arrays the kernel does not take (a caller's own): numpy
+            pass
+    seen = np.isfinite(r) & (r > 0)
     if G == 1:
         return seen.copy()
     rs = np.where(seen, r, np.inf)

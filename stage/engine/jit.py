@@ -502,6 +502,131 @@ def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragm
     return total / count if count else np.nan
 
 
+def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
+    """``fuser.BodyFilter.prior``: the IMM prediction of each row of the state S (6, 2, N, 3)
+    [x pos, x vel, P pp, P pv, P vv, mu] with row times st (N,) for the time t (``kalman.mix``,
+    ``predict`` with the modes' noise q (2,) unscaled, ``combine``); writes mean (N, 3) and
+    var (N,), the position variance's mean over the three axes. The same operations in the
+    same order as the numpy code (dt NaN, a row never measured: 0, and the row stays NaN)."""
+    n = S.shape[2]
+    pp = np.empty(3)
+    for i in range(n):
+        dt = t - st[i]
+        if dt != dt:
+            dt = 0.0
+        elif dt < 0.0:
+            dt = 0.0
+        e0 = math.expm1(rates[0] * dt)
+        e1 = math.expm1(rates[1] * dt)
+        stay0 = e0 + 1.0
+        stay1 = e1 + 1.0
+        sw0 = -e0
+        sw1 = -e1
+        tt = dt * dt
+        for j in range(3):
+            mu0 = S[5, 0, i, j]
+            mu1 = S[5, 1, i, j]
+            c0 = stay0 * mu0 + sw1 * mu1
+            c1 = stay1 * mu1 + sw0 * mu0
+            d0 = S[0, 1, i, j] - S[0, 0, i, j]
+            d1 = S[1, 1, i, j] - S[1, 0, i, j]
+            d2 = S[2, 1, i, j] - S[2, 0, i, j]
+            d3 = S[3, 1, i, j] - S[3, 0, i, j]
+            d4 = S[4, 1, i, j] - S[4, 0, i, j]
+            s0 = d0 * d0
+            s1 = d0 * d1
+            s2 = d1 * d1
+            xp0 = 0.0
+            pp0 = 0.0
+            for m in range(2):
+                if m == 0:
+                    w1 = (sw1 * mu1) / c0
+                else:
+                    w1 = (stay1 * mu1) / c1
+                qd = q[m] * tt
+                x0 = S[0, 0, i, j] + w1 * d0
+                x1 = S[1, 0, i, j] + w1 * d1
+                ww = w1 * (1.0 - w1)
+                a = (S[2, 0, i, j] + w1 * d2) + ww * s0
+                b = (S[3, 0, i, j] + w1 * d3) + ww * s1
+                cc = (S[4, 0, i, j] + w1 * d4) + ww * s2
+                px = x1 * dt + x0
+                pv = (cc + 0.5 * qd) * dt + b
+                ppm = ((b + pv) * dt + a) - (0.25 * qd) * tt
+                if m == 0:
+                    xp0 = px
+                    pp0 = ppm
+                else:
+                    dx = px - xp0
+                    mean[i, j] = xp0 + c1 * dx
+                    pp[j] = (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx)
+        var[i] = ((pp[0] + pp[1]) + pp[2]) / 3.0
+
+
+def _consistent(z, r, prior, prior_var, bias_var, chi2, tracked, with_tracked,
+                used):  # pragma: no cover (compiled)
+    """``fusion.consistent_views`` (see there) for G >= 2 views: z (G, J, 3), r (G, J), prior
+    (J, 3), prior_var (J,), tracked (G, J) (read only if ``with_tracked``); writes used (G,
+    J). The same operations in the same order as the numpy code."""
+    G = z.shape[0]
+    J = z.shape[1]
+    seen = np.empty(G, dtype=np.bool_)
+    rs = np.empty(G)
+    agree = np.empty((G, G), dtype=np.bool_)
+    votes = np.empty(G)
+    support = np.empty(G)
+    for j in range(J):
+        n_seen = 0
+        for g in range(G):
+            rg = r[g, j]
+            seen[g] = (not math.isnan(rg)) and (not math.isinf(rg)) and rg > 0.0
+            rs[g] = rg if seen[g] else np.inf
+            if seen[g]:
+                n_seen += 1
+        for u in range(G):
+            for v in range(G):
+                a = z[u, j, 0] - z[v, j, 0]
+                b = z[u, j, 1] - z[v, j, 1]
+                c = z[u, j, 2] - z[v, j, 2]
+                d2 = ((a * a + b * b) + c * c) / ((rs[u] + rs[v]) + 2.0 * bias_var)
+                agree[u, v] = (d2 <= chi2) and seen[u] and seen[v]
+        top = 0.0
+        any_tracked = False
+        if with_tracked:
+            for g in range(G):
+                if seen[g] and tracked[g, j]:
+                    any_tracked = True
+        for u in range(G):
+            a = z[u, j, 0] - prior[j, 0]
+            b = z[u, j, 1] - prior[j, 1]
+            c = z[u, j, 2] - prior[j, 2]
+            dp2 = ((a * a + b * b) + c * c) / ((rs[u] + prior_var[j]) + bias_var)
+            count = 0
+            sup = 0.0
+            for v in range(G):
+                if agree[u, v]:
+                    count += 1
+                info = 1.0 / rs[v] if seen[v] else 0.0
+                sup += (1.0 if agree[u, v] else 0.0) * info
+            votes[u] = count + (0.5 if (dp2 <= chi2 and seen[u]) else 0.0)
+            support[u] = sup
+            if u == 0 or sup > top:
+                top = sup
+        top = top if top > 1e-300 else 1e-300
+        best = 0
+        for u in range(G):
+            vu = votes[u] + (0.25 * support[u]) / top
+            if with_tracked and any_tracked and seen[u] and not tracked[u, j]:
+                vu = -0.5
+            if not seen[u]:
+                vu = -1.0
+            votes[u] = vu
+            if vu > votes[best]:
+                best = u
+        for g in range(G):
+            used[g, j] = agree[best, g] or (seen[g] and n_seen == 1)
+
+
 def _gate(rows, t, points, tracked, T, X, Mk, V, owner, trusted, links, own, n, min_joints,
           agree_m, gate_m, link_s, valid, d, jumped, dmax):  # pragma: no cover (compiled)
     """``calibration.gate.JumpGate.check_many`` (see there) of k views of sensor ``own`` at
@@ -668,6 +793,10 @@ _SIGNATURES = {
                      "int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], int64[::1], "
                      "float64, float64, float64, float64, float64, float64[:, :, ::1], "
                      "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1])",
+    "_prior": "void(float64[:, :, :, :], float64[:], float64, float64[::1], float64[::1], "
+              "float64[:, ::1], float64[::1])",
+    "_consistent": "void(float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[::1], "
+                   "float64, float64, boolean[:, ::1], boolean, boolean[:, ::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
     "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
@@ -913,6 +1042,29 @@ def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
     """The compiled ``_distance``: mean distance (m), None where nothing is shared."""
     d = _compiled["_distance"](joints, conf, person_joints, velocity, known, float(dt), torso)
     return None if d != d else d
+
+
+def prior(S: np.ndarray, st: np.ndarray, t: float, s: KalmanSettings
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled ``_prior``: ((N, 3) mean, (N,) variance), as ``BodyFilter.prior``."""
+    q, rates = _flat(s)
+    n = st.shape[0]
+    mean, var = np.empty((n, 3)), np.empty(n)
+    _compiled["_prior"](S, st, float(t), q, rates, mean, var)
+    return mean, var
+
+
+def consistent(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
+               bias_var: float, chi2: float, tracked: np.ndarray | None) -> np.ndarray:
+    """The compiled ``_consistent``: (G, J) bool, as ``fusion.consistent_views`` (G >= 2)."""
+    used = np.empty(r.shape, dtype=np.bool_)
+    _compiled["_consistent"](z, r, prior, prior_var, float(bias_var), float(chi2),
+                             _NO_TRACKED if tracked is None else tracked, tracked is not None,
+                             used)
+    return used
+
+
+_NO_TRACKED = np.zeros((1, 1), dtype=np.bool_)
 
 
 def gate(rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray, T: np.ndarray,
