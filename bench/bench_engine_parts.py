@@ -45,6 +45,8 @@ PARTS = (
     ("stage.engine.kalman", None, "step_folded", "      filter step"),
     ("stage.engine.jit", None, "step_rows", "        its kernel"),
     ("stage.engine.fuser", "Fuser", "_trim", "    history trim"),
+    ("stage.engine.fuser", "Fuser", "_choose", "    instant: which views agree"),
+    ("stage.engine.fuser", "Fuser", "_replay", "    replay"),
     ("stage.engine.people", "People", "_update", "  settle"),
     ("stage.engine.people", "People", "_emit", "emit"),
     ("stage.engine.engine", "Engine", "tick", "tick"),

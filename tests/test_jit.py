@@ -765,3 +765,45 @@ def test_prior_kernel_gives_the_numpy_floats():
             want_mean, want_var = prior_of(state, at, s)
         np.testing.assert_array_equal(mean, want_mean)
         np.testing.assert_array_equal(var, want_var)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
+    """``kalman.step_views`` (a replay's views of one person, in one compiled call) against
+    ``step`` called for each view in turn, bit for bit: states, outcomes, rows used; with
+    rows that start (never measured) and restart (rejected twice) between the views, which
+    the kernel leaves to Python part way."""
+    from stage.engine.kalman import (RESTARTED, STARTED, USED, FilterState, step, step_views)
+    if compiled and not jit.ready():
+        pytest.skip(f"no compiled kernels: {jit.why_not()}")
+    rng = np.random.default_rng(13)
+    s = KalmanSettings()
+    seen: set[int] = set()
+    with (contextlib.nullcontext() if compiled else jit.disabled()):
+        for trial in range(150):
+            n = 25
+            block = _stack(rng, n)
+            t0 = rng.uniform(0.0, 0.5, n)
+            t0[rng.random(n) < 0.1] = np.nan                   # never measured: started
+            held_t = np.where(rng.random(n) < 0.2, 0.45, np.nan)
+            held_z = block[0, 0] + 2.0
+            state = FilterState.of_block(block, t0, held_z, held_t)
+            G = int(rng.integers(1, 7))
+            t = np.sort(rng.uniform(0.5, 0.6, G))
+            z = block[0, 0][None] + rng.normal(0, 0.01, (G, n, 3))
+            z[:, rng.random(n) < 0.15] += 2.0                  # rejected: held, then restarted
+            r = rng.uniform(1e-4, 1e-3, (G, n))
+            r[rng.random((G, n)) < 0.1] = np.nan
+            q_scale = rng.uniform(0.5, 2.0, n) if trial % 2 else None
+            states, outcome, used, counts = step_views(state, t, z, r, s, q_scale)
+            ref = state.shallow()
+            for g in range(G):
+                o = step(ref, np.full(n, t[g]), z[g], r[g], s, q_scale)
+                np.testing.assert_array_equal(outcome[g], o)
+                np.testing.assert_array_equal(used[g], USED[o])
+                assert counts[g, 0] == np.count_nonzero(o == RESTARTED)
+                for name in ("x", "P", "mu", "t", "held_z", "held_t"):
+                    np.testing.assert_array_equal(getattr(states[g], name), getattr(ref, name))
+                seen.update(o.tolist())
+            np.testing.assert_array_equal(state.t, t0)         # the state given is unchanged
+    assert {STARTED, RESTARTED} <= seen

@@ -38,8 +38,7 @@ from ..joints import INFERRED, N_JOINTS
 from ..settings import FusionSettings, KalmanSettings
 from . import jit
 from .fusion import consistent_views
-from .kalman import (DOWNWEIGHTED, REJECTED, RESTARTED, USED, FilterState, combine, mix, predict,
-                     step, step_folded, transition)
+from .kalman import FilterState, combine, mix, predict, step_folded, step_views, transition
 
 
 #: a view's ``used`` before it is folded in (or when it is dropped as late): no joint;
@@ -357,17 +356,26 @@ class Fuser:
             group = views[k:g]
             first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
             masks = self._choose(body, group, first, anchor)
-            for j, (v, mask) in enumerate(zip(group, masks)):
-                before = state.shallow()       # step replaces, never writes into
-                outcome = step(state, np.full(N_JOINTS, v.t), v.joints,
-                               np.where(mask, v.r, np.nan), self.s, self.q_scale)
-                self._count(outcome)
-                v.used = USED[outcome]
-                excluded = int((np.isfinite(v.r) & ~mask).sum())
-                self.stats.disagreeing += excluded - v.excluded
-                v.excluded = excluded
-                hist.append(_Step(v, before, anchor, mask, excluded == 0,
+            # the group's views stepped in turn, in one call (kalman.step_views)
+            r = np.array([v.r for v in group])
+            after, outcome, used, counts = step_views(
+                state, np.array([v.t for v in group]), np.array([v.joints for v in group]),
+                np.where(masks, r, np.nan), self.s, self.q_scale)
+            st = self.stats
+            total = counts.sum(axis=0).tolist()
+            st.restarted += total[0]
+            st.downweighted += total[2]
+            st.rejected += total[3]
+            excluded = (np.isfinite(r) & ~masks).sum(axis=1).tolist()
+            before = state
+            for j, v in enumerate(group):
+                v.used = used[j]
+                st.disagreeing += excluded[j] - v.excluded
+                v.excluded = excluded[j]
+                hist.append(_Step(v, before, anchor, masks[j], excluded[j] == 0,
                                   first.prior if j == 0 else None))
+                before = after[j]
+            state = before
             k = g
         body.state = state
         body.output = (body.newest, *state.predicted(body.newest))
@@ -390,9 +398,3 @@ class Fuser:
             cut = self._instant_start(body, cut)
         if cut:
             del hist[:cut]
-
-    def _count(self, outcome: np.ndarray) -> None:
-        counts = np.bincount(outcome, minlength=8)
-        self.stats.downweighted += int(counts[DOWNWEIGHTED])
-        self.stats.rejected += int(counts[REJECTED])
-        self.stats.restarted += int(counts[RESTARTED])

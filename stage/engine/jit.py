@@ -272,6 +272,34 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
             vel[i, j] = v
 
 
+def _step_views(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2, out,
+                out_t, out_held_z, out_held_t, outcome, used, counts, pos, vel, tg,
+                start):  # pragma: no cover (compiled)
+    """``_step_rows`` for G measurement sets of the same N rows in turn (a replay's views of one
+    person): set g at time t[g], z[g] (N, 3), r[g] (N,), from the state after set g - 1,
+    written to out[g] (6, 2, N, 3), out_t[g], out_held_z[g], out_held_t[g] and its outcome,
+    used, counts, pos and vel at [g]. Sets ``start`` ... G - 1 are stepped, the first from
+    S, st, held_z, held_t; tg (N,) is scratch. Returns G, or the first set after which a row
+    is to restart or to start (its state written as ``_step_rows`` leaves it): the caller
+    fixes that state and calls again from the set after it."""
+    G = t.shape[0]
+    for g in range(start, G):
+        for i in range(tg.shape[0]):
+            tg[i] = t[g]
+        if g == start:
+            _step_rows(S, st, held_z, held_t, tg, z[g], r[g], q, q_scale, rates, gate2, reject2,
+                       out[g], out_t[g], out_held_z[g], out_held_t[g], outcome[g], used[g],
+                       counts[g], pos[g], vel[g])
+        else:
+            _step_rows(out[g - 1], out_t[g - 1], out_held_z[g - 1], out_held_t[g - 1], tg, z[g],
+                       r[g], q, q_scale, rates, gate2, reject2, out[g], out_t[g],
+                       out_held_z[g], out_held_t[g], outcome[g], used[g], counts[g], pos[g],
+                       vel[g])
+        if counts[g, 0] != 0 or counts[g, 1] != 0:
+            return g
+    return G
+
+
 def _carry(joints, reported, tracked, offsets, parents, children, carried):  # pragma: no cover
     """``fusion.carry_untracked`` for one body (bones parents first); writes ``carried``."""
     carried[:] = False
@@ -770,6 +798,12 @@ _SIGNATURES = {
                   f"float64[:, ::1], float64[::1], float64[::1], float64[::1], float64[::1], "
                   f"float64, float64, {_F8_4}, float64[::1], float64[:, ::1], float64[::1], "
                   f"int8[::1], boolean[::1], int64[::1], float64[:, ::1], float64[:, ::1])",
+    "_step_views": f"int64({_F8_4}, float64[::1], float64[:, ::1], float64[::1], "
+                   f"float64[::1], float64[:, :, ::1], float64[:, ::1], float64[::1], "
+                   f"float64[::1], float64[::1], float64, float64, float64[:, :, :, :, ::1], "
+                   f"float64[:, ::1], float64[:, :, ::1], float64[:, ::1], int8[:, ::1], "
+                   f"boolean[:, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
+                   f"float64[::1], int64)",
     "_carry": "void(float64[:, ::1], boolean[::1], boolean[::1], float64[:, ::1], int64[::1], "
               "int64[::1], boolean[::1])",
     "_settle": "int64(float64[:, ::1], float64[:, ::1], float64[::1], float64, float64, "
@@ -952,6 +986,35 @@ def step_rows(S: np.ndarray, st: np.ndarray, held_z: np.ndarray, held_t: np.ndar
                             q, qs, rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
                             out, out_t, out_held_z, out_held_t, outcome, used, counts, pos, vel)
     return out, out_t, out_held_z, out_held_t, outcome, used, counts, pos, vel
+
+
+class Views:
+    """What ``step_views`` writes: for each of G measurement sets of N rows, the state after
+    it and its outcome, used, counts, pos and vel (the arrays of ``_step_views``)."""
+
+    __slots__ = ("block", "t", "held_z", "held_t", "outcome", "used", "counts", "pos", "vel")
+
+    def __init__(self, G: int, n: int) -> None:
+        self.block, self.t = np.empty((G, 6, 2, n, 3)), np.empty((G, n))
+        self.held_z, self.held_t = np.empty((G, n, 3)), np.empty((G, n))
+        self.outcome, self.used = np.empty((G, n), dtype=np.int8), np.empty((G, n), dtype=np.bool_)
+        self.counts = np.empty((G, 4), dtype=np.int64)
+        self.pos, self.vel = np.empty((G, n, 3)), np.empty((G, n, 3))
+
+
+def step_views(S: np.ndarray, st: np.ndarray, held_z: np.ndarray, held_t: np.ndarray,
+               t: np.ndarray, z: np.ndarray, r: np.ndarray, s: KalmanSettings,
+               q_scale: np.ndarray | None, into: Views, start: int) -> int:
+    """The compiled ``_step_views`` (see there) from set ``start`` on, into ``into``: G, or the
+    set after which rows are to restart or start. ``kalman.step_views`` is the way to
+    call it."""
+    q, rates = _flat(s)
+    qs = _EMPTY if q_scale is None else np.ascontiguousarray(q_scale, dtype=float)
+    return _compiled["_step_views"](
+        np.ascontiguousarray(S), np.ascontiguousarray(st), np.ascontiguousarray(held_z),
+        np.ascontiguousarray(held_t), t, z, r, q, qs, rates, float(s.gate_sigma ** 2),
+        float(s.reject_sigma ** 2), into.block, into.t, into.held_z, into.held_t, into.outcome,
+        into.used, into.counts, into.pos, into.vel, np.empty(len(st)), int(start))
 
 
 def settle(pos: np.ndarray, vel: np.ndarray, row_t: np.ndarray, t: float, stale: float,

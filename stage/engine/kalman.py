@@ -367,6 +367,50 @@ def step_folded(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     return outcome, predicted[0], predicted[1], used, counts
 
 
+def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
+               s: KalmanSettings, q_scale: np.ndarray | None = None
+               ) -> tuple[list[FilterState], np.ndarray, np.ndarray, np.ndarray]:
+    """``step`` of G measurement sets of the same rows in turn: set g at time t[g] (G,) with
+    z[g] (N, 3) and r[g] (N,), each from the state the one before left. Returns (the G
+    states after each set, new objects; outcome (G, N); used (G, N): ``USED[outcome]``;
+    counts (G, 4): rows to restart, to start, downweighted, rejected and held). ``state`` is
+    not changed. With the kernels, one compiled call for the sets (``jit.step_views``)
+    instead of a ``step`` each: a replay with sensors in step folds a person's views of an
+    instant again, several times a datagram; else ``step`` for each set."""
+    G = len(t)
+    if not jit.ready():
+        states, outcomes = [], []
+        for g in range(G):
+            state = state.shallow()
+            outcomes.append(step(state, np.full(state.n, t[g]), z[g], r[g], s, q_scale))
+            states.append(state)
+        outcome = np.array(outcomes, dtype=np.int8).reshape(G, -1)
+        counts = np.array([[np.count_nonzero(o == RESTARTED), 0,
+                            np.count_nonzero(o == DOWNWEIGHTED),
+                            np.count_nonzero(o == REJECTED)] for o in outcome])
+        return states, outcome, USED[outcome], counts
+    t = np.ascontiguousarray(t, dtype=float)
+    z = np.ascontiguousarray(z, dtype=float)
+    r = np.ascontiguousarray(r, dtype=float)
+    into = jit.Views(G, state.n)
+    states: list[FilterState] = []
+    start = 0
+    while start < G:
+        stop = jit.step_views(state.stacked(), state.t, state.held_z, state.held_t, t, z, r, s,
+                              q_scale, into, start)
+        for g in range(start, min(stop + 1, G)):
+            states.append(FilterState.of_block(into.block[g], into.t[g], into.held_z[g],
+                                               into.held_t[g]))
+        if stop < G:          # rows to restart or start after set ``stop``: as ``step``
+            state = states[-1]
+            with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+                _fix_rows(state, into.outcome[stop], np.full(state.n, t[stop]), z[stop],
+                          r[stop], s, into.counts[stop, 0], into.counts[stop, 1])
+            into.used[stop] = USED[into.outcome[stop]]
+        start = stop + 1
+    return states, into.outcome, into.used, into.counts
+
+
 def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
           s: KalmanSettings, q_scale: np.ndarray | None
           ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, np.ndarray | None,
