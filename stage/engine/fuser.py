@@ -238,7 +238,9 @@ class Fuser:
                     if all(np.array_equal(mask[k], m.mask) for k, m in enumerate(members)):
                         plain.append((body, view, mask[-1], anchor))
                         continue
-                self._replay(body, view)
+                    self._replay(body, view, mask)      # the instant again, with this choice
+                else:
+                    self._replay(body, view)
                 self._trim(body)
             if plain:
                 self._fold_plain(plain, len(waves) == 1 and len(plain) == len(wave))
@@ -333,8 +335,10 @@ class Fuser:
         tracked = np.array([v.conf > INFERRED for v in views])   # above the guess level
         return consistent_views(z, r, prior, var, self.f.view_bias_m ** 2, gate2, tracked)
 
-    def _replay(self, body: BodyFilter, view: View) -> None:
-        """Insert ``view`` in capture order and fold in again from the instant it joins."""
+    def _replay(self, body: BodyFilter, view: View, chosen: np.ndarray | None = None) -> None:
+        """Insert ``view`` in capture order and fold in again from the instant it joins.
+        ``chosen``: when ``view`` joins the newest instant, the (G, 25) choice ``_choose``
+        just made for its views (the same views, prior and state before: not made again)."""
         self.stats.replays += 1
         hist = body.history
         p = len(hist)
@@ -344,6 +348,8 @@ class Fuser:
         if p > 0 and view.t - hist[p - 1].anchor <= self.f.group_s:
             start = self._instant_start(body, p - 1)
         state = hist[start].before if start < len(hist) else body.state
+        # the first instant's prediction, when it starts from the same state and view as before
+        prior = hist[start].prior if start < p else None
         views = [s.view for s in hist[start:p]] + [view] + [s.view for s in hist[p:]]
         del hist[start:]
         state = state.shallow()
@@ -354,8 +360,12 @@ class Fuser:
             while g < len(views) and views[g].t - anchor <= self.f.group_s:
                 g += 1
             group = views[k:g]
-            first = _Step(group[0], state, anchor, np.isfinite(group[0].r))
-            masks = self._choose(body, group, first, anchor)
+            first = _Step(group[0], state, anchor, np.isfinite(group[0].r), True,
+                          prior if k == 0 else None)
+            if k == 0 and chosen is not None and g == len(views) == len(chosen):
+                masks = chosen
+            else:
+                masks = self._choose(body, group, first, anchor)
             # the group's views stepped in turn, in one call (kalman.step_views)
             r = np.array([v.r for v in group])
             after, outcome, used, counts = step_views(
