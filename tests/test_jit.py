@@ -795,7 +795,7 @@ def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
             r = rng.uniform(1e-4, 1e-3, (G, n))
             r[rng.random((G, n)) < 0.1] = np.nan
             q_scale = rng.uniform(0.5, 2.0, n) if trial % 2 else None
-            states, outcome, used, counts = step_views(state, t, z, r, s, q_scale)
+            states, outcome, used, counts, last = step_views(state, t, z, r, s, q_scale)
             ref = state.shallow()
             for g in range(G):
                 o = step(ref, np.full(n, t[g]), z[g], r[g], s, q_scale)
@@ -805,5 +805,8 @@ def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
                 for name in ("x", "P", "mu", "t", "held_z", "held_t"):
                     np.testing.assert_array_equal(getattr(states[g], name), getattr(ref, name))
                 seen.update(o.tolist())
+            if last is not None:                               # the kernel's estimate
+                for got, want in zip(last, ref.predicted(t[-1])):
+                    np.testing.assert_array_equal(got, want)
             np.testing.assert_array_equal(state.t, t0)         # the state given is unchanged
     assert {STARTED, RESTARTED} <= seen

@@ -235,7 +235,7 @@ class Fuser:
                         continue
                     mask = self._choose(body, [m.view for m in members] + [view], members[0],
                                         anchor)
-                    if all(np.array_equal(mask[k], m.mask) for k, m in enumerate(members)):
+                    if np.array_equal(mask[:-1], np.array([m.mask for m in members])):
                         plain.append((body, view, mask[-1], anchor))
                         continue
                     self._replay(body, view, mask)      # the instant again, with this choice
@@ -368,7 +368,7 @@ class Fuser:
                 masks = self._choose(body, group, first, anchor)
             # the group's views stepped in turn, in one call (kalman.step_views)
             r = np.array([v.r for v in group])
-            after, outcome, used, counts = step_views(
+            after, outcome, used, counts, last = step_views(
                 state, np.array([v.t for v in group]), np.array([v.joints for v in group]),
                 np.where(masks, r, np.nan), self.s, self.q_scale)
             st = self.stats
@@ -388,7 +388,8 @@ class Fuser:
             state = before
             k = g
         body.state = state
-        body.output = (body.newest, *state.predicted(body.newest))
+        # (the newest view is the last one stepped: the kernel's estimate at its time)
+        body.output = (body.newest, *(state.predicted(body.newest) if last is None else last))
 
     @staticmethod
     def _fits_before(body: BodyFilter, t: float) -> bool:

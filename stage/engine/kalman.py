@@ -369,12 +369,14 @@ def step_folded(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
 
 def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                s: KalmanSettings, q_scale: np.ndarray | None = None
-               ) -> tuple[list[FilterState], np.ndarray, np.ndarray, np.ndarray]:
+               ) -> tuple[list[FilterState], np.ndarray, np.ndarray, np.ndarray,
+                          tuple[np.ndarray, np.ndarray] | None]:
     """``step`` of G measurement sets of the same rows in turn: set g at time t[g] (G,) with
     z[g] (N, 3) and r[g] (N,), each from the state the one before left. Returns (the G
     states after each set, new objects; outcome (G, N); used (G, N): ``USED[outcome]``;
-    counts (G, 4): rows to restart, to start, downweighted, rejected and held). ``state`` is
-    not changed. With the kernels, one compiled call for the sets (``jit.step_views``)
+    counts (G, 4): rows to restart, to start, downweighted, rejected and held; the last
+    state's ``predicted(t[-1])`` as the kernel computed it, or None). ``state`` is not
+    changed. With the kernels, one compiled call for the sets (``jit.step_views``)
     instead of a ``step`` each: a replay with sensors in step folds a person's views of an
     instant again, several times a datagram; else ``step`` for each set."""
     G = len(t)
@@ -388,7 +390,7 @@ def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
         counts = np.array([[np.count_nonzero(o == RESTARTED), 0,
                             np.count_nonzero(o == DOWNWEIGHTED),
                             np.count_nonzero(o == REJECTED)] for o in outcome])
-        return states, outcome, USED[outcome], counts
+        return states, outcome, USED[outcome], counts, None
     t = np.ascontiguousarray(t, dtype=float)
     z = np.ascontiguousarray(z, dtype=float)
     r = np.ascontiguousarray(r, dtype=float)
@@ -408,7 +410,10 @@ def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
                           r[stop], s, into.counts[stop, 0], into.counts[stop, 1])
             into.used[stop] = USED[into.outcome[stop]]
         start = stop + 1
-    return states, into.outcome, into.used, into.counts
+    # (the kernel's position and velocity of a set are ``predicted`` of its state unless rows
+    # were restarted or started after it)
+    last = None if into.counts[-1, 0] or into.counts[-1, 1] else (into.pos[-1], into.vel[-1])
+    return states, into.outcome, into.used, into.counts, last
 
 
 def _step(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
