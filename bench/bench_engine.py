@@ -32,7 +32,9 @@ generator sent, and the CPU other processes used meanwhile.
 
 Run ``python bench/bench_engine.py`` (all 9 configurations, spread and aligned,
 relay and engine: 36 rows, 2 s warm-up + 10 s each), ``--quick`` (1 s + 2 s),
-``--configs 6x6,1x1``, ``--modes aligned``, ``--json``. ``--floor`` adds a third
+``--configs 6x6,1x1``, ``--modes aligned``, ``--json``. ``--kinect-errors`` feeds the
+simulator's whole Kinect model (``ERROR_KINECT``) instead of the rest pose plus noise, so
+that a person's views of an instant disagree as real sensors' do. ``--floor`` adds a third
 server per configuration, the floor: a relay that decodes every datagram and
 sends every skeleton on, re-encoded one datagram each as the engine sends a
 fused one, but fuses nothing (``relay_serve``) -- the least any Python server
@@ -98,6 +100,13 @@ NOISE_M = 0.005              # per-axis joint noise, from a pre-drawn table
 REST_KINECT = KinectModel(noise_m=0.0, noise_per_m=0.0, fit_bias_m=0.0, far=7.0,
                           surface_bias_m=0.0, swap_per_s=0.0, inferred_off_m=(0.0, 0.0))
 NOISE_FRAMES = 64
+#: --kinect-errors: the simulator's whole Kinect model instead (bench_engine_inproc's: fit
+#: and surface bias, noise growing with range, inferred joints off, limbs swapped now and
+#: then; the people observed together, so they hide each other), drawn before the run for
+#: one sway period, a seamless loop. Sensors in step then see views of an instant that
+#: disagree, which the engine checks and replays (issue 10, stop 39).
+ERROR_KINECT = KinectModel(far=7.0)
+ERROR_FRAMES = int(round(SWAY_S * FPS))
 HAND_CYCLE = (HandState.OPEN, HandState.CLOSED, HandState.LASSO)  # all pad to 8 bytes on the wire
 HAND_PERIOD_FRAMES = 60      # a hand changes state every 2 s
 BUSY_FRACTION = 0.10         # other processes above this much of a core skew a row
@@ -164,7 +173,8 @@ class SensorLoad:
     observation plus that translation turned into this sensor's axes.
     """
 
-    def __init__(self, sid: str, sensor: VirtualPose, scene: Scene, seed: int) -> None:
+    def __init__(self, sid: str, sensor: VirtualPose, scene: Scene, seed: int,
+                 errors: bool = False) -> None:
         self.id = sid
         self.scene = scene
         rng = np.random.default_rng(seed)   # this sensor's own noise only
@@ -179,6 +189,9 @@ class SensorLoad:
         self.conf = np.array(conf)                      # (P, 25) 1 tracked, 0.5 inferred, 0 not
         self.R = sensor.observe(np.eye(3)) - sensor.observe(np.zeros(3))  # stage dir -> sensor dir
         self.noise = rng.normal(0.0, NOISE_M, (NOISE_FRAMES, people, 25, 3))
+        self.frames = self.confs = None
+        if errors:
+            self.frames, self.confs = self._observed(sensor, truth, rng)
         self.hello = [encode_message("/registerDevice", sid, "kinect2-bench")] + [
             encode_message("/newUser", sid, u, *map(float, self.base[u, 0])) for u in range(people)]
         # all 25 joints on the wire, untracked ones too (conf 0), so every bundle has one layout
@@ -211,19 +224,46 @@ class SensorLoad:
         self.u8 = np.frombuffer(self.buf, dtype=np.uint8)
         starts = np.array(joint_at).reshape(people, 25)
         self.float_index = (starts[..., None] + np.arange(12)).ravel()   # x y z of each joint
+        self.conf_index = (starts[..., None] + 12 + np.arange(4)).ravel()  # and its confidence
         self.hand_at = np.array(hand_at).reshape(people, 2)
         self.hand_names = [HAND_STATE_NAMES[s].encode().ljust(8, b"\0") for s in HAND_CYCLE]
         self._hands_frame = -1
         self._check()
 
+    def _observed(self, sensor: VirtualPose, truth: list, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(ERROR_FRAMES, P, 25, 3) joints and (ERROR_FRAMES, P, 25) confidences of the whole
+        Kinect model (--kinect-errors); a person the sensor loses keeps their last joints
+        with confidence 0."""
+        kinect = VirtualKinect(sensor, ERROR_KINECT, rng)
+        people = len(truth)
+        frames = np.empty((ERROR_FRAMES, people, 25, 3))
+        confs = np.zeros((ERROR_FRAMES, people, 25))
+        last = self.base.copy()
+        for k in range(ERROR_FRAMES):
+            sway = self.scene.sway(k)
+            for u, seen in enumerate(kinect.observe_all([t + sway[u] for u, t in enumerate(truth)])):
+                if seen is not None:
+                    last[u], confs[k, u] = seen
+            frames[k] = last
+        return frames, confs
+
+    def conf_at(self, k: int) -> np.ndarray:
+        """(P, 25) the confidences of frame ``k``."""
+        return self.conf if self.confs is None else self.confs[k % ERROR_FRAMES]
+
     def positions(self, k: int) -> np.ndarray:
         """(P, 25, 3) sensor-space joints of frame ``k``."""
+        if self.frames is not None:
+            return self.frames[k % ERROR_FRAMES]
         return (self.base + (self.scene.sway(k) @ self.R)[:, None, :]
                 + self.noise[k % NOISE_FRAMES])
 
     def prepare(self, k: int) -> None:
         """Write frame ``k`` (positions and hand states) into the bundle; timetag is set at send."""
         self.u8[self.float_index] = self.positions(k).astype(">f4").view(np.uint8).ravel()
+        if self.confs is not None:
+            self.u8[self.conf_index] = self.conf_at(k).astype(">f4").view(np.uint8).ravel()
         step = k // HAND_PERIOD_FRAMES
         if step != self._hands_frame:
             self._hands_frame = step
@@ -243,7 +283,7 @@ class SensorLoad:
         expected = self.positions(7)
         if (decoded.drops or len(joints) != len(self.base)
                 or not np.allclose([m.joints for m in joints], expected, atol=1e-5)
-                or not np.allclose([m.conf for m in joints], self.conf)):
+                or not np.allclose([m.conf for m in joints], self.conf_at(7))):
             raise RuntimeError(f"bench bundle for {self.id} does not decode as intended: "
                                f"drops {decoded.drops}")
         self._hands_frame = -1
@@ -442,11 +482,13 @@ class Options:
     tree: str | None = None              # --tree: the directory src was snapshotted from
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
     trace: str | None = None             # a directory: run the traced server (stalltrace.py)
+    kinect_errors: bool = False          # the whole Kinect model (ERROR_KINECT)
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
     scene = Scene.make(people, seed=10 * people)
-    loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k)
+    loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k,
+                        errors=opt.kinect_errors)
              for k, (sid, p) in enumerate(zip(sensor_ids(sensors), sensor_poses(sensors)))]
     view = ViewSink()
     port = free_udp_port()
@@ -454,7 +496,8 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
     rig_path = os.path.join(tmp.name, "rig.yaml")
     rig = build_rig(sensors, port, view.address)
-    check_scene(loads, rig)
+    if not opt.kinect_errors:      # (the model's own errors are the point there)
+        check_scene(loads, rig)
     rig.save(rig_path)
     log_path = os.path.join(tmp.name, "server.log")
     fingerprint = source_fingerprint(opt.src)
@@ -612,7 +655,8 @@ def verdicts(rows: list[dict]) -> None:
 
 
 # ------------------------------------------------------------------ the injected clock
-def offline_config(sensors: int, people: int, seconds: float, aligned: bool) -> dict:
+def offline_config(sensors: int, people: int, seconds: float, aligned: bool,
+                   errors: bool = False) -> dict:
     """The same load fed into an in-process engine on a manual clock, datagram by datagram:
     per input skeleton, arrival -> the emission that includes it, on that clock."""
     from stage.app.offline import feed
@@ -620,7 +664,7 @@ def offline_config(sensors: int, people: int, seconds: float, aligned: bool) -> 
     from stage.engine.engine import Engine
 
     scene = Scene.make(people, seed=10 * people)
-    loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k)
+    loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k, errors=errors)
              for k, (sid, p) in enumerate(zip(sensor_ids(sensors), sensor_poses(sensors)))]
     rig = build_rig(sensors, 7770, ("127.0.0.1", 9))
     items = [(0.0, (f"10.0.0.{k}", 5000), m) for k, load in enumerate(loads) for m in load.hello]
@@ -808,7 +852,8 @@ def fmt(v: float | None, spec: str = ".2f") -> str:
 
 def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
     print(f"stage engine bench: {FPS:.0f} Hz per sensor, warm-up {opt.warmup:g} s, window "
-          f"{opt.duration:g} s, {os.cpu_count()} cores, python {sys.version.split()[0]}")
+          f"{opt.duration:g} s, {os.cpu_count()} cores, python {sys.version.split()[0]}"
+          f"{'; the whole Kinect model (--kinect-errors)' if opt.kinect_errors else ''}")
     print(f"targets: per input datagram, engine minus relay p50 < {DIFF_P50_TARGET_MS:g} ms and "
           f"p99 < {DIFF_P99_TARGET_MS:g} ms (every config); server CPU < {100 * CPU_TARGET:.0f} % "
           f"of a core at {CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
@@ -941,6 +986,9 @@ def main(argv: list[str] | None = None) -> int:
                              "heap) and keep the traces in DIR; `python bench/stalltrace.py DIR` "
                              "prints who held the engine off")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--kinect-errors", action="store_true",
+                        help="the simulator's whole Kinect model (bias, swapped limbs, inferred "
+                             "joints off): views of an instant that disagree")
     args = parser.parse_args(argv)
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     if not modes or any(m not in ("spread", "aligned") for m in modes):
@@ -980,9 +1028,9 @@ def main(argv: list[str] | None = None) -> int:
         aligned = mode == "aligned"
         engine_opt = Options(args.warmup, args.duration, aligned, args.profile,
                              server_cmd=server_cmd, src=src, wait_idle=args.wait_idle,
-                             trace=args.trace)
+                             trace=args.trace, kinect_errors=args.kinect_errors)
         relay_opt = Options(args.warmup, args.duration, aligned, None, relay=True, src=src,
-                            wait_idle=args.wait_idle)
+                            wait_idle=args.wait_idle, kinect_errors=args.kinect_errors)
         floor_opt = dataclasses.replace(relay_opt, floor=True)
         for sensors, people in args.configs:
             if not args.no_relay:
@@ -992,10 +1040,12 @@ def main(argv: list[str] | None = None) -> int:
             results.append(run(sensors, people, engine_opt))
         if not args.no_offline:
             for sensors, people in args.configs:
-                offline.append(offline_config(sensors, people, min(args.duration, 4.0), aligned))
+                offline.append(offline_config(sensors, people, min(args.duration, 4.0), aligned,
+                                              args.kinect_errors))
     verdicts(results)
     if args.json:
         print(json.dumps({"fps": FPS, "warmup_s": args.warmup, "duration_s": args.duration,
+                          "kinect_errors": args.kinect_errors,
                           "cores": os.cpu_count(),
                           "targets": {"minus_relay_p50_ms": DIFF_P50_TARGET_MS,
                                       "minus_relay_p99_ms": DIFF_P99_TARGET_MS,
@@ -1004,7 +1054,7 @@ def main(argv: list[str] | None = None) -> int:
                           "results": results, "offline": offline}, indent=2, default=_json_default))
     else:
         print_table(results, offline, Options(args.warmup, args.duration, False, None, src=src,
-                                              tree=args.tree))
+                                              tree=args.tree, kinect_errors=args.kinect_errors))
     if args.profile:
         for sensors, people in args.configs:
             print_profile(os.path.join(args.profile, f"{sensors}x{people}"))

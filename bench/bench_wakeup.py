@@ -162,6 +162,31 @@ def _as_no_ops(steady: list[list[tuple]]) -> list[list[tuple]]:
     return calls
 
 
+def _in_place_rows(imm: list[tuple]) -> list:
+    """The IMM kernel writing its new state over the old one (the kernel reads a row whole
+    before writing it, so that is safe), and the same after copying the old state into
+    one of 36 ring entries first: what keeping the state before each step for a replay
+    costs when the state is updated in place (the person bank's plan, issue 10 stop 35).
+    The wave row above writes each step into other arrays, as the engine does: one more
+    block of memory for each step while the history holds the old one."""
+    shape = imm[0][2][0].shape
+    imm = [c for c in imm if c[2][0].shape == shape]      # (the ring's entries fit these)
+    ring = [tuple(np.empty_like(x) for x in imm[0][2][:4]) for _ in range(36)]
+
+    def in_place(i):
+        _, kernel, a = imm[i % len(imm)]
+        kernel(*a[:12], a[0], a[1], a[2], a[3], *a[16:])
+
+    def ring_then_in_place(i):
+        entry = ring[i % len(ring)]
+        for dst, src in zip(entry, imm[i % len(imm)][2][:4]):
+            np.copyto(dst, src)
+        in_place(i)
+
+    return [("IMM kernel, in place", in_place),
+            ("IMM in place + ring copy", ring_then_in_place)]
+
+
 def _kernel_counts(steady: list[list[tuple]]) -> dict[str, float]:
     """How many calls of each kernel a datagram made, on average."""
     counts: dict[str, int] = {}
@@ -204,6 +229,7 @@ def _workloads(calls: int):
     ]
     if imm:
         rows.append(("IMM kernel, one 6x6 wave", lambda i: _call(imm[i % len(imm)])))
+        rows += _in_place_rows(imm)
         kernels = _kernel_counts(steady)
         print("a 6x6 datagram's compiled calls: " + ", ".join(
             f"{name} {n:.1f}" for name, n in kernels.items()), file=sys.stderr)
