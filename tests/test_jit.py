@@ -810,3 +810,20 @@ def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
                     np.testing.assert_array_equal(got, want)
             np.testing.assert_array_equal(state.t, t0)         # the state given is unchanged
     assert {STARTED, RESTARTED} <= seen
+
+
+@needs_jit
+def test_consistency_kernel_refuses_shapes_that_do_not_match():
+    """The kernel reads without bounds checks: arrays whose shapes disagree go to the numpy
+    code (which broadcasts or raises), never into the kernel."""
+    from stage.engine.fusion import consistent_views
+    z = np.zeros((3, 1, 3))
+    r = np.full((3, 1), 1e-3)
+    with pytest.raises(TypeError):
+        jit.consistent(z, r, np.zeros((25, 3)), np.ones(25), 4e-4, 6.25, None)
+    with pytest.raises(TypeError):
+        jit.consistent(z, r, np.zeros((1, 3)), np.ones(1), 4e-4, 6.25, np.ones((2, 1), bool))
+    with jit.disabled():
+        want = consistent_views(z, r, np.zeros((1, 3)), np.ones(1), 4e-4, 6.25)
+    np.testing.assert_array_equal(consistent_views(z, r, np.zeros((1, 3)), np.ones(1), 4e-4,
+                                                   6.25), want)

@@ -7,7 +7,10 @@ compiled here by numba, each the same operations in the same order as the numpy 
 replaces, which stays as reference and fallback:
 
 - ``_step_rows``: ``kalman.step``'s usual path (``imm.fused_update`` and what the step
-  keeps); rows rejected, restarted or started stay in Python;
+  keeps); rows rejected, restarted or started stay in Python; ``_step_views`` runs it for
+  a replay's views of one person in turn (``kalman.step_views``);
+- ``_prior`` and ``_consistent``: an instant's IMM prediction (``fuser.prior_of``) and
+  which of its views agree (``fusion.consistent_views``), for sensors in step;
 - ``_settle``: each updated person's output skeleton (``people.People._update``), with
   ``_carry`` (``fusion.carry_untracked``); ``_settle_many`` runs it for a batch of persons
   in one call, on the arrays of ``bank.PersonBank``;
@@ -1119,7 +1122,13 @@ def prior(S: np.ndarray, st: np.ndarray, t: float, s: KalmanSettings
 
 def consistent(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
                bias_var: float, chi2: float, tracked: np.ndarray | None) -> np.ndarray:
-    """The compiled ``_consistent``: (G, J) bool, as ``fusion.consistent_views`` (G >= 2)."""
+    """The compiled ``_consistent``: (G, J) bool, as ``fusion.consistent_views`` (G >= 2).
+    TypeError for arrays the kernel does not take, shapes that do not match included (it
+    reads without bounds checks; numpy would broadcast or raise)."""
+    G, J = r.shape if r.ndim == 2 else (-1, -1)
+    if (z.shape != (G, J, 3) or np.shape(prior) != (J, 3) or np.shape(prior_var) != (J,)
+            or (tracked is not None and np.shape(tracked) != (G, J))):
+        raise TypeError("consistent: shapes do not match")
     used = np.empty(r.shape, dtype=np.bool_)
     _compiled["_consistent"](z, r, prior, prior_var, float(bias_var), float(chi2),
                              _NO_TRACKED if tracked is None else tracked, tracked is not None,

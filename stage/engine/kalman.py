@@ -380,6 +380,9 @@ def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
     instead of a ``step`` each: a replay with sensors in step folds a person's views of an
     instant again, several times a datagram; else ``step`` for each set."""
     G = len(t)
+    if np.shape(z) != (G, state.n, 3) or np.shape(r) != (G, state.n):
+        raise ValueError(f"step_views: {G} sets of {state.n} rows, got z {np.shape(z)} and "
+                         f"r {np.shape(r)}")
     if not jit.ready():
         states, outcomes = [], []
         for g in range(G):
