@@ -170,7 +170,10 @@ def _in_place_rows(imm: list[tuple]) -> list:
     The wave row above writes each step into other arrays, as the engine does: one more
     block of memory for each step while the history holds the old one."""
     shape = imm[0][2][0].shape
-    imm = [c for c in imm if c[2][0].shape == shape]      # (the ring's entries fit these)
+    # their own copies of the captures (the ring's entries fit these): stepping in place
+    # must not change what the other rows are given
+    imm = [(name, kernel, tuple(_copy(x) for x in args)) for name, kernel, args in imm
+           if args[0].shape == shape]
     ring = [tuple(np.empty_like(x) for x in imm[0][2][:4]) for _ in range(36)]
 
     def in_place(i):

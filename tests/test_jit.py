@@ -773,7 +773,8 @@ def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
     ``step`` called for each view in turn, bit for bit: states, outcomes, rows used; with
     rows that start (never measured) and restart (rejected twice) between the views, which
     the kernel leaves to Python part way."""
-    from stage.engine.kalman import (RESTARTED, STARTED, USED, FilterState, step, step_views)
+    from stage.engine.kalman import (DOWNWEIGHTED, REJECTED, RESTARTED, STARTED, USED,
+                                     FilterState, step, step_views)
     if compiled and not jit.ready():
         pytest.skip(f"no compiled kernels: {jit.why_not()}")
     rng = np.random.default_rng(13)
@@ -801,7 +802,8 @@ def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
                 o = step(ref, np.full(n, t[g]), z[g], r[g], s, q_scale)
                 np.testing.assert_array_equal(outcome[g], o)
                 np.testing.assert_array_equal(used[g], USED[o])
-                assert counts[g, 0] == np.count_nonzero(o == RESTARTED)
+                assert counts[g].tolist() == [np.count_nonzero(o == k) for k in
+                                              (RESTARTED, STARTED, DOWNWEIGHTED, REJECTED)]
                 for name in ("x", "P", "mu", "t", "held_z", "held_t"):
                     np.testing.assert_array_equal(getattr(states[g], name), getattr(ref, name))
                 seen.update(o.tolist())

@@ -534,7 +534,7 @@ def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragm
 
 
 def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
-    """``fuser.BodyFilter.prior``: the IMM prediction of each row of the state S (6, 2, N, 3)
+    """``fuser.prior_of``: the IMM prediction of each row of the state S (6, 2, N, 3)
     [x pos, x vel, P pp, P pv, P vv, mu] with row times st (N,) for the time t (``kalman.mix``,
     ``predict`` with the modes' noise q (2,) unscaled, ``combine``); writes mean (N, 3) and
     var (N,), the position variance's mean over the three axes. The same operations in the
@@ -1112,7 +1112,7 @@ def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
 
 def prior(S: np.ndarray, st: np.ndarray, t: float, s: KalmanSettings
           ) -> tuple[np.ndarray, np.ndarray]:
-    """The compiled ``_prior``: ((N, 3) mean, (N,) variance), as ``BodyFilter.prior``."""
+    """The compiled ``_prior``: ((N, 3) mean, (N,) variance), as ``fuser.prior_of``."""
     q, rates = _flat(s)
     n = st.shape[0]
     mean, var = np.empty((n, 3)), np.empty(n)

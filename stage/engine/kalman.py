@@ -390,7 +390,7 @@ def step_views(state: FilterState, t: np.ndarray, z: np.ndarray, r: np.ndarray,
             outcomes.append(step(state, np.full(state.n, t[g]), z[g], r[g], s, q_scale))
             states.append(state)
         outcome = np.array(outcomes, dtype=np.int8).reshape(G, -1)
-        counts = np.array([[np.count_nonzero(o == RESTARTED), 0,
+        counts = np.array([[np.count_nonzero(o == RESTARTED), np.count_nonzero(o == STARTED),
                             np.count_nonzero(o == DOWNWEIGHTED),
                             np.count_nonzero(o == REJECTED)] for o in outcome])
         return states, outcome, USED[outcome], counts, None
