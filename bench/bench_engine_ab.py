@@ -12,6 +12,11 @@ person every frame. The first fifth of the datagrams (persons being found) is le
 Both trees' final fused joints are compared (``identical``): a change meant to give the same
 floats shows here if it does not.
 
+``--paced`` sleeps the datagrams' real spacing (spread: 1 / (30 x sensors)) before each
+engine's datagram, so each finds its caches cold as the live engine thread does after waiting
+(issue 10, stop 37: that doubles a datagram's CPU here); a change that saves calls at the cost
+of building arrays can win back to back and lose paced (stop 40).
+
 ``--timetags`` stamps each bundle with its capture time (as a Unix time), as live sensor
 clients and ``bench_engine.py`` do; without it the bundles are "immediately", as in
 ``bench_engine_inproc``, and the engine's per-message clock work is left out. ``--aligned``
@@ -20,7 +25,7 @@ of a frame form one instant that the fold checks for agreement (``fuser``), as l
 sensors do; the simulated Kinects' errors make those views disagree, and replays follow.
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick] [--timetags] [--aligned]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags] [--aligned] [--paced]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
@@ -88,14 +93,17 @@ def engine(mods: dict, poses):
 
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
-        timetags: bool = False, aligned: bool = False) -> dict:
+        timetags: bool = False, aligned: bool = False, paced: bool = False) -> dict:
     poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
     (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses)
     ta: list[float] = []
     tb: list[float] = []
+    gap = 1.0 / (30 * n_sensors)       # --paced: the datagrams' real spacing, spread
     for k, (t, d) in enumerate(data):
         pair = [(ea, ca, ta), (eb, cb, tb)]
         for e, c, acc in (pair if k % 2 == 0 else pair[::-1]):
+            if paced:
+                time.sleep(gap)
             c.set(t)
             c0 = time.thread_time()
             e.handle_datagram(d)
@@ -121,6 +129,9 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="1 s of show per config")
     parser.add_argument("--timetags", action="store_true",
                         help="bundles stamped with their capture time, as live sensors send them")
+    parser.add_argument("--paced", action="store_true",
+                        help="each engine's datagram after a sleep of the spread spacing "
+                             "(1 / (30 x sensors)), as live: caches cold")
     parser.add_argument("--aligned", action="store_true",
                         help="sensors in step: each frame's datagrams at one instant")
     args = parser.parse_args()
@@ -132,11 +143,12 @@ def main() -> int:
         print(f"A = {args.tree_a}, B = {args.tree_b}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
-              f"{'aligned' if args.aligned else 'spread'}; load {open('/proc/loadavg').read().split()[0]}")
+              f"{'aligned' if args.aligned else 'spread'}{'; paced' if args.paced else ''}; load {open('/proc/loadavg').read().split()[0]}")
         print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
               f"{'median B/A':>10}  final joints identical")
         for config in args.configs.split(","):
-            r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned)
+            r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
+                    args.paced)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}")
     return 0
