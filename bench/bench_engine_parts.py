@@ -62,8 +62,11 @@ PARTS = (
 def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
     import importlib
     for module, owner, name, label in PARTS:
-        mod = importlib.import_module(module)
-        obj = getattr(mod, owner) if owner else mod
+        try:
+            mod = importlib.import_module(module)
+        except ImportError:     # an older tree without this module: its parts not shown
+            continue
+        obj = getattr(mod, owner, None) if owner else mod
         fn = getattr(obj, name, None)
         if fn is None:          # an older tree without this part: not shown
             continue
