@@ -178,6 +178,9 @@ def _in_place_rows(imm: list[tuple]) -> list:
 
     def in_place(i):
         _, kernel, a = imm[i % len(imm)]
+        # ``jit._step_rows``' arguments: a[0:4] the state (S, st, held_z, held_t), a[4:12]
+        # the measurements and settings, a[12:16] where the new state goes (here: the old
+        # state's own arrays), a[16:] outcome, used, counts, pos, vel
         kernel(*a[:12], a[0], a[1], a[2], a[3], *a[16:])
 
     def ring_then_in_place(i):
