@@ -16,6 +16,7 @@ from stage.engine.kalman import (ACCEPTED, DOWNWEIGHTED, NOT_MEASURED, REJECTED,
                                  STARTED, USED, FilterState, step, step_folded)
 from stage.engine.fusion import _CHILDREN, _PARENTS, carry_untracked, carry_untracked_numpy
 from stage.settings import KalmanSettings
+from stage.testing.shows import three_dancers
 
 needs_jit = pytest.mark.skipif(not jit.ready(), reason=f"no compiled kernels: {jit.why_not()}")
 
@@ -223,36 +224,6 @@ def test_stage_jit_0_turns_the_kernels_off():
     assert out.startswith("False") and "STAGE_JIT=0" in out
 
 
-def _show(seed: int = 5, seconds: float = 6.0, aligned: bool = False):
-    """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
-    walk to the edge of the sensors' range (inferred and lost joints: carried joints);
-    ``aligned``: the sensors in step, each frame's views of a person one instant."""
-    from stage.sensors.protocol import encode_bundle, encode_client_joints, encode_message
-    from stage.sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
-    rng = np.random.default_rng(seed)
-    poses = ring_poses(3, radius=3.2)
-    kinects = [VirtualKinect(p, KinectModel(), rng) for p in poses]
-    out = []
-    for f in range(int(seconds * 30)):
-        for s, kinect in enumerate(kinects):
-            msgs = []
-            for u in range(3):
-                x = -1.2 + 1.2 * u + 1.6 * np.sin(f / 40 + u)
-                truth = standing_pose((x, 0.4 * u - 0.4), 0.05 * f * (u + 1),
-                                      1.5 * np.sin(f / 9 + u), 1.5 * np.cos(f / 11),
-                                      stride_phase=f / 5, stride_amp=0.3)
-                seen = kinect.observe(truth, user=u)
-                if seen is None:                          # out of this sensor's view
-                    continue
-                joints, conf = seen
-                state = ("open", "closed", "lasso")[int(rng.integers(3))]
-                msgs += [encode_client_joints(f"s{s}", u, joints, conf),
-                         encode_message("/handState", f"s{s}", u, "left", state),
-                         encode_message("/handState", f"s{s}", u, "right", "open")]
-            out.append((f / 30 + (0.0 if aligned else s / 90), encode_bundle(msgs, None)))
-    return poses, out
-
-
 def _run_engine(poses, data, snapshots: list) -> None:
     from stage.clock import ManualClock
     from stage.engine.engine import Engine
@@ -280,7 +251,7 @@ def test_the_engine_with_kernels_fuses_what_the_numpy_engine_fuses(aligned):
     confidences, hands and filter outcomes, positions within a micrometre. Sensors in step
     (``aligned``) make every frame an instant whose views are checked against each other
     (the consistency and prior kernels), and replays when they disagree."""
-    poses, data = _show(aligned=aligned)
+    poses, data = three_dancers(aligned=aligned)
     on, off = [], []
     _run_engine(poses, data, on)
     with jit.disabled():
@@ -421,7 +392,7 @@ def test_frames_prepared_together_fuse_what_frames_taken_one_by_one_fuse(monkeyp
     """A batch's frames computed in one call (``People.prepare_frames``) give the engine the
     very floats it computes frame by frame: the same bodies to the bit."""
     from stage.engine.people import People
-    poses, data = _show(seconds=3.0)
+    poses, data = three_dancers(seconds=3.0)
     together, alone = [], []
     calls = []
     prepare = People.prepare_frames
@@ -595,7 +566,7 @@ def test_a_person_whose_array_was_replaced_is_bound_to_the_bank_again():
     """A person whose hold offsets were replaced by an array of another dtype (no path makes
     one today) after it was bound to the person bank: its values are copied into the bank
     at the next settle, which goes on for it in the kernel."""
-    poses, data = _show(seconds=1.0)
+    poses, data = three_dancers(seconds=1.0)
     from stage.clock import ManualClock
     from stage.engine.engine import Engine
     from stage.rig import Rig, set_calibration
@@ -631,7 +602,7 @@ def test_a_person_whose_array_was_replaced_is_bound_to_the_bank_again():
 def test_a_batch_the_kernel_refuses_is_settled_by_the_numpy_code(monkeypatch):
     """Should the batch kernel refuse its arrays (TypeError), the batch is settled by the
     numpy code: the same show as an engine whose kernel never refuses."""
-    poses, data = _show(seconds=2.0)
+    poses, data = three_dancers(seconds=2.0)
     ok, refused = [], []
     _run_engine(poses, data, ok)
     calls = []

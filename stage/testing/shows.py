@@ -1,0 +1,36 @@
+"""Simulated shows as datagrams, for tests and benchmarks that replay them into an engine."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..sensors.protocol import encode_bundle, encode_client_joints, encode_message
+from ..sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
+
+
+def three_dancers(seed: int = 5, seconds: float = 6.0, aligned: bool = False):
+    """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
+    walk to the edge of the sensors' range (inferred and lost joints: carried joints);
+    ``aligned``: the sensors in step, each frame's views of a person one instant."""
+    rng = np.random.default_rng(seed)
+    poses = ring_poses(3, radius=3.2)
+    kinects = [VirtualKinect(p, KinectModel(), rng) for p in poses]
+    out = []
+    for f in range(int(seconds * 30)):
+        for s, kinect in enumerate(kinects):
+            msgs = []
+            for u in range(3):
+                x = -1.2 + 1.2 * u + 1.6 * np.sin(f / 40 + u)
+                truth = standing_pose((x, 0.4 * u - 0.4), 0.05 * f * (u + 1),
+                                      1.5 * np.sin(f / 9 + u), 1.5 * np.cos(f / 11),
+                                      stride_phase=f / 5, stride_amp=0.3)
+                seen = kinect.observe(truth, user=u)
+                if seen is None:                          # out of this sensor's view
+                    continue
+                joints, conf = seen
+                state = ("open", "closed", "lasso")[int(rng.integers(3))]
+                msgs += [encode_client_joints(f"s{s}", u, joints, conf),
+                         encode_message("/handState", f"s{s}", u, "left", state),
+                         encode_message("/handState", f"s{s}", u, "right", "open")]
+            out.append((f / 30 + (0.0 if aligned else s / 90), encode_bundle(msgs, None)))
+    return poses, out
