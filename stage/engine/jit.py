@@ -795,6 +795,76 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
     return pos
 
 
+
+def _native_fold(slots, t, z, r, conf, rows, pid, ring, ring_t, ring_hz, ring_ht, head, newest,
+                 anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, tg, outcome,
+                 used, counts, pos, vel, stale, recent_conf, recent_t, joints, velocity, pconf,
+                 known, carried, tracked, hold, centre, carry_on, hold_back, inferred, parents,
+                 children, torso, names, name_end, buf, offsets,
+                 centred):  # pragma: no cover (compiled)
+    """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons,
+    each a plain update (in capture order after the person's newest view and not within
+    ``group_s`` of its instant), folded, settled and encoded in one call.
+
+    View i is of the person in slot ``slots[i]``: captured at t[i], joints z[i] (25, 3),
+    variances r[i] (25,), confidences conf[i], remembered in row ``rows[i]`` of the
+    person's ``recent_conf``/``recent_t``, sent as user ``pid[i]``. A person's filter is a
+    ring of states (``ring`` (S, R, 6, 2, 25, 3), ``ring_t``, ``ring_hz``, ``ring_ht``),
+    ``head[s]`` its newest: a step reads entry head and writes entry head + 1, so the states
+    before each step stay where they were (a replay's history). Every step is made first;
+    if any needs what only Python does (a row to start or to restart) or a view is not
+    plain, nothing is committed and the view's index is returned as -1 - i (the heads and
+    every person's rows as they were). Else the heads move, each person is remembered,
+    settled (``_settle``, in place on its rows as ``_settle_many``) and encoded
+    (``_view_joints``) into ``buf`` at ``offsets[i]`` .. ``offsets[i + 1]``; ``centred[i]``
+    is ``_settle``'s count of torso joints known (0: the caller finds the centre). Returns
+    K. ``counts`` (K, 4) as ``_step_rows``'s, per view."""
+    K = slots.shape[0]
+    R = ring.shape[1]
+    for i in range(K):
+        s = slots[i]
+        if not (t[i] >= newest[s] and t[i] - anchor[s] > group_s):
+            return -1 - i
+        for j in range(i):
+            if slots[j] == s:
+                return -1 - i
+    for i in range(K):
+        s = slots[i]
+        a = head[s]
+        b = a + 1
+        if b == R:
+            b = 0
+        for k in range(tg.shape[0]):
+            tg[k] = t[i]
+        _step_rows(ring[s, a], ring_t[s, a], ring_hz[s, a], ring_ht[s, a], tg, z[i], r[i], q,
+                   q_scale, rates, gate2, reject2, ring[s, b], ring_t[s, b], ring_hz[s, b],
+                   ring_ht[s, b], outcome[i], used[i], counts[i], pos[i], vel[i])
+        if counts[i, 0] or counts[i, 1]:
+            return -1 - i
+    at = 0
+    offsets[0] = 0
+    for i in range(K):
+        s = slots[i]
+        b = head[s] + 1
+        if b == R:
+            b = 0
+        head[s] = b
+        newest[s] = t[i]
+        anchor[s] = t[i]
+        for k in range(conf.shape[1]):
+            recent_conf[s, rows[i], k] = conf[i, k]
+        recent_t[s, rows[i]] = t[i]
+        ts = person_t[s] if person_t[s] > t[i] else t[i]
+        person_t[s] = ts
+        centred[i] = _settle(pos[i], vel[i], ring_t[s, b], ts, stale, recent_conf[s],
+                             recent_t[s], joints[s], known[s], tracked[s], hold[s], carry_on,
+                             hold_back, inferred, parents, children, torso, joints[s],
+                             velocity[s], pconf[s], known[s], carried[s], centre[s])
+        at += _view_joints(pid[i], joints[s], pconf[s], names, name_end, buf[at:])
+        offsets[i + 1] = at
+    return K
+
+
 _F8_4 = "float64[:, :, :, ::1]"
 _SIGNATURES = {
     "_step_rows": f"void({_F8_4}, float64[::1], float64[:, ::1], float64[::1], float64[::1], "
@@ -843,6 +913,24 @@ _SIGNATURES = {
     "_view_joints": "int64(int64, float64[:, ::1], float64[::1], uint8[::1], int64[::1], "
                     "uint8[::1])",
 }
+#: the native core's kernel (``native.NativeCore``), compiled only when a core is made
+#: (``warm_native``): 6-7 s more of a first start's compilation on this VM, for engines
+#: that do not use it
+_NATIVE_SIGNATURES = {
+    "_native_fold": "int64(int64[::1], float64[::1], float64[:, :, ::1], float64[:, ::1], "
+                    "float64[:, ::1], int64[::1], int64[::1], float64[:, :, :, :, :, ::1], "
+                    "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], int64[::1], "
+                    "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
+                    "float64[::1], float64, float64, float64, float64[::1], int8[:, ::1], "
+                    "boolean[:, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
+                    "float64, float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
+                    "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
+                    "boolean[:, ::1], float64[:, :, ::1], float64[:, ::1], boolean, boolean, "
+                    "float64, int64[::1], int64[::1], int64[::1], uint8[::1], int64[::1], "
+                    "uint8[::1], int64[::1], int64[::1])",
+}
+
+
 def _scan_sig():
     """``scan``'s signature: the datagram is a read-only view of its bytes."""
     t = numba.types
@@ -868,6 +956,7 @@ _NOGIL = frozenset({"_gate"})
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
+_PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 
 
 def warm() -> bool:
@@ -900,6 +989,22 @@ def warm() -> bool:
         handbank.use_kernels(None)
         log.warning("compiled kernels unavailable (%s: %s); the engine runs its numpy code",
                     type(exc).__name__, str(exc).splitlines()[0] if str(exc) else "")
+        return False
+    return True
+
+
+def warm_native() -> bool:
+    """Compile the native core's kernel now (after ``warm``); False if it cannot be."""
+    if not warm():
+        return False
+    if "_native_fold" in _compiled:
+        return True
+    try:
+        for name, sig in _NATIVE_SIGNATURES.items():
+            _compiled[name] = globals()[name] = _njit(_PYTHON_NATIVE[name], sig, [True], False)
+    except Exception as exc:  # as in warm: logged, and the caller runs without it
+        log.warning("the native core's kernel is unavailable (%s: %s)", type(exc).__name__,
+                    str(exc).splitlines()[0] if str(exc) else "")
         return False
     return True
 
