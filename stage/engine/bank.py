@@ -79,6 +79,21 @@ class PersonBank:
         self._fill(s, person)
         return s
 
+    def unbind(self, person) -> None:
+        """Free ``person``'s slot without handing it copies: it has been bound elsewhere (the
+        native core took it, ``native.NativeCore.take``, copying its values first). Until it
+        is bound here again its attributes are not this bank's."""
+        s = person.slot
+        if s >= 0 and self.owners[s] is person:
+            self.owners[s] = None
+            self._views[s] = self._centres[s] = None
+            for name, _, _, free in _FIELDS:
+                getattr(self, name)[s] = free
+            self.centre[s] = 0.0
+            self.recent_conf[s] = 0.0
+            self.recent_t[s] = -np.inf
+        person.slot, person.bank = -1, None
+
     def centre_of(self, s: int) -> np.ndarray:
         """Slot ``s``'s row of ``centre`` (the same view object each time)."""
         return self._centres[s]

@@ -131,9 +131,17 @@ class BodyFilter:
         #: after a fold: (t, (25, 3) position, (25, 3) velocity), the estimate at the newest
         #: view's capture time, computed for a whole wave at once
         self.output: tuple[float, np.ndarray, np.ndarray] | None = None
+        #: (core, slot) while the native core holds the person (``native.NativeCore.take``):
+        #: its state and newest view are read from there, its ``history`` is what it was
+        #: when taken, and it must be given back before the Python path folds it
+        self.native: tuple | None = None
 
     @property
     def state(self) -> FilterState:
+        native = self.native
+        if native is not None:           # a copy: the core's ring is written over in turn
+            block, t, held_z, held_t = native[0].state_of(native[1])
+            return FilterState.of_block(block.copy(), t.copy(), held_z.copy(), held_t.copy())
         rows = self._rows
         if rows is not None:
             self._state = rows[0].view_rows(rows[1], rows[2])
@@ -147,6 +155,9 @@ class BodyFilter:
     @property
     def newest(self) -> float:
         """Capture time of the newest view folded in (-inf: none yet)."""
+        native = self.native
+        if native is not None:
+            return float(native[0].newest[native[1]])
         return self.history[-1].view.t if self.history else float("-inf")
 
     def estimate(self, t: float) -> tuple[np.ndarray, np.ndarray]:

@@ -796,29 +796,33 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
 
 
 
-def _native_fold(slots, t, z, r, conf, rows, pid, ring, ring_t, ring_hz, ring_ht, head, newest,
-                 anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, tg, outcome,
-                 used, counts, pos, vel, stale, recent_conf, recent_t, joints, velocity, pconf,
-                 known, carried, tracked, hold, centre, carry_on, hold_back, inferred, parents,
-                 children, torso, names, name_end, buf, offsets,
-                 centred):  # pragma: no cover (compiled)
+def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
+                 ring_z, ring_r, ring_conf, ring_used, ring_view, head, steps, newest, anchor,
+                 person_t, q, q_scale, rates, gate2, reject2, group_s, tg, outcome, counts, pos,
+                 vel, stale, recent_conf, recent_t, joints, velocity, pconf, known, carried,
+                 tracked, hold, centre, carry_on, hold_back, inferred, parents, children, torso,
+                 names, name_end, buf, offsets, centred):  # pragma: no cover (compiled)
     """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons,
     each a plain update (in capture order after the person's newest view and not within
     ``group_s`` of its instant), folded, settled and encoded in one call.
 
     View i is of the person in slot ``slots[i]``: captured at t[i], joints z[i] (25, 3),
     variances r[i] (25,), confidences conf[i], remembered in row ``rows[i]`` of the
-    person's ``recent_conf``/``recent_t``, sent as user ``pid[i]``. A person's filter is a
-    ring of states (``ring`` (S, R, 6, 2, 25, 3), ``ring_t``, ``ring_hz``, ``ring_ht``),
-    ``head[s]`` its newest: a step reads entry head and writes entry head + 1, so the states
-    before each step stay where they were (a replay's history). Every step is made first;
-    if any needs what only Python does (a row to start or to restart) or a view is not
-    plain, nothing is committed and the view's index is returned as -1 - i (the heads and
-    every person's rows as they were). Else the heads move, each person is remembered,
-    settled (``_settle``, in place on its rows as ``_settle_many``) and encoded
-    (``_view_joints``) into ``buf`` at ``offsets[i]`` .. ``offsets[i + 1]``; ``centred[i]``
-    is ``_settle``'s count of torso joints known (0: the caller finds the centre). Returns
-    K. ``counts`` (K, 4) as ``_step_rows``'s, per view."""
+    person's ``recent_conf``/``recent_t``, sent as user ``pid[i]``; its datagram arrived at
+    ``arrival[i]``, its trunk measured ``size[i]``. A person's filter is a ring of states
+    (``ring`` (S, R, 6, 2, 25, 3), ``ring_t``, ``ring_hz``, ``ring_ht``), ``head[s]`` its
+    newest: a step reads entry head and writes entry head + 1, so the states before each
+    step stay where they were, and the entry also keeps the view that made it (``ring_z``,
+    ``ring_r``, ``ring_conf``, the joints it used ``ring_used``, and ``ring_view`` (S, R, 4):
+    t, recent row, arrival, size): what a replay needs (``NativeCore.give_back``).
+    ``steps[s]`` counts the steps since the person was taken. Every step is made first; if
+    any needs what only Python does (a row to start or to restart) or a view is not plain,
+    nothing is committed and -1 - i is returned for view i (the heads and every person's
+    rows as they were; the entry after a head is scratch). Else the heads move, each person
+    is remembered, settled (``_settle``, in place on its rows as ``_settle_many``) and
+    encoded (``_view_joints``) into ``buf`` at ``offsets[i]`` .. ``offsets[i + 1]``;
+    ``centred[i]`` is ``_settle``'s count of torso joints known (0: the caller finds the
+    centre). Returns K. ``counts`` (K, 4) as ``_step_rows``'s, per view."""
     K = slots.shape[0]
     R = ring.shape[1]
     for i in range(K):
@@ -838,9 +842,18 @@ def _native_fold(slots, t, z, r, conf, rows, pid, ring, ring_t, ring_hz, ring_ht
             tg[k] = t[i]
         _step_rows(ring[s, a], ring_t[s, a], ring_hz[s, a], ring_ht[s, a], tg, z[i], r[i], q,
                    q_scale, rates, gate2, reject2, ring[s, b], ring_t[s, b], ring_hz[s, b],
-                   ring_ht[s, b], outcome[i], used[i], counts[i], pos[i], vel[i])
+                   ring_ht[s, b], outcome[i], ring_used[s, b], counts[i], pos[i], vel[i])
         if counts[i, 0] or counts[i, 1]:
             return -1 - i
+        for k in range(z.shape[1]):
+            ring_r[s, b, k] = r[i, k]
+            ring_conf[s, b, k] = conf[i, k]
+            for c in range(3):
+                ring_z[s, b, k, c] = z[i, k, c]
+        ring_view[s, b, 0] = t[i]
+        ring_view[s, b, 1] = rows[i]
+        ring_view[s, b, 2] = arrival[i]
+        ring_view[s, b, 3] = size[i]
     at = 0
     offsets[0] = 0
     for i in range(K):
@@ -849,6 +862,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, ring, ring_t, ring_hz, ring_ht
         if b == R:
             b = 0
         head[s] = b
+        steps[s] += 1
         newest[s] = t[i]
         anchor[s] = t[i]
         for k in range(conf.shape[1]):
@@ -918,11 +932,13 @@ _SIGNATURES = {
 #: that do not use it
 _NATIVE_SIGNATURES = {
     "_native_fold": "int64(int64[::1], float64[::1], float64[:, :, ::1], float64[:, ::1], "
-                    "float64[:, ::1], int64[::1], int64[::1], float64[:, :, :, :, :, ::1], "
-                    "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], int64[::1], "
-                    "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
-                    "float64[::1], float64, float64, float64, float64[::1], int8[:, ::1], "
-                    "boolean[:, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
+                    "float64[:, ::1], int64[::1], int64[::1], float64[::1], float64[::1], "
+                    "float64[:, :, :, :, :, ::1], float64[:, :, ::1], float64[:, :, :, ::1], "
+                    "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], "
+                    "float64[:, :, ::1], boolean[:, :, ::1], float64[:, :, ::1], int64[::1], "
+                    "int64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
+                    "float64[::1], float64[::1], float64, float64, float64, float64[::1], "
+                    "int8[:, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
                     "float64, float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
                     "boolean[:, ::1], float64[:, :, ::1], float64[:, ::1], boolean, boolean, "

@@ -35,14 +35,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..joints import INFERRED, N_JOINTS
+from ..joints import INFERRED, N_JOINTS, TORSO
 from ..settings import FusionSettings, KalmanSettings
 from . import jit
 from .fusion import _CHILDREN, _PARENTS
-from .people import _TORSO
 
-#: states kept per person: at 6 sensors x 30 Hz, 27 steps in ``replay_s`` (0.15 s)
-DEPTH = 48
+_TORSO = np.array(TORSO)
+
+#: states kept per person: the newest, the entry the next step writes, and DEPTH - 2 before
+#: them (at 6 sensors x 30 Hz, ``replay_s``'s 0.15 s is 27 steps)
+DEPTH = 64
 
 _FIELDS = (
     ("joints", (N_JOINTS, 3), float, 0.0),
@@ -53,6 +55,8 @@ _FIELDS = (
     ("tracked", (N_JOINTS,), bool, False),
     ("hold", (N_JOINTS, 3), float, np.nan),
 )
+#: the arrays a bound person's attributes are views of
+_BOUND = (*(f[0] for f in _FIELDS), "recent_conf", "recent_t")
 
 
 class NativeCore:
@@ -64,21 +68,31 @@ class NativeCore:
         if not jit.warm_native():
             raise RuntimeError("the native core needs the compiled kernels ("
                                f"{jit.why_not() or 'its own failed to compile: logged'})")
+        if depth < 3:
+            raise ValueError(f"a ring of {depth} states: at least 3")
         self.s, self.f = smoothing, fusion
         self.q_scale = (np.empty(0) if q_scale is None
                         else np.ascontiguousarray(q_scale, dtype=float))
         self.q, self.rates = jit._flat(smoothing)
         self.depth = depth
         self.slot_of: dict[int, int] = {}             # person id -> slot
-        self.owners: list[int | None] = []
-        #: per slot: view key -> its row of recent_conf/recent_t (Person.recent)
+        #: per slot: the person held there (None: free) and whether its attributes are
+        #: views of the slot's rows (``take(bind=True)``)
+        self.owners: list = []
+        self.bound: list[bool] = []
+        #: per slot: view key -> its row of recent_conf/recent_t (the bound person's own
+        #: ``Person.recent``, else a copy of it)
         self.recent: list[dict] = []
         self._rows = rows
         self._alloc(slots)
         self.names, self.name_end, self.longest = jit._NAMES, jit._NAME_END, jit._LONGEST
         self.declined = 0
         self.folded = 0
-        #: per view of the last accepted fold: the step's counts (K, 4), outcome, used
+        self.given_back = 0
+        #: persons given back whose history lost steps the ring no longer held (see
+        #: ``give_back``)
+        self.short_histories = 0
+        #: per view of the last accepted fold: the step's counts (K, 4) (``_step_rows``'s)
         self.counts = np.zeros((0, 4), dtype=np.int64)
         self._scratch: dict[int, tuple] = {}
         self._tg = np.empty(N_JOINTS)
@@ -90,7 +104,13 @@ class NativeCore:
         self.ring_t = np.full((n, d, N_JOINTS), np.nan)
         self.ring_hz = np.full((n, d, N_JOINTS, 3), np.nan)
         self.ring_ht = np.full((n, d, N_JOINTS), np.nan)
+        self.ring_z = np.full((n, d, N_JOINTS, 3), np.nan)
+        self.ring_r = np.full((n, d, N_JOINTS), np.nan)
+        self.ring_conf = np.zeros((n, d, N_JOINTS))
+        self.ring_used = np.zeros((n, d, N_JOINTS), dtype=bool)
+        self.ring_view = np.full((n, d, 4), np.nan)       # t, recent row, arrival, size
         self.head = np.zeros(n, dtype=np.int64)
+        self.steps = np.zeros(n, dtype=np.int64)
         self.newest = np.full(n, -np.inf)
         self.anchor = np.full(n, -np.inf)
         self.person_t = np.full(n, -np.inf)
@@ -100,18 +120,20 @@ class NativeCore:
         self.recent_conf = np.zeros((n, r, N_JOINTS))
         self.recent_t = np.full((n, r), -np.inf)
         self.owners = [None] * n
+        self.bound = [False] * n
         self.recent = [{} for _ in range(n)]
 
     def _grow(self) -> None:
-        """Twice as many slots, every held person's rows kept."""
+        """Twice as many slots, every held person's rows kept (bound persons' views made
+        again)."""
         n = len(self.owners)
         old = {name: getattr(self, name) for name in self._arrays()}
-        owners, recent = self.owners, self.recent
+        owners, bound, recent = self.owners, self.bound, self.recent
         self._alloc(2 * n)
         for name, value in old.items():
             getattr(self, name)[:n] = value
-        self.owners[:n] = owners
-        self.recent[:n] = recent
+        self.owners[:n], self.bound[:n], self.recent[:n] = owners, bound, recent
+        self._rebind()
 
     def _grow_rows(self) -> None:
         """Twice as many rows of views per person."""
@@ -119,16 +141,33 @@ class NativeCore:
         self.recent_conf = np.concatenate((self.recent_conf, np.zeros((n, r, N_JOINTS))), axis=1)
         self.recent_t = np.concatenate((self.recent_t, np.full((n, r), -np.inf)), axis=1)
         self._rows = 2 * r
+        self._rebind()
+
+    def _rebind(self) -> None:
+        for s, person in enumerate(self.owners):
+            if person is not None and self.bound[s]:
+                self._bind(s, person)
+
+    def _bind(self, s: int, person) -> None:
+        for name in _BOUND:
+            setattr(person, name, getattr(self, name)[s])
+        person.centre = self.centre[s]
 
     @staticmethod
     def _arrays() -> tuple[str, ...]:
-        return ("ring", "ring_t", "ring_hz", "ring_ht", "head", "newest", "anchor", "person_t",
+        return ("ring", "ring_t", "ring_hz", "ring_ht", "ring_z", "ring_r", "ring_conf",
+                "ring_used", "ring_view", "head", "steps", "newest", "anchor", "person_t",
                 *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t")
 
-    def take(self, person) -> int:
+    def take(self, person, bind: bool = False) -> int:
         """Take ``person`` (a ``tracking.Person`` the Python path has folded, with a centre)
         into a slot, as it is now: its filter's state, newest view and instant, its output
-        rows and its views' recent confidences (copies). Returns the slot."""
+        rows and its views' recent confidences (copies). Returns the slot.
+
+        ``bind``: the engine's own persons. The person's output attributes become views of
+        the slot's rows (as ``bank.PersonBank`` binds them), its ``recent`` dict is the
+        core's, and its filter reads its state from here (``fuser.BodyFilter``), until
+        ``give_back``. Else (a shadow beside an engine) the person is left as it is."""
         s = self.slot_of.get(person.id)
         if s is None:
             try:
@@ -137,17 +176,20 @@ class NativeCore:
                 s = len(self.owners)
                 self._grow()
             self.slot_of[person.id] = s
-            self.owners[s] = person.id
-        st = person.filter.state
+        self.owners[s] = person
+        self.bound[s] = bind
+        body = person.filter
+        st = body.state
         while len(person.recent_t) > self.recent_t.shape[1]:
             self._grow_rows()
         self.head[s] = 0
+        self.steps[s] = 0
         self.ring[s, 0] = st.stacked()
         self.ring_t[s, 0] = st.t
         self.ring_hz[s, 0] = st.held_z
         self.ring_ht[s, 0] = st.held_t
-        hist = person.filter.history
-        self.newest[s] = person.filter.newest
+        hist = body.history
+        self.newest[s] = body.newest
         self.anchor[s] = hist[-1].anchor if hist else -np.inf
         self.person_t[s] = person.t
         for name, *_ in _FIELDS:
@@ -158,19 +200,81 @@ class NativeCore:
         n = len(person.recent_t)
         self.recent_conf[s, :n] = person.recent_conf
         self.recent_t[s, :n] = person.recent_t
-        self.recent[s] = dict(person.recent)
+        if bind:
+            self.recent[s] = person.recent
+            self._bind(s, person)
+            body.native = (self, s)
+        else:
+            self.recent[s] = dict(person.recent)
         return s
 
+    def give_back(self, person) -> None:
+        """A bound person back to the Python path, as if that path had folded every view the
+        core did (``fuser`` then trims its history as it would have): its filter's state and
+        history -- the steps since ``take``, each with its view and the state before it,
+        after the history it had then -- and its output rows as arrays of its own. A person
+        with more steps than the ring holds gets the steps it still holds (``DEPTH`` - 2
+        of them; counted in ``short_histories`` when those do not reach back ``replay_s``)."""
+        from .fuser import View, _Step   # (fuser imports nothing of this module)
+        from .kalman import FilterState
+        s = self.slot_of[person.id]
+        body = person.filter
+        d, h, n = self.depth, int(self.head[s]), int(self.steps[s])
+        keep = min(n, d - 2)
+        steps = []
+        if keep:
+            key_of = {row: key for key, row in person.recent.items()}
+            for back in range(keep - 1, -1, -1):
+                e = (h - back) % d
+                b = (e - 1) % d
+                t, row, arrival, size = self.ring_view[s, e].tolist()
+                view = View(key_of.get(int(row), ("?", -1)), t, self.ring_z[s, e].copy(),
+                            self.ring_conf[s, e].copy(), self.ring_r[s, e].copy(), arrival,
+                            self.ring_used[s, e].copy(), 0, size)
+                before = FilterState.of_block(self.ring[s, b].copy(), self.ring_t[s, b].copy(),
+                                              self.ring_hz[s, b].copy(),
+                                              self.ring_ht[s, b].copy())
+                steps.append(_Step(view, before, t, None))
+        if keep < n:
+            if steps and steps[0].anchor >= self.newest[s] - self.f.replay_s:
+                self.short_histories += 1
+            history = steps
+        else:
+            history = body.history + steps
+        self.given_back += 1
+        body.native = None
+        body.history = history
+        body.state = FilterState.of_block(self.ring[s, h].copy(), self.ring_t[s, h].copy(),
+                                          self.ring_hz[s, h].copy(), self.ring_ht[s, h].copy())
+        self.release(person.id)
+
     def release(self, pid: int) -> None:
-        """Forget the person ``pid`` (its slot is free for another)."""
+        """Forget the person ``pid`` (its slot is free for another); a bound person keeps
+        copies of its rows and reads its filter from them."""
         s = self.slot_of.pop(pid, None)
-        if s is not None:
-            self.owners[s] = None
-            self.recent[s] = {}
+        if s is None:
+            return
+        person = self.owners[s]
+        if person is not None and self.bound[s]:
+            for name in _BOUND:
+                setattr(person, name, getattr(self, name)[s].copy())
+            person.centre = self.centre[s].copy()
+            if person.filter.native is not None:
+                h = int(self.head[s])
+                from .kalman import FilterState
+                person.filter.native = None
+                person.filter.state = FilterState.of_block(
+                    self.ring[s, h].copy(), self.ring_t[s, h].copy(), self.ring_hz[s, h].copy(),
+                    self.ring_ht[s, h].copy())
+        self.owners[s] = None
+        self.bound[s] = False
+        self.recent[s] = {}
 
     def state(self, pid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The person's filter state now: ((6, 2, 25, 3) block, t, held_z, held_t), views."""
-        s = self.slot_of[pid]
+        return self.state_of(self.slot_of[pid])
+
+    def state_of(self, s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         h = self.head[s]
         return self.ring[s, h], self.ring_t[s, h], self.ring_hz[s, h], self.ring_ht[s, h]
 
@@ -179,16 +283,18 @@ class NativeCore:
         b = self._scratch.get(k)
         if b is None:
             b = self._scratch[k] = (
-                np.empty((k, N_JOINTS), dtype=np.int8), np.empty((k, N_JOINTS), dtype=np.bool_),
-                np.empty((k, 4), dtype=np.int64), np.empty((k, N_JOINTS, 3)),
-                np.empty((k, N_JOINTS, 3)), np.empty(k * self.longest, dtype=np.uint8),
-                np.empty(k + 1, dtype=np.int64), np.empty(k, dtype=np.int64))
+                np.empty((k, N_JOINTS), dtype=np.int8), np.empty((k, 4), dtype=np.int64),
+                np.empty((k, N_JOINTS, 3)), np.empty((k, N_JOINTS, 3)),
+                np.empty(k * self.longest, dtype=np.uint8), np.empty(k + 1, dtype=np.int64),
+                np.empty(k, dtype=np.int64))
         return b
 
     def fold(self, pids: list[int], keys: list[tuple[str, int]], t: np.ndarray, z: np.ndarray,
-             r: np.ndarray, conf: np.ndarray) -> list[bytes] | None:
+             r: np.ndarray, conf: np.ndarray, arrival: np.ndarray | None = None,
+             size: np.ndarray | None = None) -> list[bytes] | None:
         """Fold K views (view i of person ``pids[i]``, from view ``keys[i]``, captured at
-        t[i], joints z (K, 25, 3), variances r (K, 25), confidences conf (K, 25); C-ordered
+        t[i], joints z (K, 25, 3), variances r (K, 25), confidences conf (K, 25); its
+        datagram's ``arrival`` and its trunk ``size`` (K,), kept for a replay; C-ordered
         float64) in; returns each person's encoded ``/jointCoordinates``, or None if the
         core declines the datagram (nothing changed: see the module docstring)."""
         k = len(pids)
@@ -203,22 +309,29 @@ class NativeCore:
                 return None
             slots[i] = s
             rows[i] = row
-        outcome, used, counts, pos, vel, buf, offsets, centred = self._buffers(k)
+        if arrival is None:
+            arrival = np.full(k, np.nan)
+        if size is None:
+            size = np.full(k, np.nan)
+        outcome, counts, pos, vel, buf, offsets, centred = self._buffers(k)
         s, f = self.s, self.f
         done = jit._compiled["_native_fold"](
-            slots, t, z, r, conf, rows, np.asarray(pids, dtype=np.int64), self.ring,
-            self.ring_t, self.ring_hz, self.ring_ht, self.head, self.newest, self.anchor,
-            self.person_t, self.q, self.q_scale, self.rates, float(s.gate_sigma ** 2),
-            float(s.reject_sigma ** 2), float(f.group_s), self._tg, outcome, used, counts, pos,
-            vel, float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
-            self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
-            bool(f.carry_untracked), bool(f.hold_back_inferred), float(INFERRED), _PARENTS,
-            _CHILDREN, _TORSO, self.names, self.name_end, buf, offsets, centred)
+            slots, t, z, r, conf, rows, np.asarray(pids, dtype=np.int64), arrival, size,
+            self.ring, self.ring_t, self.ring_hz, self.ring_ht, self.ring_z, self.ring_r,
+            self.ring_conf, self.ring_used, self.ring_view, self.head, self.steps, self.newest,
+            self.anchor, self.person_t, self.q, self.q_scale, self.rates,
+            float(s.gate_sigma ** 2), float(s.reject_sigma ** 2), float(f.group_s), self._tg,
+            outcome, counts, pos, vel, float(f.stale_s), self.recent_conf, self.recent_t,
+            self.joints, self.velocity, self.conf, self.known, self.carried, self.tracked,
+            self.hold, self.centre, bool(f.carry_untracked), bool(f.hold_back_inferred),
+            float(INFERRED), _PARENTS, _CHILDREN, _TORSO, self.names, self.name_end, buf,
+            offsets, centred)
         if done < 0:
             self.declined += 1
             return None
         self.folded += 1
         self.counts = counts
+        self.slots = slots
         out = []
         for i in range(k):
             if not centred[i]:

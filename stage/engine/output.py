@@ -245,8 +245,10 @@ class ViewOutput:
             self.broadcast(encode_view_new_user(pid, centre))
 
     def joints(self, pid: int, joints: np.ndarray, conf: np.ndarray,
-               targets: list[tuple[str, int]] | None = None) -> None:
-        """To every view that takes every update (default), or to ``targets``."""
+               targets: list[tuple[str, int]] | None = None,
+               encoded: bytes | None = None) -> None:
+        """To every view that takes every update (default), or to ``targets``. ``encoded``:
+        the message already encoded from these joints (the native core's), not again."""
         if targets is not None:
             data = _encode_joints(pid, joints, conf)
             for view in targets:
@@ -254,10 +256,10 @@ class ViewOutput:
             return
         if not self.views or self.transport is None:
             return
+        data = encoded if encoded is not None else _encode_joints(pid, joints, conf)
         if not self.rates and not self.forecasts:
-            self.broadcast(_encode_joints(pid, joints, conf))
+            self.broadcast(data)
             return
-        data = _encode_joints(pid, joints, conf)
         for view in self.views:
             if view not in self.rates and view not in self.forecasts:
                 self.send(data, view)

@@ -35,6 +35,7 @@ from . import jit
 from .fusion import (_CHILDREN, _LOOK, _PARENTS, _TRADED, ARM_TRADED, SWAP_MARGIN_M,
                      apply_transform, carry_untracked, torso_centre, unswap_limbs)
 from .kalman import KalmanSettings, measurement_variance
+from .native import NativeCore
 from .output import ViewOutput
 from .tracking import Person, Track, Tracker
 
@@ -48,6 +49,10 @@ _NO_R = np.full(25, np.nan)
 _NEVER = float("-inf")
 #: smoothing off: a filter so loose that every joint is its latest measurement
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
+#: a person the Python path folded this many datagrams in a row by the plain path is taken
+#: by the native core (``fusion.native``); a person whose views keep joining instants
+#: (sensors in step) stays with the Python path, which checks them against each other
+TAKE_AFTER = 3
 
 
 def _by_person(entry: tuple[Person, View]) -> int:
@@ -69,6 +74,19 @@ class People:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
         self.fuser = Fuser(smoothing, rig.fusion)
+        #: ``fusion.native``: the core that folds a datagram's usual views in one compiled
+        #: call (``native``), the persons it holds bound to it; None: the Python path alone
+        self.core: NativeCore | None = None
+        if rig.fusion.native:
+            try:
+                self.core = NativeCore(smoothing, rig.fusion, self.fuser.q_scale)
+            except RuntimeError as exc:
+                log.warning("fusion: native is on but %s; the Python path folds every "
+                            "datagram", exc)
+        #: person id -> its skeleton as the core encoded it in this batch
+        self._encoded: dict[int, bytes] = {}
+        #: person id -> datagrams in a row the Python path folded it by the plain path
+        self._plain_run: dict[int, int] = {}
         #: bodies predicted ahead of their capture time (docs/anticipation.md): the
         #: horizons listeners asked for (horizon -> how many asked), and the views'
         self.forecaster = Forecaster(smoothing, rig.forecast)
@@ -215,6 +233,14 @@ class People:
 
     def _fold(self) -> None:
         views, self._views = self._views, []
+        core = self.core
+        if core is not None:
+            if self._fold_native(core, views):
+                return
+            for p, _, _ in views:            # the Python path folds them: given back first
+                if p.filter.native is not None:
+                    core.give_back(p)
+                    self.fuser._trim(p.filter)
         live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
         missing = [(v, where) for _, v, where in views if v.r is _NO_R]
         if missing:
@@ -243,6 +269,61 @@ class People:
         if touched:
             self._update(list(touched.values()))
             self.counts["fused_frames"] += len(touched)
+        if core is not None:
+            self._take_steady(core, ordered, late)
+
+    def _fold_native(self, core: NativeCore, views: list) -> bool:
+        """The batch's views folded, settled and encoded by the native core, if it holds
+        every person of them and takes them (``NativeCore.fold``); False, with nothing
+        done, else. What the Python path records of a fold is recorded the same."""
+        persons = self.persons
+        for p, v, _ in views:
+            if p.filter.native is None or persons.get(p.id) is not p or v.r is _NO_R:
+                return False
+        pids = [p.id for p, _, _ in views]
+        out = core.fold(pids, [v.key for _, v, _ in views], np.array([v.t for _, v, _ in views]),
+                        np.array([v.joints for _, v, _ in views]),
+                        np.array([v.r for _, v, _ in views]),
+                        np.array([v.conf for _, v, _ in views]),
+                        np.array([v.arrival for _, v, _ in views]),
+                        np.array([np.nan if v.size is None else v.size for _, v, _ in views]))
+        if out is None:
+            return False
+        st = self.fuser.stats
+        st.views += len(views)
+        counts = core.counts.sum(axis=0).tolist()
+        st.downweighted += counts[2]
+        st.rejected += counts[3]
+        self.fuser.plain_wave = None
+        person_t = core.person_t[core.slots].tolist()
+        dirty, encoded = self._dirty, self._encoded
+        for (p, v, _), data, t in zip(views, out, person_t):
+            p.t = t
+            if v.size is None:
+                p.measure_size(v.joints, v.conf)
+            elif v.size == v.size:                            # (NaN: not measurable)
+                p.add_size(v.size)
+            dirty.setdefault(p.id, []).append(v.arrival)
+            encoded[p.id] = data
+        self.counts["fused_frames"] += len(views)
+        return True
+
+    def _take_steady(self, core: NativeCore, ordered: list, late: set) -> None:
+        """Persons the Python path has folded ``TAKE_AFTER`` datagrams in a row by its plain
+        path (a view that began its own instant) are taken by the native core."""
+        runs, persons = self._plain_run, self.persons
+        for person, view in ordered:
+            pid = person.id
+            hist = person.filter.history
+            if (id(view) in late or not hist or hist[-1].view is not view
+                    or hist[-1].anchor != view.t or hist[-1]._mask is not None):
+                runs[pid] = 0
+                continue
+            n = runs[pid] = runs.get(pid, 0) + 1
+            if (n >= TAKE_AFTER and person.centre is not None and person.tracks
+                    and persons.get(pid) is person and person.filter.native is None):
+                core.take(person, bind=True)      # (copies the bank's rows first)
+                self.bank.unbind(person)
 
     def _variances(self, views: list[tuple[View, np.ndarray]]) -> None:
         """Each joint's variance from its confidence and its distance from the sensor (whose
@@ -412,7 +493,8 @@ class People:
                 log.info("person %d found (seen by %s)", pid, ", ".join(person.sensors()))
                 self.output.new_user(pid, person.centre)
             if person.tracks:
-                self.output.joints(pid, person.joints, person.conf)
+                self.output.joints(pid, person.joints, person.conf,
+                                   encoded=self._encoded.get(pid))
                 for horizon, targets in self.output.forecast_targets().items():
                     self.output.joints(pid, self.forecast(person, horizon).joints, person.conf,
                                        targets)
@@ -437,6 +519,8 @@ class People:
             self.output.lost_user(pid)
         self._dirty, self._lost = {}, []
         self._hands_dirty.clear()
+        if self._encoded:
+            self._encoded.clear()
         if self.listeners and (updated or lost):
             forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
             self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
@@ -464,6 +548,13 @@ class People:
         """Merging and expiry of persons, then what is due to views."""
         self.tracker.merge_close(now)
         self._lost.extend(self.tracker.expire(now))
+        core = self.core
+        if core is not None:                 # persons gone: their slots free, their runs ended
+            persons = self.persons
+            for pid in [pid for pid in core.slot_of if pid not in persons]:
+                core.release(pid)
+            if len(self._plain_run) > len(persons):
+                self._plain_run = {k: n for k, n in self._plain_run.items() if k in persons}
         self._emit()
         self.serve_fixed_rate(now)
 

@@ -8,10 +8,17 @@ from ..sensors.protocol import encode_bundle, encode_client_joints, encode_messa
 from ..sensors.sim import KinectModel, VirtualKinect, ring_poses, standing_pose
 
 
-def three_dancers(seed: int = 5, seconds: float = 6.0, aligned: bool = False):
+#: a Unix time for bundles' timetags: show time 0
+EPOCH = 1.7e9
+
+
+def three_dancers(seed: int = 5, seconds: float = 6.0, aligned: bool = False,
+                  timetags: bool = False):
     """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
     walk to the edge of the sensors' range (inferred and lost joints: carried joints);
-    ``aligned``: the sensors in step, each frame's views of a person one instant."""
+    ``aligned``: the sensors in step, each frame's views of a person one instant;
+    ``timetags``: each bundle stamped with its capture time (``EPOCH`` + show time), so that
+    a datagram that arrives late is placed where it was captured."""
     rng = np.random.default_rng(seed)
     poses = ring_poses(3, radius=3.2)
     kinects = [VirtualKinect(p, KinectModel(), rng) for p in poses]
@@ -32,5 +39,6 @@ def three_dancers(seed: int = 5, seconds: float = 6.0, aligned: bool = False):
                 msgs += [encode_client_joints(f"s{s}", u, joints, conf),
                          encode_message("/handState", f"s{s}", u, "left", state),
                          encode_message("/handState", f"s{s}", u, "right", "open")]
-            out.append((f / 30 + (0.0 if aligned else s / 90), encode_bundle(msgs, None)))
+            t = f / 30 + (0.0 if aligned else s / 90)
+            out.append((t, encode_bundle(msgs, EPOCH + t if timetags else None)))
     return poses, out
