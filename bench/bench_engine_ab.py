@@ -9,8 +9,11 @@ the figure is the median over datagrams of B's CPU / A's CPU (``time.thread_time
 ``bench_engine_inproc``'s: P people, each seen by S simulated Kinects, every sensor every
 person every frame. The first fifth of the datagrams (persons being found) is left out.
 
-Both trees' final fused joints are compared (``identical``): a change meant to give the same
-floats shows here if it does not.
+Both trees' final fused joints are compared (``identical``), and a digest of every datagram
+each engine sent (``sent identical``): a change meant to give the same floats and bytes
+shows here if it does not. ``--native-b`` turns ``fusion.native`` on in B's rig (the native
+core, ``stage.engine.native``): with the same tree as A and B, it measures the core against
+the Python path.
 
 ``--paced`` sleeps the datagrams' real spacing (spread: 1 / (30 x sensors)) before each
 engine's datagram, so each finds its caches cold as the live engine thread does after waiting
@@ -25,12 +28,14 @@ of a frame form one instant that the fold checks for agreement (``fuser``), as l
 sensors do; the simulated Kinects' errors make those views disagree, and replays follow.
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick] [--timetags] [--aligned] [--paced]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags] [--aligned] [--paced] [--native-b]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import importlib
 import shutil
 import sys
@@ -41,9 +46,16 @@ from pathlib import Path
 import numpy as np
 
 
-class NullTransport:
+class HashTransport:
+    """Sends nothing; keeps a digest of every datagram it was given, in order."""
+
+    def __init__(self) -> None:
+        self.digest = hashlib.blake2b(digest_size=16)
+        self.count = 0
+
     def send(self, data: bytes, address: tuple[str, int]) -> None:
-        pass
+        self.digest.update(data)
+        self.count += 1
 
 
 def load(tree: str, name: str, root: Path) -> dict:
@@ -81,21 +93,24 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
     return poses, out
 
 
-def engine(mods: dict, poses):
+def engine(mods: dict, poses, native: bool = False):
     rig_mod = mods["rig"]
     rig = rig_mod.Rig(reference="s0", views=[("127.0.0.1", 9)])
+    if native:
+        rig.fusion = dataclasses.replace(rig.fusion, native=True)
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):
         rig_mod.set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
     clock = mods["clock"].ManualClock(0.0)
-    return mods["engine.engine"].Engine(rig, clock, NullTransport()), clock
+    return mods["engine.engine"].Engine(rig, clock, HashTransport()), clock
 
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
-        timetags: bool = False, aligned: bool = False, paced: bool = False) -> dict:
+        timetags: bool = False, aligned: bool = False, paced: bool = False,
+        native_b: bool = False) -> dict:
     poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
-    (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses)
+    (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses, native_b)
     ta: list[float] = []
     tb: list[float] = []
     gap = 1.0 / (30 * n_sensors)       # --paced: the datagrams' real spacing, spread
@@ -117,7 +132,9 @@ def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
     return {"config": f"{n_sensors}x{n_people}", "datagrams": len(us_a),
             "a_p50": float(np.percentile(us_a, 50)), "a_p90": float(np.percentile(us_a, 90)),
             "b_p50": float(np.percentile(us_b, 50)), "b_p90": float(np.percentile(us_b, 90)),
-            "ratio": float(np.median(us_b / us_a)), "identical": same}
+            "ratio": float(np.median(us_b / us_a)), "identical": same,
+            "sent_same": (ea.output.transport.digest.digest() == eb.output.transport.digest.digest()
+                          and ea.output.transport.count == eb.output.transport.count)}
 
 
 def main() -> int:
@@ -134,23 +151,26 @@ def main() -> int:
                              "(1 / (30 x sensors)), as live: caches cold")
     parser.add_argument("--aligned", action="store_true",
                         help="sensors in step: each frame's datagrams at one instant")
+    parser.add_argument("--native-b", action="store_true",
+                        help="B's rig with fusion.native on (A and B may be the same tree)")
     args = parser.parse_args()
     seconds = 1.0 if args.quick else args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
         a = load(args.tree_a, "stage_a", Path(tmp))
         b = load(args.tree_b, "stage_b", Path(tmp))
-        print(f"A = {args.tree_a}, B = {args.tree_b}; CPU per datagram (thread_time), us; "
+        print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
               f"{'aligned' if args.aligned else 'spread'}{'; paced' if args.paced else ''}; load {open('/proc/loadavg').read().split()[0]}")
         print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
-              f"{'median B/A':>10}  final joints identical")
+              f"{'median B/A':>10}  final joints identical, every datagram sent identical")
         for config in args.configs.split(","):
             r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
-                    args.paced)
+                    args.paced, args.native_b)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
-                  f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}")
+                  f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}, "
+                  f"{r['sent_same']}", flush=True)
     return 0
 
 

@@ -99,6 +99,7 @@ class NativeCore:
 
     # ------------------------------------------------------------ slots
     def _alloc(self, n: int) -> None:
+        self._args = None
         d, r = self.depth, self._rows
         self.ring = np.full((n, d, 6, 2, N_JOINTS, 3), np.nan)
         self.ring_t = np.full((n, d, N_JOINTS), np.nan)
@@ -141,6 +142,7 @@ class NativeCore:
         self.recent_conf = np.concatenate((self.recent_conf, np.zeros((n, r, N_JOINTS))), axis=1)
         self.recent_t = np.concatenate((self.recent_t, np.full((n, r), -np.inf)), axis=1)
         self._rows = 2 * r
+        self._args = None
         self._rebind()
 
     def _rebind(self) -> None:
@@ -299,45 +301,57 @@ class NativeCore:
         core declines the datagram (nothing changed: see the module docstring)."""
         k = len(pids)
         slot_of, recent = self.slot_of, self.recent
-        slots = np.empty(k, dtype=np.int64)
-        rows = np.empty(k, dtype=np.int64)
-        for i in range(k):
-            s = slot_of.get(pids[i])
-            row = None if s is None else recent[s].get(keys[i])
+        slots, rows = [], []
+        for pid, key in zip(pids, keys):
+            s = slot_of.get(pid)
+            row = None if s is None else recent[s].get(key)
             if row is None:
                 self.declined += 1
                 return None
-            slots[i] = s
-            rows[i] = row
+            slots.append(s)
+            rows.append(row)
         if arrival is None:
             arrival = np.full(k, np.nan)
         if size is None:
             size = np.full(k, np.nan)
         outcome, counts, pos, vel, buf, offsets, centred = self._buffers(k)
-        s, f = self.s, self.f
+        args = self._args
+        if args is None:
+            args = self._args = self._arguments()
+        slots_a = np.array(slots, dtype=np.int64)
         done = jit._compiled["_native_fold"](
-            slots, t, z, r, conf, rows, np.asarray(pids, dtype=np.int64), arrival, size,
-            self.ring, self.ring_t, self.ring_hz, self.ring_ht, self.ring_z, self.ring_r,
-            self.ring_conf, self.ring_used, self.ring_view, self.head, self.steps, self.newest,
-            self.anchor, self.person_t, self.q, self.q_scale, self.rates,
-            float(s.gate_sigma ** 2), float(s.reject_sigma ** 2), float(f.group_s), self._tg,
-            outcome, counts, pos, vel, float(f.stale_s), self.recent_conf, self.recent_t,
-            self.joints, self.velocity, self.conf, self.known, self.carried, self.tracked,
-            self.hold, self.centre, bool(f.carry_untracked), bool(f.hold_back_inferred),
-            float(INFERRED), _PARENTS, _CHILDREN, _TORSO, self.names, self.name_end, buf,
-            offsets, centred)
+            slots_a, t, z, r, conf, np.array(rows, dtype=np.int64),
+            np.array(pids, dtype=np.int64), arrival, size, *args[0], outcome, counts, pos, vel,
+            *args[1], buf, offsets, centred)
         if done < 0:
             self.declined += 1
             return None
         self.folded += 1
         self.counts = counts
-        self.slots = slots
-        out = []
-        for i in range(k):
-            if not centred[i]:
-                self._centre_otherwise(slots[i])
-            out.append(buf[offsets[i]:offsets[i + 1]].tobytes())
+        self.slots = slots_a
+        ends = offsets.tolist()
+        data = buf[:ends[k]].tobytes()
+        out = [data[ends[i]:ends[i + 1]] for i in range(k)]
+        centred_l = centred.tolist()
+        if not all(centred_l):
+            for i in range(k):
+                if not centred_l[i]:
+                    self._centre_otherwise(slots[i])
         return out
+
+    def _arguments(self) -> tuple[tuple, tuple]:
+        """The kernel's arguments that are the same from datagram to datagram (made again
+        after the arrays grow)."""
+        s, f = self.s, self.f
+        return ((self.ring, self.ring_t, self.ring_hz, self.ring_ht, self.ring_z, self.ring_r,
+                 self.ring_conf, self.ring_used, self.ring_view, self.head, self.steps,
+                 self.newest, self.anchor, self.person_t, self.q, self.q_scale, self.rates,
+                 float(s.gate_sigma ** 2), float(s.reject_sigma ** 2), float(f.group_s),
+                 self._tg),
+                (float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
+                 self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
+                 bool(f.carry_untracked), bool(f.hold_back_inferred), float(INFERRED), _PARENTS,
+                 _CHILDREN, _TORSO, self.names, self.name_end))
 
     def _centre_otherwise(self, s: int) -> None:
         """A person with no torso joint known: the centre of its known joints (as

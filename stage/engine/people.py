@@ -83,6 +83,9 @@ class People:
             except RuntimeError as exc:
                 log.warning("fusion: native is on but %s; the Python path folds every "
                             "datagram", exc)
+        #: with the core: the last ``prepare_frames`` call's arrays (joints, conf, variances)
+        #: and their rows as handed to the views, which the core then takes as they are
+        self._batch: tuple | None = None
         #: person id -> its skeleton as the core encoded it in this batch
         self._encoded: dict[int, bytes] = {}
         #: person id -> datagrams in a row the Python path folded it by the plain path
@@ -191,9 +194,12 @@ class People:
         # the arrays by iterating them, the small ones as lists), not indexed per frame
         j_out, c_out, bits, r_out, sizes = out
         framed = self._framed
-        for m, j, c, b, r, size, n in zip(frames, j_out, c_out, bits.tolist(), r_out,
+        js, cs, rs = list(j_out), list(c_out), list(r_out)
+        for m, j, c, b, r, size, n in zip(frames, js, cs, bits.tolist(), rs,
                                           sizes[:, 0].tolist(), sizes[:, 1].tolist()):
             framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size, int(n))
+        if self.core is not None:
+            self._batch = (j_out, c_out, r_out, js, cs, rs)
 
     def hand(self, track: Track, hand: int, state: HandState, t: float) -> None:
         """A ``/handState`` of ``track`` captured at ``t`` (``hand`` as the sensor names it)."""
@@ -227,6 +233,7 @@ class People:
         """Fold the batch's frames into their persons, then send what changed."""
         if self._framed:
             self._framed.clear()
+            self._batch = None
         if self._views:
             self._fold()
         self._emit()
@@ -280,13 +287,23 @@ class People:
         for p, v, _ in views:
             if p.filter.native is None or persons.get(p.id) is not p or v.r is _NO_R:
                 return False
-        pids = [p.id for p, _, _ in views]
-        out = core.fold(pids, [v.key for _, v, _ in views], np.array([v.t for _, v, _ in views]),
-                        np.array([v.joints for _, v, _ in views]),
-                        np.array([v.r for _, v, _ in views]),
-                        np.array([v.conf for _, v, _ in views]),
-                        np.array([v.arrival for _, v, _ in views]),
-                        np.array([np.nan if v.size is None else v.size for _, v, _ in views]))
+        pids, keys, t, arrival, size = [], [], [], [], []
+        for p, v, _ in views:
+            pids.append(p.id)
+            keys.append(v.key)
+            t.append(v.t)
+            arrival.append(v.arrival)
+            size.append(np.nan if v.size is None else v.size)
+        batch = self._batch
+        if (batch is not None and len(batch[3]) == len(views)
+                and all(v.joints is j and v.conf is c and v.r is r for (_, v, _), j, c, r
+                        in zip(views, batch[3], batch[4], batch[5]))):
+            z, conf, r = batch[0], batch[1], batch[2]    # the datagram's frames, in order
+        else:
+            z = np.array([v.joints for _, v, _ in views])
+            conf = np.array([v.conf for _, v, _ in views])
+            r = np.array([v.r for _, v, _ in views])
+        out = core.fold(pids, keys, np.array(t), z, r, conf, np.array(arrival), np.array(size))
         if out is None:
             return False
         st = self.fuser.stats
