@@ -483,6 +483,7 @@ class Options:
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
     trace: str | None = None             # a directory: run the traced server (stalltrace.py)
     kinect_errors: bool = False          # the whole Kinect model (ERROR_KINECT)
+    native: bool = False                 # the engine with fusion.native on (rows "native")
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
@@ -496,6 +497,8 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
     rig_path = os.path.join(tmp.name, "rig.yaml")
     rig = build_rig(sensors, port, view.address)
+    if opt.native:
+        rig.fusion = dataclasses.replace(rig.fusion, native=True)
     if not opt.kinect_errors:      # (the model's own errors are the point there)
         check_scene(loads, rig)
     rig.save(rig_path)
@@ -596,7 +599,8 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     for t in tids:
         threads[_thread_label(named.get(t, str(t)))] += (threads1[t] - threads0[t]) / span
     result = {
-        "server": ("floor" if opt.floor else "relay") if opt.relay else "engine",
+        "server": (("floor" if opt.floor else "relay") if opt.relay
+                   else "native" if opt.native else "engine"),
         "mode": "aligned" if opt.aligned else "spread",
         "config": f"{sensors}x{people}",
         "sensors": sensors, "people": people, "stage_source": fingerprint,
@@ -622,10 +626,25 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
                          "max": float(late[in_window].max() * 1e3) if in_window.any() else None},
         "send_errors": gen.errors,
         "server_exit": proc.returncode,
+        # the fold's figures over the window (the native core's among them, if on)
+        "fusion_window": _fusion_delta(stats0.get("fusion") or {}, stats1.get("fusion") or {}),
     }
     if server_log.strip():
         result["server_log_tail"] = server_log[-1500:]
     return result
+
+
+def _fusion_delta(before: dict, after: dict) -> dict:
+    """``/stage/stats``' ``fusion`` counts over the window (nested dicts too)."""
+    out = {}
+    for key, value in after.items():
+        if isinstance(value, dict):
+            out[key] = _fusion_delta(before.get(key) or {}, value)
+        elif isinstance(value, (int, float)) and key != "held":
+            out[key] = value - (before.get(key) or 0)
+        else:
+            out[key] = value
+    return out
 
 
 def verdicts(rows: list[dict]) -> None:
@@ -638,7 +657,7 @@ def verdicts(rows: list[dict]) -> None:
                 r["diff_ms"] = {"p50": lat["p50"] - relay["latency_ms"]["p50"],
                                 "p99": lat["p99"] - relay["latency_ms"]["p99"]}
             continue
-        if r["server"] != "engine":
+        if r["server"] not in ("engine", "native"):
             continue
         relay = relays.get((r["mode"], r["config"]))
         lat = r["latency_ms"]
@@ -878,7 +897,7 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
             cpu += (f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f}+"
                     f"{100 * th.get('calibrator', 0.0):.0f}+{100 * rest:.0f})")
         notes = []
-        if r["server"] == "engine" and not r.get("latency_pass", True):
+        if r["server"] in ("engine", "native") and not r.get("latency_pass", True):
             notes.append("latency")
         if r.get("cpu_pass") is False:
             notes.append("CPU")
@@ -908,6 +927,11 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
     for r in results:
         if r["drops_total"]:
             print(f"  drops {r['mode']} {r['config']} {r['server']}: {r['drops']}")
+        native = (r.get("fusion_window") or {}).get("native")
+        if native:
+            fw = r["fusion_window"]
+            print(f"  native core {r['mode']} {r['config']} over the window: {native}; "
+                  f"replays {fw.get('replays')}, late {fw.get('late')}")
         if r.get("server_log_tail"):
             print(f"server log ({r['mode']} {r['config']} {r['server']}):\n{r['server_log_tail']}")
     sources = sorted({r["stage_source"] for r in results})
@@ -930,6 +954,10 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
         print(f"  zero waiting by design: {'PASS' if zero else 'FAIL'}")
     engines = [r for r in results if r["server"] == "engine"]
     print("overall:", "PASS" if engines and all(r["verdict"] == "PASS" for r in engines) else "FAIL")
+    natives = [r for r in results if r["server"] == "native"]
+    if natives:
+        print("overall with fusion.native:",
+              "PASS" if all(r["verdict"] == "PASS" for r in natives) else "FAIL")
 
 
 def parse_configs(text: str) -> list[tuple[int, int]]:
@@ -986,6 +1014,9 @@ def main(argv: list[str] | None = None) -> int:
                              "heap) and keep the traces in DIR; `python bench/stalltrace.py DIR` "
                              "prints who held the engine off")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    parser.add_argument("--native", action="store_true",
+                        help="also run each configuration's engine with fusion.native on (the "
+                             "native core; rows 'native', judged as the engine's)")
     parser.add_argument("--kinect-errors", action="store_true",
                         help="the simulator's whole Kinect model (bias, swapped limbs, inferred "
                              "joints off): views of an instant that disagree")
@@ -1038,6 +1069,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.floor:
                 results.append(run(sensors, people, floor_opt))
             results.append(run(sensors, people, engine_opt))
+            if args.native:
+                results.append(run(sensors, people, dataclasses.replace(engine_opt, native=True)))
         if not args.no_offline:
             for sensors, people in args.configs:
                 offline.append(offline_config(sensors, people, min(args.duration, 4.0), aligned,

@@ -89,6 +89,8 @@ class NativeCore:
         self.declined = 0
         self.folded = 0
         self.given_back = 0
+        #: after a declined fold: the index of the view the core could not take
+        self.refused = -1
         #: persons given back whose history lost steps the ring no longer held (see
         #: ``give_back``)
         self.short_histories = 0
@@ -298,7 +300,8 @@ class NativeCore:
         t[i], joints z (K, 25, 3), variances r (K, 25), confidences conf (K, 25); its
         datagram's ``arrival`` and its trunk ``size`` (K,), kept for a replay; C-ordered
         float64) in; returns each person's encoded ``/jointCoordinates``, or None if the
-        core declines the datagram (nothing changed: see the module docstring)."""
+        core declines the datagram (nothing changed: see the module docstring; ``refused``
+        is then the index of the first view it could not take)."""
         k = len(pids)
         slot_of, recent = self.slot_of, self.recent
         slots, rows = [], []
@@ -307,6 +310,7 @@ class NativeCore:
             row = None if s is None else recent[s].get(key)
             if row is None:
                 self.declined += 1
+                self.refused = len(slots)
                 return None
             slots.append(s)
             rows.append(row)
@@ -325,6 +329,7 @@ class NativeCore:
             *args[1], buf, offsets, centred)
         if done < 0:
             self.declined += 1
+            self.refused = -1 - done
             return None
         self.folded += 1
         self.counts = counts

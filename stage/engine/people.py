@@ -241,13 +241,11 @@ class People:
     def _fold(self) -> None:
         views, self._views = self._views, []
         core = self.core
-        if core is not None:
-            if self._fold_native(core, views):
+        if core is not None and views:
+            everyone = views
+            views = self._fold_native(core, views)     # what the core leaves to Python
+            if not views:
                 return
-            for p, _, _ in views:            # the Python path folds them: given back first
-                if p.filter.native is not None:
-                    core.give_back(p)
-                    self.fuser._trim(p.filter)
         live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
         missing = [(v, where) for _, v, where in views if v.r is _NO_R]
         if missing:
@@ -278,15 +276,46 @@ class People:
             self.counts["fused_frames"] += len(touched)
         if core is not None:
             self._take_steady(core, ordered, late)
+            if len(views) < len(everyone):        # both paths: sent in the views' order
+                dirty = self._dirty
+                order = dict.fromkeys(p.id for p, _, _ in everyone)
+                self._dirty = {**{k: d for k, d in dirty.items() if k not in order},
+                               **{k: dirty[k] for k in order if k in dirty}}
 
-    def _fold_native(self, core: NativeCore, views: list) -> bool:
-        """The batch's views folded, settled and encoded by the native core, if it holds
-        every person of them and takes them (``NativeCore.fold``); False, with nothing
-        done, else. What the Python path records of a fold is recorded the same."""
+    def _fold_native(self, core: NativeCore, views: list) -> list:
+        """The views of persons the native core holds folded, settled and encoded by it
+        (``NativeCore.fold``); returns the others, for the Python path, in their order. A
+        person whose view the core will not take is given back to Python first (the rest
+        are tried again without it). What the Python path records of a fold is recorded
+        the same."""
         persons = self.persons
-        for p, v, _ in views:
-            if p.filter.native is None or persons.get(p.id) is not p or v.r is _NO_R:
-                return False
+        mine, rest = [], []
+        for item in views:
+            p, v, _ = item
+            if p.filter.native is not None and persons.get(p.id) is p and v.r is not _NO_R:
+                mine.append(item)
+            else:
+                rest.append(item)
+        while mine and not self._fold_core(core, mine, len(mine) == len(views)):
+            person = mine[core.refused][0]
+            core.give_back(person)
+            self.fuser._trim(person.filter)
+            self._plain_run[person.id] = 0
+            rest += [item for item in mine if item[0] is person]
+            mine = [item for item in mine if item[0] is not person]
+        for p, _, _ in rest:               # (a held person's view the core was not given)
+            if p.filter.native is not None:
+                core.give_back(p)
+                self.fuser._trim(p.filter)
+                self._plain_run[p.id] = 0
+        if len(rest) > 1:                   # (those given back were added at the end)
+            left = {id(item) for item in rest}
+            rest = [item for item in views if id(item) in left]
+        return rest
+
+    def _fold_core(self, core: NativeCore, views: list, whole: bool) -> bool:
+        """``views`` (of persons the core holds) folded by the core; False if it declined
+        (nothing done). ``whole``: they are all of the batch's views."""
         pids, keys, t, arrival, size = [], [], [], [], []
         for p, v, _ in views:
             pids.append(p.id)
@@ -295,7 +324,7 @@ class People:
             arrival.append(v.arrival)
             size.append(np.nan if v.size is None else v.size)
         batch = self._batch
-        if (batch is not None and len(batch[3]) == len(views)
+        if (whole and batch is not None and len(batch[3]) == len(views)
                 and all(v.joints is j and v.conf is c and v.r is r for (_, v, _), j, c, r
                         in zip(views, batch[3], batch[4], batch[5]))):
             z, conf, r = batch[0], batch[1], batch[2]    # the datagram's frames, in order
@@ -603,9 +632,15 @@ class People:
 
     def stats(self) -> dict:
         f = self.fuser.stats
-        return {"views": f.views, "late": f.late, "replays": f.replays,
-                "joints_disagreeing": f.disagreeing, "joints_downweighted": f.downweighted,
-                "joints_rejected": f.rejected, "joints_restarted": f.restarted}
+        out = {"views": f.views, "late": f.late, "replays": f.replays,
+               "joints_disagreeing": f.disagreeing, "joints_downweighted": f.downweighted,
+               "joints_rejected": f.rejected, "joints_restarted": f.restarted}
+        core = self.core
+        if core is not None:
+            out["native"] = {"held": len(core.slot_of), "folded": core.folded,
+                             "declined": core.declined, "given_back": core.given_back,
+                             "short_histories": core.short_histories}
+        return out
 
     def forecast_stats(self) -> dict:
         """What ``/stage/stats`` says of forecasts: who asks for which horizon, how many were
