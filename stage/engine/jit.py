@@ -798,13 +798,17 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
 
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
                  ring_z, ring_r, ring_conf, ring_used, ring_view, head, steps, newest, anchor,
-                 person_t, q, q_scale, rates, gate2, reject2, group_s, tg, outcome, counts, pos,
-                 vel, stale, recent_conf, recent_t, joints, velocity, pconf, known, carried,
+                 person_t, q, q_scale, rates, gate2, reject2, group_s, bias2, tg, outcome,
+                 counts, pos, vel, stale, recent_conf, recent_t, joints, velocity, pconf, known, carried,
                  tracked, hold, centre, carry_on, hold_back, inferred, parents, children, torso,
                  names, name_end, buf, offsets, centred):  # pragma: no cover (compiled)
     """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons,
-    each a plain update (in capture order after the person's newest view and not within
-    ``group_s`` of its instant), folded, settled and encoded in one call.
+    each a plain update, folded, settled and encoded in one call. A view is plain when it
+    comes in capture order after the person's newest view and either begins an instant
+    (more than ``group_s`` after the instant's first view) or joins one whose views it
+    all agrees with (``fuser.Fuser._agrees``: no joint both see further apart than the
+    gate allows, ``bias2`` being twice a view's bias squared); the instant's earlier views
+    must then all be in the ring (steps since the person was taken: ``steps``).
 
     View i is of the person in slot ``slots[i]``: captured at t[i], joints z[i] (25, 3),
     variances r[i] (25,), confidences conf[i], remembered in row ``rows[i]`` of the
@@ -813,9 +817,11 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     (``ring`` (S, R, 6, 2, 25, 3), ``ring_t``, ``ring_hz``, ``ring_ht``), ``head[s]`` its
     newest: a step reads entry head and writes entry head + 1, so the states before each
     step stay where they were, and the entry also keeps the view that made it (``ring_z``,
-    ``ring_r``, ``ring_conf``, the joints it used ``ring_used``, and ``ring_view`` (S, R, 4):
-    t, recent row, arrival, size): what a replay needs (``NativeCore.give_back``).
-    ``steps[s]`` counts the steps since the person was taken. Every step is made first; if
+    ``ring_r``, ``ring_conf``, the joints it used ``ring_used``, and ``ring_view`` (S, R, 5):
+    t, recent row, arrival, size, its instant's anchor): what a replay needs
+    (``NativeCore.give_back``).
+    ``steps[s]`` counts the steps in the ring since the person was taken (those of its
+    instant then included). Every step is made first; if
     any needs what only Python does (a row to start or to restart) or a view is not plain,
     nothing is committed and -1 - i is returned for view i (the heads and every person's
     rows as they were; the entry after a head is scratch). Else the heads move, each person
@@ -825,13 +831,35 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     centre). Returns K. ``counts`` (K, 4) as ``_step_rows``'s, per view."""
     K = slots.shape[0]
     R = ring.shape[1]
+    n = z.shape[1]
     for i in range(K):
         s = slots[i]
-        if not (t[i] >= newest[s] and t[i] - anchor[s] > group_s):
+        if not t[i] >= newest[s]:
             return -1 - i
         for j in range(i):
             if slots[j] == s:
                 return -1 - i
+        if t[i] - anchor[s] > group_s:
+            continue
+        # joins the newest instant: every earlier view of it in the ring, and agreeing
+        e = head[s]
+        back = 0
+        while True:
+            if back >= steps[s] or back >= R - 2:
+                return -1 - i            # the instant began before the core took the person
+            if ring_view[s, e, 4] != anchor[s]:
+                break
+            for k in range(n):
+                dx = ring_z[s, e, k, 0] - z[i, k, 0]
+                dy = ring_z[s, e, k, 1] - z[i, k, 1]
+                dz = ring_z[s, e, k, 2] - z[i, k, 2]
+                d2 = (dx * dx + dy * dy + dz * dz) / (ring_r[s, e, k] + r[i, k] + bias2)
+                if d2 > gate2:
+                    return -1 - i
+            back += 1
+            e = e - 1 if e > 0 else R - 1
+        if back == 0:
+            return -1 - i
     for i in range(K):
         s = slots[i]
         a = head[s]
@@ -854,6 +882,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         ring_view[s, b, 1] = rows[i]
         ring_view[s, b, 2] = arrival[i]
         ring_view[s, b, 3] = size[i]
+        ring_view[s, b, 4] = t[i] if t[i] - anchor[s] > group_s else anchor[s]
     at = 0
     offsets[0] = 0
     for i in range(K):
@@ -864,7 +893,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         head[s] = b
         steps[s] += 1
         newest[s] = t[i]
-        anchor[s] = t[i]
+        anchor[s] = ring_view[s, b, 4]
         for k in range(conf.shape[1]):
             recent_conf[s, rows[i], k] = conf[i, k]
         recent_t[s, rows[i]] = t[i]
@@ -937,9 +966,9 @@ _NATIVE_SIGNATURES = {
                     "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], boolean[:, :, ::1], float64[:, :, ::1], int64[::1], "
                     "int64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
-                    "float64[::1], float64[::1], float64, float64, float64, float64[::1], "
-                    "int8[:, ::1], int64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], "
-                    "float64, float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
+                    "float64[::1], float64[::1], float64, float64, float64, float64, "
+                    "float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
+                    "float64[:, :, ::1], float64, float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
                     "boolean[:, ::1], float64[:, :, ::1], float64[:, ::1], boolean, boolean, "
                     "float64, int64[::1], int64[::1], int64[::1], uint8[::1], int64[::1], "

@@ -19,8 +19,9 @@ core, built beside the Python one and held to it bit for bit:
   ``/jointCoordinates`` the views receive, into one buffer.
 
 It does only the usual case: every view a plain update of a person it holds (after the
-person's newest view, not within ``group_s`` of its instant), no joint to start or to
-restart, every view already remembered by its person. Anything else is *declined*:
+person's newest view, either beginning an instant or joining one whose views it all agrees
+with, as ``fuser.Fuser._agrees`` judges), no joint to start or to restart, every view
+already remembered by its person. Anything else is *declined*:
 nothing is changed, and the caller folds the datagram by the Python path
 (``fuser.Fuser``), then hands the persons over again (``take``).
 
@@ -111,9 +112,10 @@ class NativeCore:
         self.ring_r = np.full((n, d, N_JOINTS), np.nan)
         self.ring_conf = np.zeros((n, d, N_JOINTS))
         self.ring_used = np.zeros((n, d, N_JOINTS), dtype=bool)
-        self.ring_view = np.full((n, d, 4), np.nan)       # t, recent row, arrival, size
+        self.ring_view = np.full((n, d, 5), np.nan)  # t, recent row, arrival, size, anchor
         self.head = np.zeros(n, dtype=np.int64)
         self.steps = np.zeros(n, dtype=np.int64)
+        self.seeded = np.zeros(n, dtype=np.int64)      # of those, put in by ``take``
         self.newest = np.full(n, -np.inf)
         self.anchor = np.full(n, -np.inf)
         self.person_t = np.full(n, -np.inf)
@@ -160,7 +162,8 @@ class NativeCore:
     @staticmethod
     def _arrays() -> tuple[str, ...]:
         return ("ring", "ring_t", "ring_hz", "ring_ht", "ring_z", "ring_r", "ring_conf",
-                "ring_used", "ring_view", "head", "steps", "newest", "anchor", "person_t",
+                "ring_used", "ring_view", "head", "steps", "seeded", "newest", "anchor",
+                "person_t",
                 *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t")
 
     def take(self, person, bind: bool = False) -> int:
@@ -186,13 +189,33 @@ class NativeCore:
         st = body.state
         while len(person.recent_t) > self.recent_t.shape[1]:
             self._grow_rows()
-        self.head[s] = 0
-        self.steps[s] = 0
-        self.ring[s, 0] = st.stacked()
-        self.ring_t[s, 0] = st.t
-        self.ring_hz[s, 0] = st.held_z
-        self.ring_ht[s, 0] = st.held_t
         hist = body.history
+        # the views of the instant the newest one belongs to go into the ring as steps, each
+        # with the state before it, so that a view joining that instant is checked against
+        # them all (sensors in step: the person is taken in the middle of an instant)
+        members: list = []
+        if hist:
+            k = len(hist)
+            while k > 0 and hist[k - 1].anchor == hist[-1].anchor:
+                k -= 1
+            members = hist[k:]
+            if len(members) > self.depth - 2 or not all(m.whole for m in members):
+                members = []           # (a view joining it needs the Python path's choice)
+        self.seeded[s] = len(members)
+        states = [m.before for m in members[1:]] + [st]
+        self._put(s, 0, members[0].before if members else st)
+        for j, (m, after) in enumerate(zip(members, states), start=1):
+            self._put(s, j, after)
+            v = m.view
+            self.ring_z[s, j] = v.joints
+            self.ring_r[s, j] = v.r
+            self.ring_conf[s, j] = v.conf
+            self.ring_used[s, j] = v.used
+            row = person.recent.get(v.key, -1)
+            self.ring_view[s, j] = (v.t, row, v.arrival, np.nan if v.size is None else v.size,
+                                    m.anchor)
+        self.head[s] = len(members)
+        self.steps[s] = len(members)
         self.newest[s] = body.newest
         self.anchor[s] = hist[-1].anchor if hist else -np.inf
         self.person_t[s] = person.t
@@ -211,6 +234,13 @@ class NativeCore:
         else:
             self.recent[s] = dict(person.recent)
         return s
+
+    def _put(self, s: int, e: int, st) -> None:
+        """A ``FilterState`` into ring entry ``e`` of slot ``s``."""
+        self.ring[s, e] = st.stacked()
+        self.ring_t[s, e] = st.t
+        self.ring_hz[s, e] = st.held_z
+        self.ring_ht[s, e] = st.held_t
 
     def give_back(self, person) -> None:
         """A bound person back to the Python path, as if that path had folded every view the
@@ -231,20 +261,20 @@ class NativeCore:
             for back in range(keep - 1, -1, -1):
                 e = (h - back) % d
                 b = (e - 1) % d
-                t, row, arrival, size = self.ring_view[s, e].tolist()
+                t, row, arrival, size, anchor = self.ring_view[s, e].tolist()
                 view = View(key_of.get(int(row), ("?", -1)), t, self.ring_z[s, e].copy(),
                             self.ring_conf[s, e].copy(), self.ring_r[s, e].copy(), arrival,
                             self.ring_used[s, e].copy(), 0, size)
                 before = FilterState.of_block(self.ring[s, b].copy(), self.ring_t[s, b].copy(),
                                               self.ring_hz[s, b].copy(),
                                               self.ring_ht[s, b].copy())
-                steps.append(_Step(view, before, t, None))
+                steps.append(_Step(view, before, anchor, None))
         if keep < n:
             if steps and steps[0].anchor >= self.newest[s] - self.f.replay_s:
                 self.short_histories += 1
             history = steps
-        else:
-            history = body.history + steps
+        else:              # (the steps seeded at ``take`` are the history's last ones)
+            history = body.history[:len(body.history) - int(self.seeded[s])] + steps
         self.given_back += 1
         body.native = None
         body.history = history
@@ -352,7 +382,7 @@ class NativeCore:
                  self.ring_conf, self.ring_used, self.ring_view, self.head, self.steps,
                  self.newest, self.anchor, self.person_t, self.q, self.q_scale, self.rates,
                  float(s.gate_sigma ** 2), float(s.reject_sigma ** 2), float(f.group_s),
-                 self._tg),
+                 float(2.0 * f.view_bias_m ** 2), self._tg),
                 (float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
                  self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
                  bool(f.carry_untracked), bool(f.hold_back_inferred), float(INFERRED), _PARENTS,

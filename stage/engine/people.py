@@ -49,10 +49,15 @@ _NO_R = np.full(25, np.nan)
 _NEVER = float("-inf")
 #: smoothing off: a filter so loose that every joint is its latest measurement
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
-#: a person the Python path folded this many datagrams in a row by the plain path is taken
-#: by the native core (``fusion.native``); a person whose views keep joining instants
-#: (sensors in step) stays with the Python path, which checks them against each other
+#: a person the Python path folded this many datagrams in a row by its plain path (every
+#: view used whole, nothing replayed) is taken by the native core (``fusion.native``) ...
 TAKE_AFTER = 3
+#: ... and twice as many after each time it is given back having been folded fewer than
+#: ``KEEP_STEPS`` times by the core, up to this many (views of sensors in step that often
+#: disagree, which only the Python path chooses between, would otherwise send the person
+#: back and forth)
+TAKE_AFTER_MAX = 192
+KEEP_STEPS = 200
 
 
 def _by_person(entry: tuple[Person, View]) -> int:
@@ -90,6 +95,8 @@ class People:
         self._encoded: dict[int, bytes] = {}
         #: person id -> datagrams in a row the Python path folded it by the plain path
         self._plain_run: dict[int, int] = {}
+        #: person id -> the run it needs to be taken (TAKE_AFTER unless given back lately)
+        self._take_after: dict[int, int] = {}
         #: bodies predicted ahead of their capture time (docs/anticipation.md): the
         #: horizons listeners asked for (horizon -> how many asked), and the views'
         self.forecaster = Forecaster(smoothing, rig.forecast)
@@ -298,20 +305,27 @@ class People:
                 rest.append(item)
         while mine and not self._fold_core(core, mine, len(mine) == len(views)):
             person = mine[core.refused][0]
-            core.give_back(person)
-            self.fuser._trim(person.filter)
-            self._plain_run[person.id] = 0
+            self._give_back(core, person)
             rest += [item for item in mine if item[0] is person]
             mine = [item for item in mine if item[0] is not person]
         for p, _, _ in rest:               # (a held person's view the core was not given)
             if p.filter.native is not None:
-                core.give_back(p)
-                self.fuser._trim(p.filter)
-                self._plain_run[p.id] = 0
+                self._give_back(core, p)
         if len(rest) > 1:                   # (those given back were added at the end)
             left = {id(item) for item in rest}
             rest = [item for item in views if id(item) in left]
         return rest
+
+    def _give_back(self, core: NativeCore, person: Person) -> None:
+        """``person`` back to the Python path (``NativeCore.give_back``), its history trimmed
+        as that path keeps it; taken again after a longer run if it was not kept long."""
+        kept = int(core.steps[core.slot_of[person.id]])
+        core.give_back(person)
+        self.fuser._trim(person.filter)
+        self._plain_run[person.id] = 0
+        need = self._take_after.get(person.id, TAKE_AFTER)
+        self._take_after[person.id] = (TAKE_AFTER if kept >= KEEP_STEPS
+                                       else min(2 * need, TAKE_AFTER_MAX))
 
     def _fold_core(self, core: NativeCore, views: list, whole: bool) -> bool:
         """``views`` (of persons the core holds) folded by the core; False if it declined
@@ -355,18 +369,20 @@ class People:
         return True
 
     def _take_steady(self, core: NativeCore, ordered: list, late: set) -> None:
-        """Persons the Python path has folded ``TAKE_AFTER`` datagrams in a row by its plain
-        path (a view that began its own instant) are taken by the native core."""
-        runs, persons = self._plain_run, self.persons
+        """Persons the Python path has folded ``TAKE_AFTER`` datagrams in a row (more after
+        being given back) by its plain path -- every view used whole, nothing replayed --
+        are taken by the native core."""
+        runs, persons, need = self._plain_run, self.persons, self._take_after
+        replayed = self.fuser.replayed
         for person, view in ordered:
             pid = person.id
             hist = person.filter.history
             if (id(view) in late or not hist or hist[-1].view is not view
-                    or hist[-1].anchor != view.t or hist[-1]._mask is not None):
+                    or not hist[-1].whole or id(person.filter) in replayed):
                 runs[pid] = 0
                 continue
             n = runs[pid] = runs.get(pid, 0) + 1
-            if (n >= TAKE_AFTER and person.centre is not None and person.tracks
+            if (n >= need.get(pid, TAKE_AFTER) and person.centre is not None and person.tracks
                     and persons.get(pid) is person and person.filter.native is None):
                 core.take(person, bind=True)      # (copies the bank's rows first)
                 self.bank.unbind(person)
@@ -601,6 +617,8 @@ class People:
                 core.release(pid)
             if len(self._plain_run) > len(persons):
                 self._plain_run = {k: n for k, n in self._plain_run.items() if k in persons}
+            if len(self._take_after) > len(persons):
+                self._take_after = {k: n for k, n in self._take_after.items() if k in persons}
         self._emit()
         self.serve_fixed_rate(now)
 

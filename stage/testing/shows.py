@@ -13,15 +13,16 @@ EPOCH = 1.7e9
 
 
 def three_dancers(seed: int = 5, seconds: float = 6.0, aligned: bool = False,
-                  timetags: bool = False):
+                  timetags: bool = False, kinect: dict | None = None):
     """Datagrams of 3 simulated Kinects round three dancers who turn, raise their arms and
     walk to the edge of the sensors' range (inferred and lost joints: carried joints);
     ``aligned``: the sensors in step, each frame's views of a person one instant;
     ``timetags``: each bundle stamped with its capture time (``EPOCH`` + show time), so that
-    a datagram that arrives late is placed where it was captured."""
+    a datagram that arrives late is placed where it was captured; ``kinect``: the
+    simulated Kinects' ``KinectModel`` keywords (default: the real model's errors)."""
     rng = np.random.default_rng(seed)
     poses = ring_poses(3, radius=3.2)
-    kinects = [VirtualKinect(p, KinectModel(), rng) for p in poses]
+    kinects = [VirtualKinect(p, KinectModel(**(kinect or {})), rng) for p in poses]
     out = []
     for f in range(int(seconds * 30)):
         for s, kinect in enumerate(kinects):
