@@ -841,12 +841,17 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                 return -1 - i
         if t[i] - anchor[s] > group_s:
             continue
-        # joins the newest instant: every earlier view of it in the ring, and agreeing
+        # joins the newest instant: agreeing with every earlier view of it, all in the ring.
+        # They are: the steps since the person was taken, of which the first began its
+        # instant or (``take``) the instant then current was put in whole before them; with
+        # no step since, the instant is in the Python path's history (a join declined).
+        if steps[s] == 0:
+            return -1 - i
         e = head[s]
         back = 0
-        while True:
-            if back >= steps[s] or back >= R - 2:
-                return -1 - i            # the instant began before the core took the person
+        while back < steps[s]:
+            if back >= R - 2:
+                return -1 - i            # (an instant longer than the ring: not expected)
             if ring_view[s, e, 4] != anchor[s]:
                 break
             for k in range(n):
@@ -858,8 +863,6 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                     return -1 - i
             back += 1
             e = e - 1 if e > 0 else R - 1
-        if back == 0:
-            return -1 - i
     for i in range(K):
         s = slots[i]
         a = head[s]
