@@ -85,13 +85,7 @@ class PersonBank:
         is bound here again its attributes are not this bank's."""
         s = person.slot
         if s >= 0 and self.owners[s] is person:
-            self.owners[s] = None
-            self._views[s] = self._centres[s] = None
-            for name, _, _, free in _FIELDS:
-                getattr(self, name)[s] = free
-            self.centre[s] = 0.0
-            self.recent_conf[s] = 0.0
-            self.recent_t[s] = -np.inf
+            self._clear(s)
         person.slot, person.bank = -1, None
 
     def centre_of(self, s: int) -> np.ndarray:
@@ -146,6 +140,10 @@ class PersonBank:
             if owner.centre is not None and owner.centre is self._centres[s]:
                 owner.centre = owner.centre.copy()
             owner.slot, owner.bank = -1, None
+        self._clear(s)
+
+    def _clear(self, s: int) -> None:
+        """Slot ``s`` free, its rows as a free row's."""
         self.owners[s] = None
         self._views[s] = self._centres[s] = None
         for name, _, _, free in _FIELDS:

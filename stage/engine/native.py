@@ -21,15 +21,17 @@ core, built beside the Python one and held to it bit for bit:
 It does only the usual case: every view a plain update of a person it holds (after the
 person's newest view, either beginning an instant or joining one whose views it all agrees
 with, as ``fuser.Fuser._agrees`` judges), no joint to start or to restart, every view
-already remembered by its person. Anything else is *declined*:
-nothing is changed, and the caller folds the datagram by the Python path
-(``fuser.Fuser``), then hands the persons over again (``take``).
+already remembered by its person. Anything else is *declined* before anything changes
+(``refused`` names the view).
 
-This stop it runs beside the engine, not in it: ``bench/bench_native.py`` and
-tests/test_native.py feed the engine the simulator's datagrams, give the core each
-datagram's views as the engine made them, and compare what both send and keep. Wiring it
-into the engine (behind a rig switch, the persons handed back to the Python path when a
-datagram is declined) is the next step.
+In the engine (``people.People``, with ``fusion: native: true``) a person the Python path
+has folded a few datagrams in a row by its plain path is taken (``take(bind=True)``); a
+person whose view the core declines is given back first (``give_back``: its history
+rebuilt from the ring, as if the Python path had folded every view) and that view folded
+by the Python path, the others by the core. tests/test_native.py plays whole shows through
+engines with the switch on and off and compares every datagram sent;
+``stage.testing.native_shadow`` runs a core beside an engine on the same datagrams and
+compares every float it keeps (``bench/bench_native.py``).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ import numpy as np
 from ..joints import INFERRED, N_JOINTS, TORSO
 from ..settings import FusionSettings, KalmanSettings
 from . import jit
+from .bank import _FIELDS
 from .fusion import _CHILDREN, _PARENTS
 
 _TORSO = np.array(TORSO)
@@ -47,15 +50,6 @@ _TORSO = np.array(TORSO)
 #: them (at 6 sensors x 30 Hz, ``replay_s``'s 0.15 s is 27 steps)
 DEPTH = 64
 
-_FIELDS = (
-    ("joints", (N_JOINTS, 3), float, 0.0),
-    ("velocity", (N_JOINTS, 3), float, 0.0),
-    ("conf", (N_JOINTS,), float, 0.0),
-    ("known", (N_JOINTS,), bool, False),
-    ("carried", (N_JOINTS,), bool, False),
-    ("tracked", (N_JOINTS,), bool, False),
-    ("hold", (N_JOINTS, 3), float, np.nan),
-)
 #: the arrays a bound person's attributes are views of
 _BOUND = (*(f[0] for f in _FIELDS), "recent_conf", "recent_t")
 
