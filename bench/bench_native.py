@@ -49,7 +49,6 @@ def run(n_sensors: int, n_people: int, seconds: float, paced: bool, aligned: boo
     shadow.python_s.clear()
     shadow.whole_s.clear()
     replay(shadow, data[skip:], pace=paced)
-    shadow.close()
     nat = np.array(shadow.native_s) * 1e6
     py = np.array(shadow.python_s) * 1e6
     whole = np.array(shadow.whole_s) * 1e6

@@ -247,9 +247,8 @@ class People:
 
     def _fold(self) -> None:
         views, self._views = self._views, []
-        core = self.core
+        everyone, core = views, self.core
         if core is not None and views:
-            everyone = views
             views = self._fold_native(core, views)     # what the core leaves to Python
             if not views:
                 return

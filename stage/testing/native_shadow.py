@@ -82,18 +82,16 @@ class Shadow:
                 self._native(views)
 
         people._fold = captured
-        encode = native.jit.view_joints
         self._encode_s = 0.0
 
-        def timed_encode(*a):
+    def _timed_encode(self, encode):
+        def timed(*a):
             c0 = time.thread_time()
             try:
                 return encode(*a)
             finally:
                 self._encode_s += time.thread_time() - c0
-
-        self._restore = (native.jit, "view_joints", encode)
-        native.jit.view_joints = timed_encode
+        return timed
 
     def _native(self, views: list) -> None:
         """The core's fold of the views (when it holds every person of them): its output in
@@ -113,19 +111,20 @@ class Shadow:
         if self._out is None:
             self.declined += 1
 
-    def close(self) -> None:
-        module, name, fn = self._restore
-        setattr(module, name, fn)
-
     def feed(self, data: bytes, arrival: float) -> None:
         engine, core = self.engine, self.core
         self._sync()
         self.recorder.sent.clear()
         self._views = self._out = None
         self._fold_s = self._encode_s = self._native_s = 0.0
-        c0 = time.thread_time()
-        engine.handle_datagram(data, arrival=arrival)
-        whole = time.thread_time() - c0 - self._native_s
+        encode = native.jit.view_joints      # (timed within the datagram only)
+        native.jit.view_joints = self._timed_encode(encode)
+        try:
+            c0 = time.thread_time()
+            engine.handle_datagram(data, arrival=arrival)
+            whole = time.thread_time() - c0 - self._native_s
+        finally:
+            native.jit.view_joints = encode
         views = self._views
         if not views:
             return
