@@ -140,8 +140,7 @@ class BodyFilter:
     def state(self) -> FilterState:
         native = self.native
         if native is not None:           # a copy: the core's ring is written over in turn
-            block, t, held_z, held_t = native[0].state_of(native[1])
-            return FilterState.of_block(block.copy(), t.copy(), held_z.copy(), held_t.copy())
+            return native[0].state_copy(native[1])
         rows = self._rows
         if rows is not None:
             self._state = rows[0].view_rows(rows[1], rows[2])

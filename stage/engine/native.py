@@ -42,7 +42,9 @@ from ..joints import INFERRED, N_JOINTS, TORSO
 from ..settings import FusionSettings, KalmanSettings
 from . import jit
 from .bank import _FIELDS
+from .fuser import View, _Step
 from .fusion import _CHILDREN, _PARENTS
+from .kalman import FilterState
 
 _TORSO = np.array(TORSO)
 
@@ -91,6 +93,8 @@ class NativeCore:
         self.short_histories = 0
         #: per view of the last accepted fold: the step's counts (K, 4) (``_step_rows``'s)
         self.counts = np.zeros((0, 4), dtype=np.int64)
+        #: the slots of the last accepted fold's views, in order
+        self.slots = np.zeros(0, dtype=np.int64)
         self._scratch: dict[int, tuple] = {}
         self._tg = np.empty(N_JOINTS)
 
@@ -243,8 +247,6 @@ class NativeCore:
         after the history it had then -- and its output rows as arrays of its own. A person
         with more steps than the ring holds gets the steps it still holds (``DEPTH`` - 2
         of them; counted in ``short_histories`` when those do not reach back ``replay_s``)."""
-        from .fuser import View, _Step   # (fuser imports nothing of this module)
-        from .kalman import FilterState
         s = self.slot_of[person.id]
         body = person.filter
         d, h, n = self.depth, int(self.head[s]), int(self.steps[s])
@@ -272,8 +274,7 @@ class NativeCore:
         self.given_back += 1
         body.native = None
         body.history = history
-        body.state = FilterState.of_block(self.ring[s, h].copy(), self.ring_t[s, h].copy(),
-                                          self.ring_hz[s, h].copy(), self.ring_ht[s, h].copy())
+        body.state = self.state_copy(s)
         self.release(person.id)
 
     def release(self, pid: int) -> None:
@@ -288,12 +289,8 @@ class NativeCore:
                 setattr(person, name, getattr(self, name)[s].copy())
             person.centre = self.centre[s].copy()
             if person.filter.native is not None:
-                h = int(self.head[s])
-                from .kalman import FilterState
                 person.filter.native = None
-                person.filter.state = FilterState.of_block(
-                    self.ring[s, h].copy(), self.ring_t[s, h].copy(), self.ring_hz[s, h].copy(),
-                    self.ring_ht[s, h].copy())
+                person.filter.state = self.state_copy(s)
         self.owners[s] = None
         self.bound[s] = False
         self.recent[s] = {}
@@ -305,6 +302,12 @@ class NativeCore:
     def state_of(self, s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         h = self.head[s]
         return self.ring[s, h], self.ring_t[s, h], self.ring_hz[s, h], self.ring_ht[s, h]
+
+    def state_copy(self, s: int) -> FilterState:
+        """Slot ``s``'s filter state now, as a ``FilterState`` of its own (the ring's entries
+        are written over in turn)."""
+        block, t, held_z, held_t = self.state_of(s)
+        return FilterState.of_block(block.copy(), t.copy(), held_z.copy(), held_t.copy())
 
     # ------------------------------------------------------------ the datagram
     def _buffers(self, k: int) -> tuple:
