@@ -20,11 +20,16 @@ the id count, and the frame time at the start and end.
     python bench/soak.py                  # 8 simulated hours (about an hour of CPU here)
     python bench/soak.py --hours 24
     python bench/soak.py --quick          # 20 simulated minutes of a 2-minute cycle
+    python bench/soak.py --native off     # the rig's fusion.native forced off (or on)
+
+With ``--native`` the report lines also give the native core's counts (persons
+held, views folded, declined, persons given back).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import logging
 import sys
@@ -67,6 +72,8 @@ def main() -> int:
                         help="simulated seconds between report lines (default 1800)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--quick", action="store_true", help="20 minutes of a 120 s cycle")
+    parser.add_argument("--native", choices=("on", "off"), default=None,
+                        help="force the rig's fusion.native (default: the rig's own setting)")
     args = parser.parse_args()
     if args.quick:
         args.hours, args.cycle, args.report_every = 1 / 3, 120.0, 300.0
@@ -86,7 +93,13 @@ def main() -> int:
               f"engine, calibrator, {PIECE.name} and its MIDI file", flush=True)
 
         clock = TickingClock(0.0)
-        engine = Engine(sim.rig(), clock)
+        rig = sim.rig()
+        if args.native is not None:
+            rig.fusion = dataclasses.replace(rig.fusion, native=args.native == "on")
+        engine = Engine(rig, clock)
+        print(f"soak: fusion.native {'on' if rig.fusion.native else 'off'}"
+              f"{'' if engine.people.core is not None or not rig.fusion.native else ' (no core)'}",
+              flush=True)
         engine.rig_store.threaded = False
         calibrator = attach_live(engine, None, threaded=False, save=False)
         piece = load_piece(str(PIECE))
@@ -126,12 +139,15 @@ def main() -> int:
                    "p99_ms": lat.get("p99", float("nan")), "datagrams": datagrams,
                    "wall_s": time.monotonic() - wall_start,
                    "drops": engine.drops.total(), "calibrator_crashes": calibrator.crashes}
+            native = engine.stats().get("fusion", {}).get("native")
             rows.append(row)
             print(f"{row['sim_h']:6.2f} h  rss {row['rss_mb']:7.1f} MB  clients {row['clients']}"
                   f"  ids {row['ids']:5d}  on stage {row['persons']}  slots {row['slots']}"
                   f"  events kept "
                   f"{row['events_kept']:5d}  per datagram p50 {row['p50_ms']:.3f} ms p99 "
-                  f"{row['p99_ms']:.3f} ms  drops {row['drops']}  wall {row['wall_s']:.0f} s",
+                  f"{row['p99_ms']:.3f} ms  drops {row['drops']}  wall {row['wall_s']:.0f} s"
+                  + (f"  native held {native['held']} folded {native['folded']} declined "
+                     f"{native['declined']} given back {native['given_back']}" if native else ""),
                   flush=True)
             engine.batch_time = LatencyWindow(4096)
 

@@ -796,96 +796,359 @@ def _view_joints(user, joints, conf, names, name_end, out):  # pragma: no cover 
 
 
 
+def _native_choose(zs, rs, confs, S, st, at, q, rates, bias_var, gate2, inferred, mean, var,
+                   masks):  # pragma: no cover (compiled)
+    """``fuser.Fuser._choose`` for the G views of one instant (zs (G, N, 3), rs, confs (G, N)),
+    the instant's first view at ``at`` and the state before it S, st: writes masks (G, N)."""
+    G = zs.shape[0]
+    n = zs.shape[1]
+    if G == 1:
+        for k in range(n):
+            masks[0, k] = math.isfinite(rs[0, k])
+        return
+    _prior(S, st, at, q, rates, mean, var)
+    tracked = np.empty((G, n), dtype=np.bool_)
+    for g in range(G):
+        for k in range(n):
+            tracked[g, k] = confs[g, k] > inferred
+    _consistent(zs, rs, mean, var, bias_var, gate2, tracked, True, masks)
+
+
+def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
+                 ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates, gate2,
+                 reject2, group_s, bias_var, inferred, tg, outcome, counts, pos,
+                 vel):  # pragma: no cover (compiled)
+    """``fuser.Fuser._replay`` in the native core's ring: the M views of a span (sz (M, N, 3),
+    sr, sconf (M, N), smeta (M, 6): t, recent row, arrival, size, -, the joints its
+    instant's choice left out before) folded in again in capture order from the state in
+    ring entry ``before`` of slot ``s``, into entries out0 .. out0 + M - 1 (mod R): grouped
+    into instants afresh (a view within ``group_s`` of its instant's first), each
+    instant's joints chosen (``_native_choose``) and its views stepped in turn
+    (``_step_rows``). Each entry keeps its view, mask, instant and the joints left out.
+    Adds the steps' joints downweighted and rejected to counts[2], counts[3], and the change
+    in joints left out to counts[5]; pos and vel are the last step's. Returns False (the
+    entries scratch) if a step has a row to start or restart, which only Python does."""
+    M = sz.shape[0]
+    n = sz.shape[1]
+    R = ring.shape[1]
+    cs = np.empty(4, dtype=np.int64)
+    rr = np.empty(n)
+    mean = np.empty((n, 3))
+    var = np.empty(n)
+    prev = before
+    k = 0
+    while k < M:
+        at = smeta[k, 0]
+        g = k + 1
+        while g < M and smeta[g, 0] - at <= group_s:
+            g += 1
+        G = g - k
+        gz = np.empty((G, n, 3))
+        gr = np.empty((G, n))
+        gc = np.empty((G, n))
+        for m in range(G):
+            for j in range(n):
+                gr[m, j] = sr[k + m, j]
+                gc[m, j] = sconf[k + m, j]
+                for c in range(3):
+                    gz[m, j, c] = sz[k + m, j, c]
+        masks = np.empty((G, n), dtype=np.bool_)
+        _native_choose(gz, gr, gc, ring[s, prev], ring_t[s, prev], at, q, rates, bias_var, gate2,
+                       inferred, mean, var, masks)
+        for m in range(G):
+            v = k + m
+            e = out0 + v
+            if e >= R:
+                e -= R
+            left = 0
+            for j in range(n):
+                if masks[m, j]:
+                    rr[j] = sr[v, j]
+                else:
+                    rr[j] = np.nan
+                    if math.isfinite(sr[v, j]):
+                        left += 1
+                tg[j] = smeta[v, 0]
+            _step_rows(ring[s, prev], ring_t[s, prev], ring_hz[s, prev], ring_ht[s, prev], tg,
+                       sz[v], rr, q, q_scale, rates, gate2, reject2, ring[s, e], ring_t[s, e],
+                       ring_hz[s, e], ring_ht[s, e], outcome, ring_used[s, e], cs, pos, vel)
+            if cs[0] or cs[1]:
+                return False
+            counts[2] += cs[2]
+            counts[3] += cs[3]
+            counts[5] += left - int(smeta[v, 5])
+            for j in range(n):
+                ring_r[s, e, j] = sr[v, j]
+                ring_conf[s, e, j] = sconf[v, j]
+                ring_mask[s, e, j] = masks[m, j]
+                for c in range(3):
+                    ring_z[s, e, j, c] = sz[v, j, c]
+            for c in range(4):
+                ring_view[s, e, c] = smeta[v, c]
+            ring_view[s, e, 4] = at
+            ring_view[s, e, 5] = left
+            prev = e
+        k = g
+    return True
+
+
+def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
+                 ring_used, ring_mask, ring_view):  # pragma: no cover (compiled)
+    """Ring entry ``src`` of slot ``s`` copied to entry ``dst``."""
+    ring[s, dst] = ring[s, src]
+    ring_t[s, dst] = ring_t[s, src]
+    ring_hz[s, dst] = ring_hz[s, src]
+    ring_ht[s, dst] = ring_ht[s, src]
+    ring_z[s, dst] = ring_z[s, src]
+    ring_r[s, dst] = ring_r[s, src]
+    ring_conf[s, dst] = ring_conf[s, src]
+    ring_used[s, dst] = ring_used[s, src]
+    ring_mask[s, dst] = ring_mask[s, src]
+    ring_view[s, dst] = ring_view[s, src]
+
+
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
-                 ring_z, ring_r, ring_conf, ring_used, ring_view, head, steps, newest, anchor,
-                 person_t, q, q_scale, rates, gate2, reject2, group_s, bias2, tg, outcome,
-                 counts, pos, vel, stale, recent_conf, recent_t, joints, velocity, pconf, known, carried,
-                 tracked, hold, centre, carry_on, hold_back, inferred, parents, children, torso,
-                 names, name_end, buf, offsets, centred):  # pragma: no cover (compiled)
-    """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons,
-    each a plain update, folded, settled and encoded in one call. A view is plain when it
-    comes in capture order after the person's newest view and either begins an instant
-    (more than ``group_s`` after the instant's first view) or joins one whose views it
-    all agrees with (``fuser.Fuser._agrees``: no joint both see further apart than the
-    gate allows, ``bias2`` being twice a view's bias squared); the instant's earlier views
-    must then all be in the ring (steps since the person was taken: ``steps``).
+                 ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, head, steps, valid,
+                 newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
+                 replay_s, inferred, tg, outcome, counts, pos, vel, plan, stale, recent_conf,
+                 recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre,
+                 carry_on, hold_back, parents, children, torso, names, name_end, buf, offsets,
+                 centred):  # pragma: no cover (compiled)
+    """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons
+    folded as ``fuser.Fuser.fold`` folds them, settled and encoded, in one call.
 
     View i is of the person in slot ``slots[i]``: captured at t[i], joints z[i] (25, 3),
     variances r[i] (25,), confidences conf[i], remembered in row ``rows[i]`` of the
     person's ``recent_conf``/``recent_t``, sent as user ``pid[i]``; its datagram arrived at
     ``arrival[i]``, its trunk measured ``size[i]``. A person's filter is a ring of states
     (``ring`` (S, R, 6, 2, 25, 3), ``ring_t``, ``ring_hz``, ``ring_ht``), ``head[s]`` its
-    newest: a step reads entry head and writes entry head + 1, so the states before each
-    step stay where they were, and the entry also keeps the view that made it (``ring_z``,
-    ``ring_r``, ``ring_conf``, the joints it used ``ring_used``, and ``ring_view`` (S, R, 5):
-    t, recent row, arrival, size, its instant's anchor): what a replay needs
-    (``NativeCore.give_back``).
-    ``steps[s]`` counts the steps in the ring since the person was taken (those of its
-    instant then included). Every step is made first; if
-    any needs what only Python does (a row to start or to restart) or a view is not plain,
-    nothing is committed and -1 - i is returned for view i (the heads and every person's
-    rows as they were; the entry after a head is scratch). Else the heads move, each person
-    is remembered, settled (``_settle``, in place on its rows as ``_settle_many``) and
-    encoded (``_view_joints``) into ``buf`` at ``offsets[i]`` .. ``offsets[i + 1]``;
-    ``centred[i]`` is ``_settle``'s count of torso joints known (0: the caller finds the
-    centre). Returns K. ``counts`` (K, 4) as ``_step_rows``'s, per view."""
+    newest: a step reads one entry and writes the next, so the states before each step stay
+    where they were, and the entry also keeps the view that made it (``ring_z``,
+    ``ring_r``, ``ring_conf``, the joints it used ``ring_used``, the joints its instant's
+    choice let through ``ring_mask``, and ``ring_view`` (S, R, 6): t, recent row, arrival,
+    size, its instant's anchor, the joints the choice left out). ``valid[s]`` steps back
+    from the head have their state before them in the ring; ``steps[s]`` counts the steps
+    since the person was taken.
+
+    As the Python path: a view after the person's newest that begins an instant is a plain
+    step; one that joins the newest instant is a plain step when it and the instant's views
+    all agree (``Fuser._agrees``), else the instant's joints are chosen again
+    (``_native_choose``): a plain step with its mask if the earlier views keep theirs, else
+    the instant folded again (``_native_span``); a view before the newest is inserted in
+    capture order and the span from its instant on folded again. A replay's steps are
+    written after the head first and moved into place only when the datagram is committed.
+    The core declines (returns -1 - i for view i, nothing committed, the entries after the
+    heads scratch) a view the Python path would drop as late or fit before its history, a
+    span or instant reaching past ``valid``, a span longer than a third of the ring, a
+    person twice in a datagram, and any step with a row to start or restart. Else the heads
+    move, each person is remembered, settled (``_settle``, in place on its rows as
+    ``_settle_many``) and encoded (``_view_joints``) into ``buf`` at ``offsets[i]`` ..
+    ``offsets[i + 1]``; ``centred[i]`` is ``_settle``'s count of torso joints known (0: the
+    caller finds the centre). Returns K. ``counts`` (K, 6) per view: rows to restart, to
+    start (0 when accepted), joints downweighted, rejected and held, 1 if replayed, the
+    change in joints left out by instants' choices. ``plan`` (K, 2): scratch."""
     K = slots.shape[0]
     R = ring.shape[1]
     n = z.shape[1]
+    bias_var = bias2 * 0.5
+    rr = np.empty(n)
+    cs = np.empty(4, dtype=np.int64)
+    mean = np.empty((n, 3))
+    var = np.empty(n)
     for i in range(K):
         s = slots[i]
-        if not t[i] >= newest[s]:
-            return -1 - i
         for j in range(i):
             if slots[j] == s:
                 return -1 - i
-        if t[i] - anchor[s] > group_s:
-            continue
-        # joins the newest instant: agreeing with every earlier view of it, all in the ring.
-        # They are: the steps since the person was taken, of which the first began its
-        # instant or (``take``) the instant then current was put in whole before them; with
-        # no step since, the instant is in the Python path's history (a join declined).
-        if steps[s] == 0:
-            return -1 - i
-        e = head[s]
-        back = 0
-        while back < steps[s]:
-            if back >= R - 2:
-                return -1 - i            # (an instant longer than the ring: not expected)
-            if ring_view[s, e, 4] != anchor[s]:
-                break
-            for k in range(n):
-                dx = ring_z[s, e, k, 0] - z[i, k, 0]
-                dy = ring_z[s, e, k, 1] - z[i, k, 1]
-                dz = ring_z[s, e, k, 2] - z[i, k, 2]
-                d2 = (dx * dx + dy * dy + dz * dz) / (ring_r[s, e, k] + r[i, k] + bias2)
-                if d2 > gate2:
-                    return -1 - i
-            back += 1
-            e = e - 1 if e > 0 else R - 1
-    for i in range(K):
-        s = slots[i]
+        for c in range(6):
+            counts[i, c] = 0
         a = head[s]
         b = a + 1
         if b == R:
             b = 0
-        for k in range(tg.shape[0]):
-            tg[k] = t[i]
-        _step_rows(ring[s, a], ring_t[s, a], ring_hz[s, a], ring_ht[s, a], tg, z[i], r[i], q,
+        ti = t[i]
+        plan[i, 0] = -1                  # a step into entry b; else a span from plan[i, 0]
+        plan[i, 1] = 0
+        plan_ins = 0
+        masked = False
+        # the oldest step kept began an instant when none was lost since the person was
+        # taken (the Python path's history begins with one; ``take`` put it all in)
+        whole = valid[s] == steps[s]
+        if ti >= newest[s] and ti - anchor[s] > group_s:
+            pass                         # begins an instant
+        elif ti >= newest[s]:
+            # joins the newest instant: its views are the steps back from the head that share
+            # its anchor, all in the ring
+            e = a
+            back = 0
+            agree = True
+            while True:
+                if back >= valid[s]:
+                    if whole and back > 0:
+                        break
+                    return -1 - i
+                if ring_view[s, e, 4] != anchor[s]:
+                    break
+                if ring_view[s, e, 5] != 0:
+                    agree = False
+                if agree:
+                    for k in range(n):
+                        dx = ring_z[s, e, k, 0] - z[i, k, 0]
+                        dy = ring_z[s, e, k, 1] - z[i, k, 1]
+                        dz = ring_z[s, e, k, 2] - z[i, k, 2]
+                        d2 = (dx * dx + dy * dy + dz * dz) / (ring_r[s, e, k] + r[i, k] + bias2)
+                        if d2 > gate2:
+                            agree = False
+                            break
+                back += 1
+                e = e - 1 if e > 0 else R - 1
+            if not agree:
+                # the instant's joints chosen again, this view with them
+                G = back + 1
+                first = e + 1 if e + 1 < R else 0
+                gz = np.empty((G, n, 3))
+                gr = np.empty((G, n))
+                gc = np.empty((G, n))
+                f = first
+                for m in range(G):
+                    for k in range(n):
+                        if m < back:
+                            gr[m, k] = ring_r[s, f, k]
+                            gc[m, k] = ring_conf[s, f, k]
+                            for c in range(3):
+                                gz[m, k, c] = ring_z[s, f, k, c]
+                        else:
+                            gr[m, k] = r[i, k]
+                            gc[m, k] = conf[i, k]
+                            for c in range(3):
+                                gz[m, k, c] = z[i, k, c]
+                    f = f + 1 if f + 1 < R else 0
+                masks = np.empty((G, n), dtype=np.bool_)
+                _native_choose(gz, gr, gc, ring[s, e], ring_t[s, e], anchor[s], q, rates,
+                               bias_var, gate2, inferred, mean, var, masks)
+                same = True
+                f = first
+                for m in range(back):
+                    for k in range(n):
+                        if masks[m, k] != ring_mask[s, f, k]:
+                            same = False
+                    f = f + 1 if f + 1 < R else 0
+                if same:
+                    masked = True
+                    left = 0
+                    for k in range(n):
+                        if masks[back, k]:
+                            rr[k] = r[i, k]
+                        else:
+                            rr[k] = np.nan
+                            if math.isfinite(r[i, k]):
+                                left += 1
+                        ring_mask[s, b, k] = masks[back, k]
+                    counts[i, 5] = left
+                else:
+                    plan[i, 0] = first
+                    plan[i, 1] = back + 1
+        else:
+            # before the newest: after the last step captured no later than it
+            e = a
+            back = 0
+            while back < valid[s] and ring_view[s, e, 0] > ti:
+                back += 1
+                e = e - 1 if e > 0 else R - 1
+            if back >= valid[s] or ring_view[s, e, 4] < newest[s] - replay_s:
+                return -1 - i        # (before the Python path's history: late, or not known)
+            if ti - ring_view[s, e, 4] <= group_s:
+                ins = 1              # joins e's instant: the span from its first step
+                while True:
+                    if back + 1 >= valid[s]:
+                        if whole:
+                            break
+                        return -1 - i
+                    p = e - 1 if e > 0 else R - 1
+                    if ring_view[s, p, 4] != ring_view[s, e, 4]:
+                        break
+                    e = p
+                    back += 1
+                    ins += 1
+                first = e
+                span = back + 2
+            else:
+                ins = 0              # begins the span after e
+                first = e + 1 if e + 1 < R else 0
+                span = back + 1
+            plan[i, 0] = first
+            plan[i, 1] = span
+            plan_ins = ins
+        M = plan[i, 1]
+        if M:
+            if 3 * M > R:
+                return -1 - i
+            # the span's views (ring entries from ``first``, this one inserted), stepped from
+            # the state before ``first`` into the entries after the head
+            if valid[s] > R - M - 1:
+                valid[s] = R - M - 1    # (those entries are written over, kept or not)
+            first = plan[i, 0]
+            if ti >= newest[s]:
+                plan_ins = M - 1
+            sz = np.empty((M, n, 3))
+            sr = np.empty((M, n))
+            sc = np.empty((M, n))
+            sm = np.empty((M, 6))
+            f = first
+            for m in range(M):
+                if m == plan_ins:
+                    for k in range(n):
+                        sr[m, k] = r[i, k]
+                        sc[m, k] = conf[i, k]
+                        for c in range(3):
+                            sz[m, k, c] = z[i, k, c]
+                    sm[m, 0] = ti
+                    sm[m, 1] = rows[i]
+                    sm[m, 2] = arrival[i]
+                    sm[m, 3] = size[i]
+                    sm[m, 4] = np.nan
+                    sm[m, 5] = 0.0
+                else:
+                    for k in range(n):
+                        sr[m, k] = ring_r[s, f, k]
+                        sc[m, k] = ring_conf[s, f, k]
+                        for c in range(3):
+                            sz[m, k, c] = ring_z[s, f, k, c]
+                    for c in range(6):
+                        sm[m, c] = ring_view[s, f, c]
+                    f = f + 1 if f + 1 < R else 0
+            before = first - 1 if first > 0 else R - 1
+            counts[i, 4] = 1
+            if not _native_span(s, before, b, sz, sr, sc, sm, ring, ring_t, ring_hz, ring_ht,
+                                ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, q,
+                                q_scale, rates, gate2, reject2, group_s, bias_var, inferred, tg,
+                                outcome[i], counts[i], pos[i], vel[i]):
+                return -1 - i
+            continue
+        for k in range(n):
+            tg[k] = ti
+            if not masked:
+                rr[k] = r[i, k]
+        _step_rows(ring[s, a], ring_t[s, a], ring_hz[s, a], ring_ht[s, a], tg, z[i], rr, q,
                    q_scale, rates, gate2, reject2, ring[s, b], ring_t[s, b], ring_hz[s, b],
-                   ring_ht[s, b], outcome[i], ring_used[s, b], counts[i], pos[i], vel[i])
-        if counts[i, 0] or counts[i, 1]:
+                   ring_ht[s, b], outcome[i], ring_used[s, b], cs, pos[i], vel[i])
+        for c in range(4):
+            counts[i, c] = cs[c]
+        if cs[0] or cs[1]:
             return -1 - i
-        for k in range(z.shape[1]):
+        for k in range(n):
             ring_r[s, b, k] = r[i, k]
             ring_conf[s, b, k] = conf[i, k]
+            if not masked:
+                ring_mask[s, b, k] = math.isfinite(r[i, k])
             for c in range(3):
                 ring_z[s, b, k, c] = z[i, k, c]
-        ring_view[s, b, 0] = t[i]
+        ring_view[s, b, 0] = ti
         ring_view[s, b, 1] = rows[i]
         ring_view[s, b, 2] = arrival[i]
         ring_view[s, b, 3] = size[i]
-        ring_view[s, b, 4] = t[i] if t[i] - anchor[s] > group_s else anchor[s]
+        ring_view[s, b, 4] = ti if ti - anchor[s] > group_s else anchor[s]
+        ring_view[s, b, 5] = counts[i, 5]
     at = 0
     offsets[0] = 0
     for i in range(K):
@@ -893,9 +1156,31 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         b = head[s] + 1
         if b == R:
             b = 0
+        M = plan[i, 1]
+        if M:
+            # the replayed span moved from the entries after the head into place
+            first = plan[i, 0]
+            for m in range(M):
+                src = b + m
+                if src >= R:
+                    src -= R
+                dst = first + m
+                if dst >= R:
+                    dst -= R
+                _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r,
+                             ring_conf, ring_used, ring_mask, ring_view)
+            b = first + M - 1
+            if b >= R:
+                b -= R
+        else:
+            if valid[s] < R - 2:
+                valid[s] += 1
         head[s] = b
         steps[s] += 1
-        newest[s] = t[i]
+        if M and valid[s] < R - M - 1:
+            valid[s] += 1
+        if t[i] > newest[s]:
+            newest[s] = t[i]
         anchor[s] = ring_view[s, b, 4]
         for k in range(conf.shape[1]):
             recent_conf[s, rows[i], k] = conf[i, k]
@@ -967,14 +1252,16 @@ _NATIVE_SIGNATURES = {
                     "float64[:, ::1], int64[::1], int64[::1], float64[::1], float64[::1], "
                     "float64[:, :, :, :, :, ::1], float64[:, :, ::1], float64[:, :, :, ::1], "
                     "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], "
-                    "float64[:, :, ::1], boolean[:, :, ::1], float64[:, :, ::1], int64[::1], "
-                    "int64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
-                    "float64[::1], float64[::1], float64, float64, float64, float64, "
+                    "float64[:, :, ::1], boolean[:, :, ::1], boolean[:, :, ::1], "
+                    "float64[:, :, ::1], int64[::1], int64[::1], int64[::1], float64[::1], "
+                    "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
+                    "float64, float64, float64, float64, float64, float64, "
                     "float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
-                    "float64[:, :, ::1], float64, float64[:, :, ::1], float64[:, ::1], float64[:, :, ::1], "
+                    "float64[:, :, ::1], int64[:, ::1], float64, float64[:, :, ::1], "
+                    "float64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
                     "boolean[:, ::1], float64[:, :, ::1], float64[:, ::1], boolean, boolean, "
-                    "float64, int64[::1], int64[::1], int64[::1], uint8[::1], int64[::1], "
+                    "int64[::1], int64[::1], int64[::1], uint8[::1], int64[::1], "
                     "uint8[::1], int64[::1], int64[::1])",
 }
 
@@ -1005,6 +1292,9 @@ _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
+#: what the native core's kernel calls besides the kernels above
+_NATIVE_HELPERS = ("_native_choose", "_native_span", "_native_move")
+_PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 
 
 def warm() -> bool:
@@ -1048,6 +1338,8 @@ def warm_native() -> bool:
     if "_native_fold" in _compiled:
         return True
     try:
+        for name in _NATIVE_HELPERS:       # (compiled into the kernel that calls them)
+            globals()[name] = numba.njit()(_PYTHON_HELPERS[name])
         for name, sig in _NATIVE_SIGNATURES.items():
             _compiled[name] = globals()[name] = _njit(_PYTHON_NATIVE[name], sig, [True], False)
     except Exception as exc:  # as in warm: logged, and the caller runs without it

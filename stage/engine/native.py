@@ -86,13 +86,18 @@ class NativeCore:
         self.declined = 0
         self.folded = 0
         self.given_back = 0
+        #: views the core folded in again from where they belong (late, or an instant's
+        #: choice changed: ``fuser.Fuser._replay``)
+        self.replayed = 0
         #: after a declined fold: the index of the view the core could not take
         self.refused = -1
         #: persons given back whose history lost steps the ring no longer held (see
         #: ``give_back``)
         self.short_histories = 0
-        #: per view of the last accepted fold: the step's counts (K, 4) (``_step_rows``'s)
-        self.counts = np.zeros((0, 4), dtype=np.int64)
+        #: per view of the last accepted fold (K, 6): rows restarted and started (0), joints
+        #: downweighted, joints rejected, 1 if replayed, the change in joints left out by
+        #: instants' choices (``jit._native_fold``)
+        self.counts = np.zeros((0, 6), dtype=np.int64)
         #: the slots of the last accepted fold's views, in order
         self.slots = np.zeros(0, dtype=np.int64)
         self._scratch: dict[int, tuple] = {}
@@ -110,9 +115,12 @@ class NativeCore:
         self.ring_r = np.full((n, d, N_JOINTS), np.nan)
         self.ring_conf = np.zeros((n, d, N_JOINTS))
         self.ring_used = np.zeros((n, d, N_JOINTS), dtype=bool)
-        self.ring_view = np.full((n, d, 5), np.nan)  # t, recent row, arrival, size, anchor
+        self.ring_mask = np.zeros((n, d, N_JOINTS), dtype=bool)
+        # t, recent row, arrival, size, anchor, joints its instant's choice left out
+        self.ring_view = np.full((n, d, 6), np.nan)
         self.head = np.zeros(n, dtype=np.int64)
         self.steps = np.zeros(n, dtype=np.int64)
+        self.valid = np.zeros(n, dtype=np.int64)       # steps whose state before is kept
         self.seeded = np.zeros(n, dtype=np.int64)      # of those, put in by ``take``
         self.newest = np.full(n, -np.inf)
         self.anchor = np.full(n, -np.inf)
@@ -160,7 +168,8 @@ class NativeCore:
     @staticmethod
     def _arrays() -> tuple[str, ...]:
         return ("ring", "ring_t", "ring_hz", "ring_ht", "ring_z", "ring_r", "ring_conf",
-                "ring_used", "ring_view", "head", "steps", "seeded", "newest", "anchor",
+                "ring_used", "ring_mask", "ring_view", "head", "steps", "valid", "seeded",
+                "newest", "anchor",
                 "person_t",
                 *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t")
 
@@ -188,17 +197,16 @@ class NativeCore:
         while len(person.recent_t) > self.recent_t.shape[1]:
             self._grow_rows()
         hist = body.history
-        # the views of the instant the newest one belongs to go into the ring as steps, each
-        # with the state before it, so that a view joining that instant is checked against
-        # them all (sensors in step: the person is taken in the middle of an instant)
-        members: list = []
-        if hist:
+        # the history goes into the ring as steps, each with the state before it, so that
+        # a view joining its newest instant is checked against all of its views and a late
+        # view folded in again from where it belongs (the Python path's history begins an
+        # instant; one too long for the ring: the newest instant alone)
+        members: list = list(hist)
+        if len(members) > self.depth - 3:
             k = len(hist)
             while k > 0 and hist[k - 1].anchor == hist[-1].anchor:
                 k -= 1
-            members = hist[k:]
-            if len(members) > self.depth - 2 or not all(m.whole for m in members):
-                members = []           # (a view joining it needs the Python path's choice)
+            members = hist[k:] if len(hist) - k <= self.depth - 3 else []
         self.seeded[s] = len(members)
         states = [m.before for m in members[1:]] + [st]
         self._put(s, 0, members[0].before if members else st)
@@ -209,11 +217,13 @@ class NativeCore:
             self.ring_r[s, j] = v.r
             self.ring_conf[s, j] = v.conf
             self.ring_used[s, j] = v.used
+            self.ring_mask[s, j] = m.mask
             row = person.recent.get(v.key, -1)
             self.ring_view[s, j] = (v.t, row, v.arrival, np.nan if v.size is None else v.size,
-                                    m.anchor)
+                                    m.anchor, v.excluded)
         self.head[s] = len(members)
         self.steps[s] = len(members)
+        self.valid[s] = len(members)
         self.newest[s] = body.newest
         self.anchor[s] = hist[-1].anchor if hist else -np.inf
         self.person_t[s] = person.t
@@ -245,26 +255,28 @@ class NativeCore:
         core did (``fuser`` then trims its history as it would have): its filter's state and
         history -- the steps since ``take``, each with its view and the state before it,
         after the history it had then -- and its output rows as arrays of its own. A person
-        with more steps than the ring holds gets the steps it still holds (``DEPTH`` - 2
-        of them; counted in ``short_histories`` when those do not reach back ``replay_s``)."""
+        with more steps than the ring holds gets the steps it still holds (``valid``: up to
+        ``DEPTH`` - 2 of them, fewer after a replay; counted in ``short_histories`` when
+        those do not reach back ``replay_s``)."""
         s = self.slot_of[person.id]
         body = person.filter
         d, h, n = self.depth, int(self.head[s]), int(self.steps[s])
-        keep = min(n, d - 2)
+        keep = min(n, int(self.valid[s]))
         steps = []
         if keep:
             key_of = {row: key for key, row in person.recent.items()}
             for back in range(keep - 1, -1, -1):
                 e = (h - back) % d
                 b = (e - 1) % d
-                t, row, arrival, size, anchor = self.ring_view[s, e].tolist()
+                t, row, arrival, size, anchor, left = self.ring_view[s, e].tolist()
                 view = View(key_of.get(int(row), ("?", -1)), t, self.ring_z[s, e].copy(),
                             self.ring_conf[s, e].copy(), self.ring_r[s, e].copy(), arrival,
-                            self.ring_used[s, e].copy(), 0, size)
+                            self.ring_used[s, e].copy(), int(left), size)
                 before = FilterState.of_block(self.ring[s, b].copy(), self.ring_t[s, b].copy(),
                                               self.ring_hz[s, b].copy(),
                                               self.ring_ht[s, b].copy())
-                steps.append(_Step(view, before, anchor, None))
+                steps.append(_Step(view, before, anchor, self.ring_mask[s, e].copy(),
+                                   left == 0))
         if keep < n:
             if steps and steps[0].anchor >= self.newest[s] - self.f.replay_s:
                 self.short_histories += 1
@@ -314,8 +326,9 @@ class NativeCore:
         b = self._scratch.get(k)
         if b is None:
             b = self._scratch[k] = (
-                np.empty((k, N_JOINTS), dtype=np.int8), np.empty((k, 4), dtype=np.int64),
+                np.empty((k, N_JOINTS), dtype=np.int8), np.empty((k, 6), dtype=np.int64),
                 np.empty((k, N_JOINTS, 3)), np.empty((k, N_JOINTS, 3)),
+                np.empty((k, 2), dtype=np.int64),
                 np.empty(k * self.longest, dtype=np.uint8), np.empty(k + 1, dtype=np.int64),
                 np.empty(k, dtype=np.int64))
         return b
@@ -345,7 +358,7 @@ class NativeCore:
             arrival = np.full(k, np.nan)
         if size is None:
             size = np.full(k, np.nan)
-        outcome, counts, pos, vel, buf, offsets, centred = self._buffers(k)
+        outcome, counts, pos, vel, plan, buf, offsets, centred = self._buffers(k)
         args = self._args
         if args is None:
             args = self._args = self._arguments()
@@ -353,12 +366,13 @@ class NativeCore:
         done = jit._compiled["_native_fold"](
             slots_a, t, z, r, conf, np.array(rows, dtype=np.int64),
             np.array(pids, dtype=np.int64), arrival, size, *args[0], outcome, counts, pos, vel,
-            *args[1], buf, offsets, centred)
+            plan, *args[1], buf, offsets, centred)
         if done < 0:
             self.declined += 1
             self.refused = -1 - done
             return None
         self.folded += 1
+        self.replayed += int(counts[:, 4].sum())
         self.counts = counts
         self.slots = slots_a
         ends = offsets.tolist()
@@ -376,13 +390,14 @@ class NativeCore:
         after the arrays grow)."""
         s, f = self.s, self.f
         return ((self.ring, self.ring_t, self.ring_hz, self.ring_ht, self.ring_z, self.ring_r,
-                 self.ring_conf, self.ring_used, self.ring_view, self.head, self.steps,
-                 self.newest, self.anchor, self.person_t, self.q, self.q_scale, self.rates,
-                 float(s.gate_sigma ** 2), float(s.reject_sigma ** 2), float(f.group_s),
-                 float(2.0 * f.view_bias_m ** 2), self._tg),
+                 self.ring_conf, self.ring_used, self.ring_mask, self.ring_view, self.head,
+                 self.steps, self.valid, self.newest, self.anchor, self.person_t, self.q,
+                 self.q_scale, self.rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
+                 float(f.group_s), float(2.0 * f.view_bias_m ** 2), float(f.replay_s),
+                 float(INFERRED), self._tg),
                 (float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
                  self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
-                 bool(f.carry_untracked), bool(f.hold_back_inferred), float(INFERRED), _PARENTS,
+                 bool(f.carry_untracked), bool(f.hold_back_inferred), _PARENTS,
                  _CHILDREN, _TORSO, self.names, self.name_end))
 
     def _centre_otherwise(self, s: int) -> None:

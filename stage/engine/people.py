@@ -49,13 +49,12 @@ _NO_R = np.full(25, np.nan)
 _NEVER = float("-inf")
 #: smoothing off: a filter so loose that every joint is its latest measurement
 _UNSMOOTHED = dict(quiet_noise=1e12, fast_noise=1e12)
-#: a person the Python path folded this many datagrams in a row by its plain path (every
-#: view used whole, nothing replayed) is taken by the native core (``fusion.native``) ...
+#: a person the Python path folded this many datagrams in a row (none dropped as late) is
+#: taken by the native core (``fusion.native``) ...
 TAKE_AFTER = 3
 #: ... and twice as many after each time it is given back having been folded fewer than
-#: ``KEEP_STEPS`` times by the core, up to this many (views of sensors in step that often
-#: disagree, which only the Python path chooses between, would otherwise send the person
-#: back and forth)
+#: ``KEEP_STEPS`` times by the core, up to this many (a person whose views often need what
+#: only the Python path does, rows to start or restart, would otherwise go back and forth)
 TAKE_AFTER_MAX = 192
 KEEP_STEPS = 200
 
@@ -93,7 +92,7 @@ class People:
         self._batch: tuple | None = None
         #: person id -> its skeleton as the core encoded it in this batch
         self._encoded: dict[int, bytes] = {}
-        #: person id -> datagrams in a row the Python path folded it by the plain path
+        #: person id -> datagrams in a row the Python path folded it
         self._plain_run: dict[int, int] = {}
         #: person id -> the run it needs to be taken (TAKE_AFTER unless given back lately)
         self._take_after: dict[int, int] = {}
@@ -353,6 +352,8 @@ class People:
         counts = core.counts.sum(axis=0).tolist()
         st.downweighted += counts[2]
         st.rejected += counts[3]
+        st.replays += counts[4]
+        st.disagreeing += counts[5]
         self.fuser.plain_wave = None
         person_t = core.person_t[core.slots].tolist()
         dirty, encoded = self._dirty, self._encoded
@@ -369,15 +370,12 @@ class People:
 
     def _take_steady(self, core: NativeCore, ordered: list, late: set) -> None:
         """Persons the Python path has folded ``TAKE_AFTER`` datagrams in a row (more after
-        being given back) by its plain path -- every view used whole, nothing replayed --
-        are taken by the native core."""
+        being given back), none of their views dropped as late, are taken by the native
+        core."""
         runs, persons, need = self._plain_run, self.persons, self._take_after
-        replayed = self.fuser.replayed
         for person, view in ordered:
             pid = person.id
-            hist = person.filter.history
-            if (id(view) in late or not hist or hist[-1].view is not view
-                    or not hist[-1].whole or id(person.filter) in replayed):
+            if id(view) in late or not person.filter.history:
                 runs[pid] = 0
                 continue
             n = runs[pid] = runs.get(pid, 0) + 1
@@ -655,7 +653,8 @@ class People:
         core = self.core
         if core is not None:
             out["native"] = {"held": len(core.slot_of), "folded": core.folded,
-                             "declined": core.declined, "given_back": core.given_back,
+                             "replayed": core.replayed, "declined": core.declined,
+                             "given_back": core.given_back,
                              "short_histories": core.short_histories}
         return out
 
