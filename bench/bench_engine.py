@@ -497,8 +497,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
     rig_path = os.path.join(tmp.name, "rig.yaml")
     rig = build_rig(sensors, port, view.address)
-    if opt.native:
-        rig.fusion = dataclasses.replace(rig.fusion, native=True)
+    rig.fusion = dataclasses.replace(rig.fusion, native=opt.native)
     if not opt.kinect_errors:      # (the model's own errors are the point there)
         check_scene(loads, rig)
     rig.save(rig_path)

@@ -96,8 +96,8 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
 def engine(mods: dict, poses, native: bool = False):
     rig_mod = mods["rig"]
     rig = rig_mod.Rig(reference="s0", views=[("127.0.0.1", 9)])
-    if native:
-        rig.fusion = dataclasses.replace(rig.fusion, native=True)
+    if hasattr(rig.fusion, "native"):     # (trees before the core have none)
+        rig.fusion = dataclasses.replace(rig.fusion, native=native)
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import subprocess
@@ -229,6 +230,9 @@ def _run_engine(poses, data, snapshots: list) -> None:
     from stage.engine.engine import Engine
     from stage.rig import Rig, set_calibration
     rig = Rig(reference="s0")
+    # the Python path's kernels are what these tests compare (the native core is held to
+    # that path in tests/test_native.py)
+    rig.fusion = dataclasses.replace(rig.fusion, native=False)
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):
@@ -571,6 +575,7 @@ def test_a_person_whose_array_was_replaced_is_bound_to_the_bank_again():
     from stage.engine.engine import Engine
     from stage.rig import Rig, set_calibration
     rig = Rig(reference="s0")
+    rig.fusion = dataclasses.replace(rig.fusion, native=False)   # (the person bank's binding)
     rig.stage_frame = poses[0].to_stage
     for k, p in enumerate(poses):
         set_calibration(rig, f"s{k}", np.linalg.inv(poses[0].to_stage) @ p.to_stage, "test")

@@ -18,17 +18,21 @@ core, built beside the Python one and held to it bit for bit:
   in, remembers each view's confidences, settles each person and encodes the
   ``/jointCoordinates`` the views receive, into one buffer.
 
-It does only the usual case: every view a plain update of a person it holds (after the
-person's newest view, either beginning an instant or joining one whose views it all agrees
-with, as ``fuser.Fuser._agrees`` judges), no joint to start or to restart, every view
-already remembered by its person. Anything else is *declined* before anything changes
-(``refused`` names the view).
+It folds a view as ``fuser.Fuser.fold`` does: after the person's newest view, beginning an
+instant or joining one (whose joints are chosen again, as ``Fuser._choose`` does, when
+its views do not all agree, and the instant folded again when the choice changes), or
+before it, within the history the Python path would keep (inserted in capture order and
+the span from its instant folded again, as ``Fuser._replay``). It declines, before
+anything changes (``refused`` names the view), a view the Python path would drop as late
+or fit before its history, a replay reaching past the steps the ring still holds, a
+person twice in a datagram, a view its person has not remembered, and any step with a
+joint to start or to restart.
 
 In the engine (``people.People``, with ``fusion: native: true``) a person the Python path
-has folded a few datagrams in a row by its plain path is taken (``take(bind=True)``); a
-person whose view the core declines is given back first (``give_back``: its history
-rebuilt from the ring, as if the Python path had folded every view) and that view folded
-by the Python path, the others by the core. tests/test_native.py plays whole shows through
+has folded a few datagrams in a row is taken (``take(bind=True)``, its history put in the
+ring); a person whose view the core declines is given back first (``give_back``: its
+history rebuilt from the ring, as if the Python path had folded every view) and that view
+folded by the Python path, the others by the core. tests/test_native.py plays whole shows through
 engines with the switch on and off and compares every datagram sent;
 ``stage.testing.native_shadow`` runs a core beside an engine on the same datagrams and
 compares every float it keeps (``bench/bench_native.py``).
@@ -49,7 +53,8 @@ from .kalman import FilterState
 _TORSO = np.array(TORSO)
 
 #: states kept per person: the newest, the entry the next step writes, and DEPTH - 2 before
-#: them (at 6 sensors x 30 Hz, ``replay_s``'s 0.15 s is 27 steps)
+#: them (at 6 sensors x 30 Hz, ``replay_s``'s 0.15 s is 27 steps); a replay writes its span
+#: after the head first, so spans up to a third of the ring are folded by the core
 DEPTH = 64
 
 #: the arrays a bound person's attributes are views of

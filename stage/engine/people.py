@@ -85,8 +85,10 @@ class People:
             try:
                 self.core = NativeCore(smoothing, rig.fusion, self.fuser.q_scale)
             except RuntimeError as exc:
-                log.warning("fusion: native is on but %s; the Python path folds every "
-                            "datagram", exc)
+                # without any kernels (STAGE_JIT=0, no numba) the engine has said so in one
+                # line already; a warning only when the core's own kernel failed
+                (log.warning if jit.ready() else log.info)(
+                    "fusion: native is on but %s; the Python path folds every datagram", exc)
         #: with the core: the last ``prepare_frames`` call's arrays (joints, conf, variances)
         #: and their rows as handed to the views, which the core then takes as they are
         self._batch: tuple | None = None

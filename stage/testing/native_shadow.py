@@ -19,6 +19,7 @@ difference found (empty: the core gave the engine's bytes and floats).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -189,6 +190,8 @@ def shadow_engine(poses, views: list[tuple[str, int]] | None = None, **core) -> 
     from ..clock import ManualClock
     from ..rig import Rig, set_calibration
     rig = Rig(reference="s0", views=views or [("127.0.0.1", 9)])
+    # the engine's Python path folds everything: the shadow's core is compared with it
+    rig.fusion = dataclasses.replace(rig.fusion, native=False)
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):
