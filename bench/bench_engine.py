@@ -91,6 +91,9 @@ DIFF_P99_TARGET_MS = 2.0     # ...in every configuration
 CPU_TARGET = 0.25            # fraction of one core...
 CPU_TARGET_CONFIG = (6, 6)   # ...for 6 sensors x 6 people
 ALL_CONFIGS = [(s, p) for s in (1, 3, 6) for p in (1, 3, 6)]
+#: the rows that are the engine (judged against the targets): the rig's default, and each path forced
+_ENGINES = ("engine", "native", "python")
+_SERVER = {None: "engine", True: "native", False: "python"}    # by Options.native
 GRID_M = 1.5                 # people stand this far apart
 RING_M = 4.5                 # sensor ring radius around the grid
 SWAY_M, SWAY_S = 0.15, 8.0   # each person walks a small circle: radius, period
@@ -483,7 +486,8 @@ class Options:
     wait_idle: float = 0.0               # max s to wait for an idle machine before each config
     trace: str | None = None             # a directory: run the traced server (stalltrace.py)
     kinect_errors: bool = False          # the whole Kinect model (ERROR_KINECT)
-    native: bool = False                 # the engine with fusion.native on (rows "native")
+    native: bool | None = None           # fusion.native forced on (rows "native") or off
+                                         # (rows "python"); None: the rig's default
 
 
 def run_config(sensors: int, people: int, opt: Options) -> dict:
@@ -497,7 +501,8 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     tmp = tempfile.TemporaryDirectory(prefix="stage-bench-")
     rig_path = os.path.join(tmp.name, "rig.yaml")
     rig = build_rig(sensors, port, view.address)
-    rig.fusion = dataclasses.replace(rig.fusion, native=opt.native)
+    if opt.native is not None:
+        rig.fusion = dataclasses.replace(rig.fusion, native=opt.native)
     if not opt.kinect_errors:      # (the model's own errors are the point there)
         check_scene(loads, rig)
     rig.save(rig_path)
@@ -599,7 +604,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
         threads[_thread_label(named.get(t, str(t)))] += (threads1[t] - threads0[t]) / span
     result = {
         "server": (("floor" if opt.floor else "relay") if opt.relay
-                   else "native" if opt.native else "engine"),
+                   else _SERVER[opt.native]),
         "mode": "aligned" if opt.aligned else "spread",
         "config": f"{sensors}x{people}",
         "sensors": sensors, "people": people, "stage_source": fingerprint,
@@ -656,7 +661,7 @@ def verdicts(rows: list[dict]) -> None:
                 r["diff_ms"] = {"p50": lat["p50"] - relay["latency_ms"]["p50"],
                                 "p99": lat["p99"] - relay["latency_ms"]["p99"]}
             continue
-        if r["server"] not in ("engine", "native"):
+        if r["server"] not in _ENGINES:
             continue
         relay = relays.get((r["mode"], r["config"]))
         lat = r["latency_ms"]
@@ -896,7 +901,7 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
             cpu += (f" ({100 * th['receiver']:.0f}+{100 * th['engine']:.0f}+"
                     f"{100 * th.get('calibrator', 0.0):.0f}+{100 * rest:.0f})")
         notes = []
-        if r["server"] in ("engine", "native") and not r.get("latency_pass", True):
+        if r["server"] in _ENGINES and not r.get("latency_pass", True):
             notes.append("latency")
         if r.get("cpu_pass") is False:
             notes.append("CPU")
@@ -953,10 +958,11 @@ def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
         print(f"  zero waiting by design: {'PASS' if zero else 'FAIL'}")
     engines = [r for r in results if r["server"] == "engine"]
     print("overall:", "PASS" if engines and all(r["verdict"] == "PASS" for r in engines) else "FAIL")
-    natives = [r for r in results if r["server"] == "native"]
-    if natives:
-        print("overall with fusion.native:",
-              "PASS" if all(r["verdict"] == "PASS" for r in natives) else "FAIL")
+    for server, what in (("native", "fusion.native on"), ("python", "the Python path")):
+        rows = [r for r in results if r["server"] == server]
+        if rows:
+            print(f"overall with {what}:",
+                  "PASS" if all(r["verdict"] == "PASS" for r in rows) else "FAIL")
 
 
 def parse_configs(text: str) -> list[tuple[int, int]]:
@@ -1016,6 +1022,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--native", action="store_true",
                         help="also run each configuration's engine with fusion.native on (the "
                              "native core; rows 'native', judged as the engine's)")
+    parser.add_argument("--python-path", action="store_true",
+                        help="also run each configuration's engine with fusion.native off "
+                             "(the Python path alone; rows 'python', judged as the engine's)")
     parser.add_argument("--kinect-errors", action="store_true",
                         help="the simulator's whole Kinect model (bias, swapped limbs, inferred "
                              "joints off): views of an instant that disagree")
@@ -1041,7 +1050,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def run(sensors: int, people: int, o: Options) -> dict:
         label = f"{'aligned' if o.aligned else 'spread'} {sensors}x{people} " \
-                f"{('floor' if o.floor else 'relay') if o.relay else 'engine'}"
+                f"{('floor' if o.floor else 'relay') if o.relay else _SERVER[o.native]}"
         for attempt in range(args.retry_busy + 1):
             print(f"running {label} ...", file=sys.stderr, flush=True)
             result = run_config(sensors, people, o)
@@ -1070,6 +1079,9 @@ def main(argv: list[str] | None = None) -> int:
             results.append(run(sensors, people, engine_opt))
             if args.native:
                 results.append(run(sensors, people, dataclasses.replace(engine_opt, native=True)))
+            if args.python_path:
+                results.append(run(sensors, people,
+                                   dataclasses.replace(engine_opt, native=False)))
         if not args.no_offline:
             for sensors, people in args.configs:
                 offline.append(offline_config(sensors, people, min(args.duration, 4.0), aligned,

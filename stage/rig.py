@@ -39,8 +39,9 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       unswap_limbs: true           # trade back a view's swapped left/right arm or leg
       hold_back_inferred: true     # joints no sensor has tracked yet are not reported
       carry_untracked: true        # joints only inferred now follow their parent joint
-      native: false                # true: a datagram's usual views folded by the native core,
-                                   # one compiled call, the same output (stage/engine/native.py)
+      native: true                 # a datagram's views folded by the native core, one compiled
+                                   # call, the same output (stage/engine/native.py); false:
+                                   # the Python path alone
     smoothing:                     # settings.KalmanSettings (docs/smoothing.md)
       enabled: true                # false: each joint is its latest accepted measurement
       quiet_noise: 5.0             # acceleration variance of the quiet motion model, (m/s^2)^2

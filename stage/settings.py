@@ -105,9 +105,9 @@ class FusionSettings:
     carry_untracked: bool = True  # a joint every sensor only infers now is reported at its
                                  # parent joint plus the offset it had when last tracked, as
                                  # inferred (``fusion.carry_untracked``)
-    native: bool = False         # fold a datagram's usual views in the native core, one
-                                 # compiled call (``stage.engine.native``; the same output to
-                                 # the bit); off: the Python path alone
+    native: bool = True          # fold a datagram's views in the native core, one compiled
+                                 # call (``stage.engine.native``; the same output to the
+                                 # bit); off: the Python path alone
 
     def __post_init__(self) -> None:
         if self.hand_vote not in ("plain", "confidence"):
