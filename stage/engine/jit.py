@@ -814,6 +814,20 @@ def _native_choose(zs, rs, confs, S, st, at, q, rates, bias_var, gate2, inferred
     _consistent(zs, rs, mean, var, bias_var, gate2, tracked, True, masks)
 
 
+def _native_masked(r, mask, out):  # pragma: no cover (compiled)
+    """``out`` = r where ``mask``, else NaN; returns how many joints seen (r finite) the mask
+    leaves out (``fuser``'s ``excluded``)."""
+    left = 0
+    for j in range(r.shape[0]):
+        if mask[j]:
+            out[j] = r[j]
+        else:
+            out[j] = np.nan
+            if math.isfinite(r[j]):
+                left += 1
+    return left
+
+
 def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
                  ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates, gate2,
                  reject2, group_s, bias_var, inferred, tg, outcome, counts, pos,
@@ -860,14 +874,8 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
             e = out0 + v
             if e >= R:
                 e -= R
-            left = 0
+            left = _native_masked(sr[v], masks[m], rr)
             for j in range(n):
-                if masks[m, j]:
-                    rr[j] = sr[v, j]
-                else:
-                    rr[j] = np.nan
-                    if math.isfinite(sr[v, j]):
-                        left += 1
                 tg[j] = smeta[v, 0]
             _step_rows(ring[s, prev], ring_t[s, prev], ring_hz[s, prev], ring_ht[s, prev], tg,
                        sz[v], rr, q, q_scale, rates, gate2, reject2, ring[s, e], ring_t[s, e],
@@ -1035,16 +1043,9 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                     f = f + 1 if f + 1 < R else 0
                 if same:
                     masked = True
-                    left = 0
+                    counts[i, 5] = _native_masked(r[i], masks[back], rr)
                     for k in range(n):
-                        if masks[back, k]:
-                            rr[k] = r[i, k]
-                        else:
-                            rr[k] = np.nan
-                            if math.isfinite(r[i, k]):
-                                left += 1
                         ring_mask[s, b, k] = masks[back, k]
-                    counts[i, 5] = left
                 else:
                     plan[i, 0] = first
                     plan[i, 1] = back + 1
@@ -1293,7 +1294,7 @@ _compiled: dict = {}
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
-_NATIVE_HELPERS = ("_native_choose", "_native_span", "_native_move")
+_NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_span", "_native_move")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 
 
