@@ -205,8 +205,6 @@ class Fuser:
         #: times), so that the settle reads them as they are, not gathered person by
         #: person; else None
         self.plain_wave: tuple[list[BodyFilter], np.ndarray, np.ndarray, np.ndarray] | None = None
-        #: ids of the filters the last fold replayed (``_replay``)
-        self.replayed: set[int] = set()
 
     # ------------------------------------------------------------ entry point
     def fold(self, pairs: list[tuple[BodyFilter, View]]) -> list[View]:
@@ -222,7 +220,6 @@ class Fuser:
             waves[k].append((body, view))
         late: list[View] = []
         self.plain_wave = None
-        self.replayed.clear()
         for wave in waves:
             plain: list[tuple[BodyFilter, View, np.ndarray | None, float]] = []
             for body, view in wave:
@@ -350,7 +347,6 @@ class Fuser:
         ``chosen``: when ``view`` joins the newest instant, the (G, 25) choice ``_choose``
         just made for its views (the same views, prior and state before: not made again)."""
         self.stats.replays += 1
-        self.replayed.add(id(body))
         hist = body.history
         p = len(hist)
         while p > 0 and hist[p - 1].view.t > view.t:
