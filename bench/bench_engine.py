@@ -535,9 +535,10 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     ctl.bind(("127.0.0.1", 0))
     gen = None
     try:
-        # the snapshot has no numba cache: the server compiles its kernels first (11-17 s on
-        # this 2-core VM, more under load), which the window does not include
-        ready_by = time.monotonic() + 60.0
+        # the snapshot has no numba cache: the first server compiles its kernels (with the
+        # native core's, about a minute on this 2-core VM, more under load), which the
+        # window does not include
+        ready_by = time.monotonic() + 240.0
         while query_stats(ctl, target, timeout=0.2) is None:
             if proc.poll() is not None or time.monotonic() > ready_by:
                 raise RuntimeError(f"server did not start: {Path(log_path).read_text()[-2000:]}")
