@@ -828,6 +828,29 @@ def _native_masked(r, mask, out):  # pragma: no cover (compiled)
     return left
 
 
+def _native_gather(s, first, ins, zi, ri, ci, ring_z, ring_r, ring_conf, gz, gr,
+                   gc):  # pragma: no cover (compiled)
+    """Rows of gz (G, N, 3), gr, gc (G, N) from the views kept in ring entries ``first``,
+    ``first + 1``, ... (mod R) of slot ``s``, with the view zi, ri, ci at row ``ins`` (a
+    view being folded in: an instant's new view, or one inserted into a span)."""
+    R = ring_z.shape[1]
+    f = first
+    for m in range(gz.shape[0]):
+        if m == ins:
+            for k in range(gz.shape[1]):
+                gr[m, k] = ri[k]
+                gc[m, k] = ci[k]
+                for c in range(3):
+                    gz[m, k, c] = zi[k, c]
+            continue
+        for k in range(gz.shape[1]):
+            gr[m, k] = ring_r[s, f, k]
+            gc[m, k] = ring_conf[s, f, k]
+            for c in range(3):
+                gz[m, k, c] = ring_z[s, f, k, c]
+        f = f + 1 if f + 1 < R else 0
+
+
 def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
                  ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates, gate2,
                  reject2, group_s, bias_var, inferred, tg, outcome, counts, pos,
@@ -1017,20 +1040,8 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                 gz = np.empty((G, n, 3))
                 gr = np.empty((G, n))
                 gc = np.empty((G, n))
-                f = first
-                for m in range(G):
-                    for k in range(n):
-                        if m < back:
-                            gr[m, k] = ring_r[s, f, k]
-                            gc[m, k] = ring_conf[s, f, k]
-                            for c in range(3):
-                                gz[m, k, c] = ring_z[s, f, k, c]
-                        else:
-                            gr[m, k] = r[i, k]
-                            gc[m, k] = conf[i, k]
-                            for c in range(3):
-                                gz[m, k, c] = z[i, k, c]
-                    f = f + 1 if f + 1 < R else 0
+                _native_gather(s, first, back, z[i], r[i], conf[i], ring_z, ring_r, ring_conf,
+                               gz, gr, gc)
                 masks = np.empty((G, n), dtype=np.bool_)
                 _native_choose(gz, gr, gc, ring[s, e], ring_t[s, e], anchor[s], q, rates,
                                bias_var, gate2, inferred, mean, var, masks)
@@ -1095,29 +1106,21 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
             sr = np.empty((M, n))
             sc = np.empty((M, n))
             sm = np.empty((M, 6))
+            _native_gather(s, first, plan_ins, z[i], r[i], conf[i], ring_z, ring_r, ring_conf,
+                           sz, sr, sc)
             f = first
             for m in range(M):
                 if m == plan_ins:
-                    for k in range(n):
-                        sr[m, k] = r[i, k]
-                        sc[m, k] = conf[i, k]
-                        for c in range(3):
-                            sz[m, k, c] = z[i, k, c]
                     sm[m, 0] = ti
                     sm[m, 1] = rows[i]
                     sm[m, 2] = arrival[i]
                     sm[m, 3] = size[i]
                     sm[m, 4] = np.nan
                     sm[m, 5] = 0.0
-                else:
-                    for k in range(n):
-                        sr[m, k] = ring_r[s, f, k]
-                        sc[m, k] = ring_conf[s, f, k]
-                        for c in range(3):
-                            sz[m, k, c] = ring_z[s, f, k, c]
-                    for c in range(6):
-                        sm[m, c] = ring_view[s, f, c]
-                    f = f + 1 if f + 1 < R else 0
+                    continue
+                for c in range(6):
+                    sm[m, c] = ring_view[s, f, c]
+                f = f + 1 if f + 1 < R else 0
             before = first - 1 if first > 0 else R - 1
             counts[i, 4] = 1
             if not _native_span(s, before, b, sz, sr, sc, sm, ring, ring_t, ring_hz, ring_ht,
@@ -1294,7 +1297,8 @@ _compiled: dict = {}
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
-_NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_span", "_native_move")
+_NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_span",
+                   "_native_move")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 
 

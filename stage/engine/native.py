@@ -103,6 +103,8 @@ class NativeCore:
         #: downweighted, joints rejected, 1 if replayed, the change in joints left out by
         #: instants' choices (``jit._native_fold``)
         self.counts = np.zeros((0, 6), dtype=np.int64)
+        #: ``counts`` summed over the views, as a list
+        self.totals = [0] * 6
         #: the slots of the last accepted fold's views, in order
         self.slots = np.zeros(0, dtype=np.int64)
         self._scratch: dict[int, tuple] = {}
@@ -377,8 +379,9 @@ class NativeCore:
             self.refused = -1 - done
             return None
         self.folded += 1
-        self.replayed += int(counts[:, 4].sum())
         self.counts = counts
+        totals = self.totals = counts.sum(axis=0).tolist()
+        self.replayed += totals[4]
         self.slots = slots_a
         ends = offsets.tolist()
         data = buf[:ends[k]].tobytes()

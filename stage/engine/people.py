@@ -94,8 +94,8 @@ class People:
         self._batch: tuple | None = None
         #: person id -> its skeleton as the core encoded it in this batch
         self._encoded: dict[int, bytes] = {}
-        #: person id -> datagrams in a row the Python path folded it
-        self._plain_run: dict[int, int] = {}
+        #: person id -> datagrams in a row the Python path folded it with no view dropped late
+        self._python_run: dict[int, int] = {}
         #: person id -> the run it needs to be taken (TAKE_AFTER unless given back lately)
         self._take_after: dict[int, int] = {}
         #: bodies predicted ahead of their capture time (docs/anticipation.md): the
@@ -322,7 +322,7 @@ class People:
         kept = int(core.steps[core.slot_of[person.id]])
         core.give_back(person)
         self.fuser._trim(person.filter)
-        self._plain_run[person.id] = 0
+        self._python_run[person.id] = 0
         need = self._take_after.get(person.id, TAKE_AFTER)
         self._take_after[person.id] = (TAKE_AFTER if kept >= KEEP_STEPS
                                        else min(2 * need, TAKE_AFTER_MAX))
@@ -351,7 +351,7 @@ class People:
             return False
         st = self.fuser.stats
         st.views += len(views)
-        counts = core.counts.sum(axis=0).tolist()
+        counts = core.totals
         st.downweighted += counts[2]
         st.rejected += counts[3]
         st.replays += counts[4]
@@ -374,7 +374,7 @@ class People:
         """Persons the Python path has folded ``TAKE_AFTER`` datagrams in a row (more after
         being given back), none of their views dropped as late, are taken by the native
         core."""
-        runs, persons, need = self._plain_run, self.persons, self._take_after
+        runs, persons, need = self._python_run, self.persons, self._take_after
         for person, view in ordered:
             pid = person.id
             if id(view) in late or not person.filter.history:
@@ -614,8 +614,8 @@ class People:
             persons = self.persons
             for pid in [pid for pid in core.slot_of if pid not in persons]:
                 core.release(pid)
-            if len(self._plain_run) > len(persons):
-                self._plain_run = {k: n for k, n in self._plain_run.items() if k in persons}
+            if len(self._python_run) > len(persons):
+                self._python_run = {k: n for k, n in self._python_run.items() if k in persons}
             if len(self._take_after) > len(persons):
                 self._take_after = {k: n for k, n in self._take_after.items() if k in persons}
         self._emit()
