@@ -11,9 +11,10 @@ person every frame. The first fifth of the datagrams (persons being found) is le
 
 Both trees' final fused joints are compared (``identical``), and a digest of every datagram
 each engine sent (``sent identical``): a change meant to give the same floats and bytes
-shows here if it does not. ``--native-b`` turns ``fusion.native`` on in B's rig (the native
-core, ``stage.engine.native``): with the same tree as A and B, it measures the core against
-the Python path.
+shows here if it does not. Both rigs run the Python path (``fusion.native`` off) unless
+``--native`` turns the native core (``stage.engine.native``) on in both, to compare two
+trees' cores; ``--native-b`` turns it on in B's rig only: with the same tree as A and B, it
+measures the core against the Python path.
 
 ``--paced`` sleeps the datagrams' real spacing (spread: 1 / (30 x sensors)) before each
 engine's datagram, so each finds its caches cold as the live engine thread does after waiting
@@ -28,7 +29,7 @@ of a frame form one instant that the fold checks for agreement (``fuser``), as l
 sensors do; the simulated Kinects' errors make those views disagree, and replays follow.
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick] [--timetags] [--aligned] [--paced] [--native-b]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags] [--aligned] [--paced] [--native | --native-b]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
@@ -108,9 +109,9 @@ def engine(mods: dict, poses, native: bool = False):
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
         timetags: bool = False, aligned: bool = False, paced: bool = False,
-        native_b: bool = False) -> dict:
+        native_b: bool = False, native_a: bool = False) -> dict:
     poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
-    (ea, ca), (eb, cb) = engine(a, poses), engine(b, poses, native_b)
+    (ea, ca), (eb, cb) = engine(a, poses, native_a), engine(b, poses, native_b or native_a)
     ta: list[float] = []
     tb: list[float] = []
     gap = 1.0 / (30 * n_sensors)       # --paced: the datagrams' real spacing, spread
@@ -153,13 +154,15 @@ def main() -> int:
                         help="sensors in step: each frame's datagrams at one instant")
     parser.add_argument("--native-b", action="store_true",
                         help="B's rig with fusion.native on (A and B may be the same tree)")
+    parser.add_argument("--native", action="store_true",
+                        help="both rigs with fusion.native on: two trees' native cores")
     args = parser.parse_args()
     seconds = 1.0 if args.quick else args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
         a = load(args.tree_a, "stage_a", Path(tmp))
         b = load(args.tree_b, "stage_b", Path(tmp))
-        print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}; CPU per datagram (thread_time), us; "
+        print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}{'; both with fusion.native' if args.native else ''}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
               f"{'aligned' if args.aligned else 'spread'}{'; paced' if args.paced else ''}; load {open('/proc/loadavg').read().split()[0]}")
@@ -167,7 +170,7 @@ def main() -> int:
               f"{'median B/A':>10}  final joints identical, every datagram sent identical")
         for config in args.configs.split(","):
             r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
-                    args.paced, args.native_b)
+                    args.paced, args.native_b, args.native)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}, "
                   f"{r['sent_same']}", flush=True)
