@@ -851,9 +851,59 @@ def _native_gather(s, first, ins, zi, ri, ci, ring_z, ring_r, ring_conf, gz, gr,
         f = f + 1 if f + 1 < R else 0
 
 
+def _native_start(S, st, held_z, held_t, t, z, r, init, outcome, used, pos,
+                  vel):  # pragma: no cover (compiled)
+    """``kalman._fix_rows`` in a ring entry ``_step_rows`` has just written (S, st, held_z,
+    held_t), for its measurements t, z, r: each row it left to restart (outcome 5: rejected
+    twice in a row) started again from its held and its new measurement as
+    ``kalman._restart`` does -- two points at least 20 ms apart give it a velocity, else
+    it starts at rest at the later time -- and each row to start (outcome 1) started at
+    rest (``kalman._start``); init (3,): the initial velocity variance and the modes'
+    initial probabilities (``kalman.initial_mu``). Each such row is recorded as used
+    (``kalman.USED``), and its position and velocity are what ``FilterState.predicted(t)``
+    gives from its new state."""
+    for i in range(S.shape[2]):
+        o = outcome[i]
+        if o != 1 and o != 5:
+            continue
+        ti = t[i]
+        dt = 0.0
+        if o == 5:
+            dt = ti - held_t[i]
+            if dt < 0.02 and held_t[i] > ti:
+                ti = held_t[i]           # (np.maximum(t, held_t))
+        two = o == 5 and dt >= 0.02
+        for j in range(3):
+            for m in range(2):
+                S[0, m, i, j] = z[i, j]
+                S[2, m, i, j] = r[i]
+                if two:
+                    S[1, m, i, j] = (z[i, j] - held_z[i, j]) / dt
+                    S[3, m, i, j] = r[i] / dt
+                    S[4, m, i, j] = 2.0 * r[i] / (dt * dt)
+                    S[5, m, i, j] = _MU_FLOOR if m == 0 else 1.0
+                else:
+                    S[1, m, i, j] = 0.0
+                    S[3, m, i, j] = 0.0
+                    S[4, m, i, j] = init[0]
+                    S[5, m, i, j] = init[1 + m]
+        st[i] = ti
+        held_t[i] = np.nan
+        used[i] = True
+        ahead = t[i] - st[i]
+        if not (ahead > 0.0 or ahead != ahead):
+            ahead = 0.0
+        for j in range(3):
+            w1 = S[5, 1, i, j]
+            p = S[0, 0, i, j] + w1 * (S[0, 1, i, j] - S[0, 0, i, j])
+            v = S[1, 0, i, j] + w1 * (S[1, 1, i, j] - S[1, 0, i, j])
+            pos[i, j] = p + ahead * v
+            vel[i, j] = v
+
+
 def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
                  ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates, gate2,
-                 reject2, group_s, bias_var, inferred, tg, outcome, counts, pos,
+                 reject2, group_s, bias_var, inferred, tg, init, outcome, counts, pos,
                  vel):  # pragma: no cover (compiled)
     """``fuser.Fuser._replay`` in the native core's ring: the M views of a span (sz (M, N, 3),
     sr, sconf (M, N), smeta (M, 6): t, recent row, arrival, size, -, the joints its
@@ -861,10 +911,10 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
     ring entry ``before`` of slot ``s``, into entries out0 .. out0 + M - 1 (mod R): grouped
     into instants afresh (a view within ``group_s`` of its instant's first), each
     instant's joints chosen (``_native_choose``) and its views stepped in turn
-    (``_step_rows``). Each entry keeps its view, mask, instant and the joints left out.
-    Adds the steps' joints downweighted and rejected to counts[2], counts[3], and the change
-    in joints left out to counts[5]; pos and vel are the last step's. Returns False (the
-    entries scratch) if a step has a row to start or restart, which only Python does."""
+    (``_step_rows``, rows to start or restart started: ``_native_start``). Each entry keeps
+    its view, mask, instant and the joints left out. Adds the steps' rows restarted, joints
+    downweighted and rejected to counts[0], counts[2], counts[3], and the change in joints
+    left out to counts[5]; pos and vel are the last step's."""
     M = sz.shape[0]
     n = sz.shape[1]
     R = ring.shape[1]
@@ -904,7 +954,9 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
                        sz[v], rr, q, q_scale, rates, gate2, reject2, ring[s, e], ring_t[s, e],
                        ring_hz[s, e], ring_ht[s, e], outcome, ring_used[s, e], cs, pos, vel)
             if cs[0] or cs[1]:
-                return False
+                _native_start(ring[s, e], ring_t[s, e], ring_hz[s, e], ring_ht[s, e], tg, sz[v],
+                              rr, init, outcome, ring_used[s, e], pos, vel)
+            counts[0] += cs[0]
             counts[2] += cs[2]
             counts[3] += cs[3]
             counts[5] += left - int(smeta[v, 5])
@@ -920,7 +972,6 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
             ring_view[s, e, 5] = left
             prev = e
         k = g
-    return True
 
 
 def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
@@ -941,7 +992,7 @@ def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ri
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
                  ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, head, steps, valid,
                  newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
-                 replay_s, inferred, tg, outcome, counts, pos, vel, plan, stale, recent_conf,
+                 replay_s, inferred, tg, init, outcome, counts, pos, vel, plan, stale, recent_conf,
                  recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre,
                  carry_on, hold_back, parents, children, torso, names, name_end, buf, offsets,
                  centred):  # pragma: no cover (compiled)
@@ -968,16 +1019,18 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     the instant folded again (``_native_span``); a view before the newest is inserted in
     capture order and the span from its instant on folded again. A replay's steps are
     written after the head first and moved into place only when the datagram is committed.
-    The core declines (returns -1 - i for view i, nothing committed, the entries after the
-    heads scratch) a view the Python path would drop as late or fit before its history, a
-    span or instant reaching past ``valid``, a span longer than a third of the ring, a
-    person twice in a datagram, and any step with a row to start or restart. Else the heads
+    A step's rows to start or restart are started as ``kalman._fix_rows`` starts them
+    (``_native_start``). The core declines (returns -1 - i for view i, nothing committed,
+    the entries after the heads scratch) a view the Python path would drop as late or fit
+    before its history, a span or instant reaching past ``valid``, a span longer than a
+    third of the ring and a person twice in a datagram. Else the heads
     move, each person is remembered, settled (``_settle``, in place on its rows as
     ``_settle_many``) and encoded (``_view_joints``) into ``buf`` at ``offsets[i]`` ..
     ``offsets[i + 1]``; ``centred[i]`` is ``_settle``'s count of torso joints known (0: the
-    caller finds the centre). Returns K. ``counts`` (K, 6) per view: rows to restart, to
-    start (0 when accepted), joints downweighted, rejected and held, 1 if replayed, the
-    change in joints left out by instants' choices. ``plan`` (K, 2): scratch."""
+    caller finds the centre). Returns K. ``counts`` (K, 6) per view: rows restarted, rows
+    started (of a plain step; a replay's are not counted), joints downweighted, rejected
+    and held, 1 if replayed, the change in joints left out by instants' choices. ``init``
+    (3,): ``_native_start``'s. ``plan`` (K, 2): scratch."""
     K = slots.shape[0]
     R = ring.shape[1]
     n = z.shape[1]
@@ -1123,11 +1176,10 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                 f = f + 1 if f + 1 < R else 0
             before = first - 1 if first > 0 else R - 1
             counts[i, 4] = 1
-            if not _native_span(s, before, b, sz, sr, sc, sm, ring, ring_t, ring_hz, ring_ht,
-                                ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, q,
-                                q_scale, rates, gate2, reject2, group_s, bias_var, inferred, tg,
-                                outcome[i], counts[i], pos[i], vel[i]):
-                return -1 - i
+            _native_span(s, before, b, sz, sr, sc, sm, ring, ring_t, ring_hz, ring_ht, ring_z,
+                         ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates,
+                         gate2, reject2, group_s, bias_var, inferred, tg, init, outcome[i],
+                         counts[i], pos[i], vel[i])
             continue
         for k in range(n):
             tg[k] = ti
@@ -1139,7 +1191,8 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         for c in range(4):
             counts[i, c] = cs[c]
         if cs[0] or cs[1]:
-            return -1 - i
+            _native_start(ring[s, b], ring_t[s, b], ring_hz[s, b], ring_ht[s, b], tg, z[i], rr,
+                          init, outcome[i], ring_used[s, b], pos[i], vel[i])
         for k in range(n):
             ring_r[s, b, k] = r[i, k]
             ring_conf[s, b, k] = conf[i, k]
@@ -1260,7 +1313,7 @@ _NATIVE_SIGNATURES = {
                     "float64[:, :, ::1], int64[::1], int64[::1], int64[::1], float64[::1], "
                     "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
                     "float64, float64, float64, float64, float64, float64, "
-                    "float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
+                    "float64[::1], float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], int64[:, ::1], float64, float64[:, :, ::1], "
                     "float64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
@@ -1297,8 +1350,8 @@ _compiled: dict = {}
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
-_NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_span",
-                   "_native_move")
+_NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_start",
+                   "_native_span", "_native_move")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 
 

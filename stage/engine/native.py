@@ -25,8 +25,9 @@ before it, within the history the Python path would keep (inserted in capture or
 the span from its instant folded again, as ``Fuser._replay``). It declines, before
 anything changes (``refused`` names the view), a view the Python path would drop as late
 or fit before its history, a replay reaching past the steps the ring still holds, a
-person twice in a datagram, a view its person has not remembered, and any step with a
-joint to start or to restart.
+person twice in a datagram and a view its person has not remembered. A joint to start or
+to restart (rejected twice in a row) is started as the Python path starts it (stop 43;
+before, the core declined those too).
 
 In the engine (``people.People``, with ``fusion: native: true``) a person the Python path
 has folded a few datagrams in a row is taken (``take(bind=True)``, its history put in the
@@ -48,7 +49,7 @@ from . import jit
 from .bank import _FIELDS
 from .fuser import View, _Step
 from .fusion import _CHILDREN, _PARENTS
-from .kalman import FilterState
+from .kalman import FilterState, initial_mu
 
 _TORSO = np.array(TORSO)
 
@@ -99,7 +100,7 @@ class NativeCore:
         #: persons given back whose history lost steps the ring no longer held (see
         #: ``give_back``)
         self.short_histories = 0
-        #: per view of the last accepted fold (K, 6): rows restarted and started (0), joints
+        #: per view of the last accepted fold (K, 6): rows restarted, rows started, joints
         #: downweighted, joints rejected, 1 if replayed, the change in joints left out by
         #: instants' choices (``jit._native_fold``)
         self.counts = np.zeros((0, 6), dtype=np.int64)
@@ -109,6 +110,9 @@ class NativeCore:
         self.slots = np.zeros(0, dtype=np.int64)
         self._scratch: dict[int, tuple] = {}
         self._tg = np.empty(N_JOINTS)
+        #: what a row started afresh begins with (``jit._native_start``)
+        self._init = np.array([smoothing.initial_velocity_var, *initial_mu(smoothing)],
+                              dtype=float)
 
     # ------------------------------------------------------------ slots
     def _alloc(self, n: int) -> None:
@@ -402,7 +406,7 @@ class NativeCore:
                  self.steps, self.valid, self.newest, self.anchor, self.person_t, self.q,
                  self.q_scale, self.rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
                  float(f.group_s), float(2.0 * f.view_bias_m ** 2), float(f.replay_s),
-                 float(INFERRED), self._tg),
+                 float(INFERRED), self._tg, self._init),
                 (float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
                  self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
                  bool(f.carry_untracked), bool(f.hold_back_inferred), _PARENTS,

@@ -352,6 +352,7 @@ class People:
         st = self.fuser.stats
         st.views += len(views)
         counts = core.totals
+        st.restarted += counts[0]
         st.downweighted += counts[2]
         st.rejected += counts[3]
         st.replays += counts[4]
