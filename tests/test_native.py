@@ -106,25 +106,28 @@ def _arrays(core) -> dict:
         for s in range(len(core.owners)):    # the entries after the newest kept are scratch
             for e in range(core.depth - 1 - int(core.valid[s])):
                 out[name][s, (core.head[s] + 1 + e) % core.depth] = 0.0
+    out["recent"] = [dict(rows) for rows in core.recent]     # view key -> row
     return out
 
 
 def _same(a: dict, b: dict) -> bool:
-    return all(np.array_equal(a[n], b[n], equal_nan=True) for n in a)
+    return a["recent"] == b["recent"] and all(
+        np.array_equal(a[n], b[n], equal_nan=True) for n in a if n != "recent")
 
 
 _TAKEN = ("nothing amiss", "joins an instant, agreeing", "joins an instant, disagreeing",
-          "out of order", "row to start", "row to restart")
+          "out of order", "row to start", "row to restart", "a new view")
 
 
-@pytest.mark.parametrize("case", [*_TAKEN, "one person twice", "unknown view",
-                                  "before the history"])
+@pytest.mark.parametrize("case", [*_TAKEN, "one person twice", "before the history",
+                                  "a new view, declined"])
 def test_a_declined_datagram_changes_nothing(spread, case):
     """What the core leaves to Python it declines before changing anything (but the ring's
     scratch entries): the heads, states, output rows and views' rows stay as they were.
     (The same views with nothing amiss are taken, and so are a view joining an instant, one
-    captured before the person's newest, within its history, and a step with a joint to
-    start or to restart.)"""
+    captured before the person's newest, within its history, a step with a joint to
+    start or to restart, and a person's first view from a sensor, whose row a declined
+    datagram gives up again.)"""
     poses, data = spread
     shadow = replay(shadow_engine(poses), data[:90])
     core = shadow.core
@@ -148,8 +151,10 @@ def test_a_declined_datagram_changes_nothing(spread, case):
         t[0] = core.newest[s0] - 2.0 * shadow.engine.rig.fusion.replay_s
     elif case == "one person twice":
         pids[1], keys[1] = pids[0], keys[0]
-    elif case == "unknown view":
-        keys[1] = ("nobody", 9)
+    elif case.startswith("a new view"):
+        keys[1] = ("nobody", 9)                  # the person's first view from a sensor
+        if case.endswith("declined"):             # ... in a datagram the core declines
+            t[0] = core.newest[s0] - 2.0 * shadow.engine.rig.fusion.replay_s
     elif case == "nothing amiss":
         pass
     elif case == "row to start":
@@ -164,6 +169,11 @@ def test_a_declined_datagram_changes_nothing(spread, case):
     if case in _TAKEN:
         assert out is not None and len(out) == 2
         assert not _same(before, _arrays(core))
+        if case == "a new view":
+            s1 = core.slot_of[pids[1]]
+            row = core.recent[s1][keys[1]]
+            assert core.recent_t[s1, row] == t[1]
+            np.testing.assert_array_equal(core.recent_conf[s1, row], conf[1])
         return
     assert out is None
     core.valid[:] = valid          # (a replay declined leaves fewer steps to trust, no more)

@@ -24,10 +24,10 @@ its views do not all agree, and the instant folded again when the choice changes
 before it, within the history the Python path would keep (inserted in capture order and
 the span from its instant folded again, as ``Fuser._replay``). It declines, before
 anything changes (``refused`` names the view), a view the Python path would drop as late
-or fit before its history, a replay reaching past the steps the ring still holds, a
-person twice in a datagram and a view its person has not remembered. A joint to start or
-to restart (rejected twice in a row) is started as the Python path starts it (stop 43;
-before, the core declined those too).
+or fit before its history, a replay reaching past the steps the ring still holds and a
+person twice in a datagram. A joint to start or to restart (rejected twice in a row) is
+started as the Python path starts it, and a person's first view from a sensor is given
+the row ``Person.remember`` would give it (stop 43; before, the core declined both).
 
 In the engine (``people.People``, with ``fusion: native: true``) a person the Python path
 has folded a few datagrams in a row is taken (``take(bind=True)``, its history put in the
@@ -356,13 +356,15 @@ class NativeCore:
         k = len(pids)
         slot_of, recent = self.slot_of, self.recent
         slots, rows = [], []
+        added = None
         for pid, key in zip(pids, keys):
             s = slot_of.get(pid)
-            row = None if s is None else recent[s].get(key)
-            if row is None:
-                self.declined += 1
-                self.refused = len(slots)
-                return None
+            if s is None:
+                return self._decline(len(slots), added)
+            row = recent[s].get(key)
+            if row is None:               # the person's first view from this sensor
+                row = self._new_row(s, key)
+                added = [(s, key)] if added is None else added + [(s, key)]
             slots.append(s)
             rows.append(row)
         if arrival is None:
@@ -379,9 +381,7 @@ class NativeCore:
             np.array(pids, dtype=np.int64), arrival, size, *args[0], outcome, counts, pos, vel,
             plan, *args[1], buf, offsets, centred)
         if done < 0:
-            self.declined += 1
-            self.refused = -1 - done
-            return None
+            return self._decline(-1 - done, added)
         self.folded += 1
         self.counts = counts
         totals = self.totals = counts.sum(axis=0).tolist()
@@ -396,6 +396,28 @@ class NativeCore:
                 if not centred_l[i]:
                     self._centre_otherwise(slots[i])
         return out
+
+    def _decline(self, refused: int, added: list | None) -> None:
+        """``fold`` declines (``refused``: the view it could not take); the rows it gave new
+        views are given up again."""
+        for s, key in added or ():
+            del self.recent[s][key]
+        self.declined += 1
+        self.refused = refused
+        return None
+
+    def _new_row(self, s: int, key: tuple[str, int]) -> int:
+        """A row of slot ``s``'s recent confidences and times for the view ``key``, which
+        its person has not remembered yet: the first free one, as ``Person.remember`` takes
+        it (the rows grow first when none is free). The kernel writes the view into it."""
+        free = np.flatnonzero(self.recent_t[s] == -np.inf)
+        if not len(free):
+            row = self.recent_t.shape[1]
+            self._grow_rows()
+        else:
+            row = int(free[0])
+        self.recent[s][key] = row
+        return row
 
     def _arguments(self) -> tuple[tuple, tuple]:
         """The kernel's arguments that are the same from datagram to datagram (made again
