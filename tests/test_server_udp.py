@@ -6,6 +6,7 @@ Python sockets play the sensors (Client-to-Server API) and the views
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -280,6 +281,10 @@ def test_datagram_cut_short_by_a_few_bytes_is_malformed(make_server, peers):
 
 def test_flood_is_rate_limited_and_server_keeps_serving(make_server, peers):
     rig = Rig(reference="calm")  # the flooder is not calibrated: counted, never fused
+    # a budget far below what this loop sends even on a loaded machine (at the default 3000
+    # a second, with a half-second burst, a CI run with four busy processes on two cores
+    # sent the 5000 datagrams too slowly to flood)
+    rig.clients = dataclasses.replace(rig.clients, max_messages_per_s=300.0)
     server = make_server(rig)
     view = peers()
     register_view(server.address, view)
