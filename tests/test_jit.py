@@ -455,7 +455,8 @@ def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
     calls = []
 
     def no_cache(sig=None, cache=False, **kwargs):
-        calls.append(cache)
+        if sig is not None:       # (a kernel; helpers compiled into them have no signature)
+            calls.append(cache)
         if cache:
             raise RuntimeError("cannot cache function '_step_rows': no locator available for "
                                "file '/opt/stage/jit.py'")
@@ -465,7 +466,7 @@ def test_no_writable_cache_compiles_without_one(monkeypatch, caplog):
         jit.ENABLED = True
         with caplog.at_level(logging.WARNING, logger="stage.engine"):
             assert jit.warm() is True
-        assert calls[0] is True and not any(calls[1:])
+        assert calls[0] is True and len(calls) > 1 and not any(calls[1:])
         assert sum("no disk cache" in r.getMessage() for r in caplog.records) == 1
 
 

@@ -79,6 +79,20 @@ def _import() -> bool:
     return True
 
 
+def _row_predicted(S, st, t, i, pos, vel):  # pragma: no cover (compiled)
+    """``FilterState.estimate``, then ``.predicted(t)``, of row ``i`` of the state S (6, 2, N,
+    3) with row times st (N,), into pos[i] and vel[i]: never backwards (NaN stays NaN)."""
+    ahead = t - st[i]
+    if not (ahead > 0.0 or ahead != ahead):
+        ahead = 0.0
+    for j in range(3):
+        w1 = S[5, 1, i, j]
+        p = S[0, 0, i, j] + w1 * (S[0, 1, i, j] - S[0, 0, i, j])
+        v = S[1, 0, i, j] + w1 * (S[1, 1, i, j] - S[1, 0, i, j])
+        pos[i, j] = p + ahead * v
+        vel[i, j] = v
+
+
 def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2,
                out, out_t, out_held_z, out_held_t, outcome, used, counts, pos,
                vel):  # pragma: no cover
@@ -263,16 +277,7 @@ def _step_rows(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2
                 for j in range(3):
                     out_held_z[i, j] = held_z[i, j]
                 out_held_t[i] = held_t[i]
-        # FilterState.estimate, then .predicted(t): never backwards (NaN stays NaN)
-        ahead = ti - out_t[i]
-        if not (ahead > 0.0 or ahead != ahead):
-            ahead = 0.0
-        for j in range(3):
-            w1 = out[5, 1, i, j]
-            p = out[0, 0, i, j] + w1 * (out[0, 1, i, j] - out[0, 0, i, j])
-            v = out[1, 0, i, j] + w1 * (out[1, 1, i, j] - out[1, 0, i, j])
-            pos[i, j] = p + ahead * v
-            vel[i, j] = v
+        _row_predicted(out, out_t, ti, i, pos, vel)
 
 
 def _step_views(S, st, held_z, held_t, t, z, r, q, q_scale, rates, gate2, reject2, out,
@@ -890,15 +895,7 @@ def _native_start(S, st, held_z, held_t, t, z, r, init, outcome, used, pos,
         st[i] = ti
         held_t[i] = np.nan
         used[i] = True
-        ahead = t[i] - st[i]
-        if not (ahead > 0.0 or ahead != ahead):
-            ahead = 0.0
-        for j in range(3):
-            w1 = S[5, 1, i, j]
-            p = S[0, 0, i, j] + w1 * (S[0, 1, i, j] - S[0, 0, i, j])
-            v = S[1, 0, i, j] + w1 * (S[1, 1, i, j] - S[1, 0, i, j])
-            pos[i, j] = p + ahead * v
-            vel[i, j] = v
+        _row_predicted(S, st, t[i], i, pos, vel)
 
 
 def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
@@ -1353,6 +1350,8 @@ _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_start",
                    "_native_span", "_native_move")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
+#: what ``_step_rows`` and ``_native_start`` call, as Python
+_ROW_PREDICTED = _row_predicted
 
 
 def warm() -> bool:
@@ -1367,6 +1366,8 @@ def warm() -> bool:
         return False
     try:
         cache = [True]
+        # (compiled into the kernels that call it)
+        globals()["_row_predicted"] = numba.njit()(_ROW_PREDICTED)
         for name, sig in _SIGNATURES.items():
             # in order: a kernel that calls another finds it compiled under its own name
             _compiled[name] = globals()[name] = _njit(_PYTHON[name], sig, cache,
