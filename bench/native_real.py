@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import sys
 import time
@@ -42,6 +41,7 @@ import time
 import numpy as np
 
 import nucla
+from bench_calibration_real import copied, load_view
 from optimum import optimum
 
 from stage.clock import ManualClock
@@ -56,20 +56,6 @@ EPOCH = 1.7e9
 FPS = 30.0
 GAP_S = 3.0
 SENSORS = ("nucla-v1", "nucla-v2", "nucla-v3")
-
-
-def load_view(path: str) -> np.ndarray:
-    with open(path, encoding="utf-8") as f:
-        return np.asarray(json.load(f)["skeletons"], dtype=float)
-
-
-def copied(a: np.ndarray, b: np.ndarray) -> bool:
-    """At least half of the shorter view's frames bit-identical in the other (a defect of
-    the release: bench_calibration_real.copied)."""
-    if a.shape[1:] != b.shape[1:] or not len(a) or not len(b):
-        return False
-    seen = {f.tobytes() for f in a}
-    return sum(f.tobytes() in seen for f in b) >= max(5, 0.5 * min(len(a), len(b)))
 
 
 def take(views: list[np.ndarray]) -> dict | None:

@@ -282,8 +282,8 @@ def test_the_engine_with_the_native_core_sends_what_its_python_path_sends(show):
     assert core.folded > 0.8 * len(data)
     if show in ("aligned", "late"):     # instants chosen again, views out of order
         assert stats_b["replays"] > 0 and core.replayed > 0.5 * stats_b["replays"]
-    if stats_b["joints_restarted"]:     # rows restarted by the core too
-        assert starts["restarted"] > 0
+    if show == "spread":                # rows restarted, by the core too
+        assert stats_b["joints_restarted"] > 0 and starts["restarted"] > 0
 
 
 def test_a_ring_too_short_for_the_replay_window_is_counted():
