@@ -30,6 +30,8 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       group_s: 0.005               # frames captured this close together are one instant
       view_bias_m: 0.02            # a view's systematic error, when views of an instant compare
       replay_s: 0.15               # history kept to fold in frames that come late
+      view_offset_s: 0.25          # a view's steady offset from the others is learned over
+                                   # this long and taken off (0: off; stage/engine/offsets.py)
       hand_vote: confidence        # or plain
       hand_memory_s: 0.03          # a hand report's weight falls by e in this time
       hand_hold_s: 0.1             # a hand's new state is sent once it has held this long
@@ -302,8 +304,8 @@ def _matrix(where: Where, mapping: dict, key: str) -> np.ndarray:
 
 
 #: settings for which 0 means something (off, none): every other number must be > 0
-_ZERO_ALLOWED = {"reference_after_s", "noise_per_m", "inferred_sd_m", "views_s",
-                 "bone_tolerance", "foot_velocity_memory_s", "hand_velocity_memory_s"}
+_ZERO_ALLOWED = {"reference_after_s", "view_offset_s", "noise_per_m", "inferred_sd_m",
+                 "views_s", "bone_tolerance", "foot_velocity_memory_s", "hand_velocity_memory_s"}
 
 
 def _settings(where: Where, data: dict, key: str, cls: type) -> Any:

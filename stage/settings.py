@@ -89,6 +89,11 @@ class FusionSettings:
     view_bias_m: float = 0.02    # each view's own systematic error (calibration, the sensor's
                                  # fit), allowed for when views of an instant are compared
     replay_s: float = 0.15       # history kept per person to fold in frames that come late
+    view_offset_s: float = 0.25  # each view's steady offset from its person's other views (a
+                                 # sensor's own fit of the body, the calibration's residual)
+                                 # is learned over about this long and taken off its joints,
+                                 # so the fused stream does not swing between views (0: off;
+                                 # ``stage.engine.offsets``)
     hand_vote: str = "confidence"  # or "plain": every report weighs 1, not the hand's confidence
     hand_memory_s: float = 0.03  # a hand report's weight falls by e every this many seconds
     hand_hold_s: float = 0.1     # a hand's new state must win the vote this long to be reported

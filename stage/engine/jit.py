@@ -17,6 +17,7 @@ replaces, which stays as reference and fallback:
 - ``_frame``: a frame's transform and ``fusion.unswap_limbs``; ``_frame_r`` adds its joints'
   measurement variances; ``_frame_r_many`` does that for a datagram's frames in one call;
 - ``_distance``: ``tracking.Person.distance``;
+- ``_offsets``: ``offsets.learn``, a view's learned offset taken off its joints;
 - ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL;
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
   views (the same bytes);
@@ -50,9 +51,11 @@ from ..sensors import protocol, scan
 from ..sensors.encode import _NAME_BYTES
 from ..settings import KalmanSettings
 from . import handbank
+from .offsets import CAP_M as _OFFSET_CAP_M
 from .imm import _MU_FLOOR, _constants
 
 log = logging.getLogger("stage.engine")
+_OFFSET_CAP2 = _OFFSET_CAP_M * _OFFSET_CAP_M
 
 #: numba, imported by ``warm`` (importing it takes about 0.4 s: ``stage --help`` and the
 #: commands that build no engine do not pay it)
@@ -536,6 +539,32 @@ def _distance(joints, conf, person_joints, velocity, known, dt, torso):  # pragm
             total += math.sqrt(s)
             count += 1
     return total / count if count else np.nan
+
+
+def _offsets(z, conf, joints, velocity, known, dt, offsets, live, row, alpha, tracked,
+             cap2):  # pragma: no cover (compiled)
+    """``offsets.learn`` (see there), joint by joint; ``cap2`` is ``offsets.CAP_M`` squared."""
+    n = 0
+    for k in range(offsets.shape[0]):
+        if live[k] != -np.inf:
+            n += 1
+    d = np.empty(3)
+    for j in range(z.shape[0]):
+        for a in range(3):
+            # the mean as learn sums it: the first live row, then the others in turn
+            first = True
+            mean = 0.0
+            for k in range(offsets.shape[0]):
+                if live[k] != -np.inf:
+                    mean = offsets[k, j, a] if first else mean + offsets[k, j, a]
+                    first = False
+            mean /= n
+            d[a] = z[j, a] - (joints[j, a] + velocity[j, a] * dt)
+            if conf[j] > 0.0:
+                z[j, a] -= offsets[row, j, a] - mean
+        if conf[j] > tracked and known[j] and d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= cap2:
+            for a in range(3):
+                offsets[row, j, a] += alpha * (d[a] - offsets[row, j, a])
 
 
 def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
@@ -1291,6 +1320,9 @@ _SIGNATURES = {
                    "float64, float64, boolean[:, ::1], boolean, boolean[:, ::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
                  "boolean[::1], float64, int64[::1])",
+    "_offsets": "void(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
+                "boolean[::1], float64, float64[:, :, ::1], float64[::1], int64, float64, "
+                "float64, float64)",
     "_gate": "void(int64[::1], float64, float64[:, :, ::1], boolean[:, ::1], float64[::1], "
              "float64[:, :, ::1], boolean[:, ::1], float64[:, ::1], int64[::1], boolean[::1], "
              "float64[:, ::1], int64, int64, int64, float64, float64, float64, boolean[:, ::1], "
@@ -1612,6 +1644,14 @@ def distance(joints: np.ndarray, conf: np.ndarray, person_joints: np.ndarray,
     """The compiled ``_distance``: mean distance (m), None where nothing is shared."""
     d = _compiled["_distance"](joints, conf, person_joints, velocity, known, float(dt), torso)
     return None if d != d else d
+
+
+def offsets(z: np.ndarray, conf: np.ndarray, joints: np.ndarray, velocity: np.ndarray,
+            known: np.ndarray, dt: float, offsets: np.ndarray, live: np.ndarray, row: int,
+            alpha: float, tracked: float) -> None:
+    """The compiled ``_offsets``: ``offsets.learn``, in place."""
+    _compiled["_offsets"](z, conf, joints, velocity, known, float(dt), offsets, live, int(row),
+                          float(alpha), float(tracked), _OFFSET_CAP2)
 
 
 def prior(S: np.ndarray, st: np.ndarray, t: float, s: KalmanSettings

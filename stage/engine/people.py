@@ -18,20 +18,21 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 
 import numpy as np
 
 from ..clock import Clock
 from ..errors import ConfigError
 from ..frames import Body, FusedFrame
-from ..joints import INFERRED, JOINT_INDEX, TORSO, HandState
+from ..joints import INFERRED, JOINT_INDEX, N_JOINTS, TORSO, HandState
 from ..rig import Rig
 from ..stats import DropCounter, LatencyWindow
 from .bank import PersonBank
 from .callbacks import Callbacks
 from .forecast import Forecast, Forecaster
 from .fuser import Fuser, View
-from . import jit
+from . import jit, offsets
 from .fusion import (_CHILDREN, _LOOK, _PARENTS, _TRADED, ARM_TRADED, SWAP_MARGIN_M,
                      apply_transform, carry_untracked, torso_centre, unswap_limbs)
 from .kalman import KalmanSettings, measurement_variance
@@ -59,6 +60,20 @@ TAKE_AFTER_MAX = 192
 KEEP_STEPS = 200
 
 
+def _variance_rows(joints: np.ndarray, conf: np.ndarray, where: np.ndarray,
+                   smoothing: KalmanSettings) -> np.ndarray:
+    """(K, 25) measurement variances of K views' joints (K, 25, 3) with confidences (K, 25),
+    seen by sensors at ``where`` (K, 3): by confidence and distance (without the kernels;
+    ``jit.frame_r`` gives the same floats per frame)."""
+    offset = joints - where[:, None]
+    offset *= offset
+    d2 = offset[..., 0] + offset[..., 1]          # .sum(axis=2), the same floats, cheaper
+    d2 += offset[..., 2]
+    seen = conf > 0
+    return np.where(seen, measurement_variance(np.where(seen, conf, 1.0), np.sqrt(d2),
+                                               smoothing), np.nan)
+
+
 def _by_person(entry: tuple[Person, View]) -> int:
     return entry[0].id
 
@@ -77,6 +92,10 @@ class People:
         if not rig.smoothing_enabled:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
+        self._offset_s = rig.fusion.view_offset_s
+        #: how far a person's velocity may carry them to a frame's time for ``_offset``
+        #: (smoothing off: none, its velocity is the difference of two views' positions)
+        self._offset_ahead_s = offsets.GAP_MAX_S if rig.smoothing_enabled else 0.0
         self.fuser = Fuser(smoothing, rig.fusion)
         #: ``fusion.native``: the core that folds a datagram's usual views in one compiled
         #: call (``native``), the persons it holds bound to it; None: the Python path alone
@@ -160,6 +179,13 @@ class People:
         if not n_seen:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
+        if self._offset_s > 0.0 and person.t != _NEVER:
+            if r is _NO_R:
+                # the variances by where the sensor saw the joints, before they are moved
+                # (as jit.frame_r gives them with the kernels)
+                r = _variance_rows(track.joints[None], conf[None], transform[None, :3, 3],
+                                   self.smoothing)[0]
+            self._offset(track, person, conf, t)
         if person.t == _NEVER:
             # a person found in this batch: later views of the batch associate against this
             # view until its filter is folded in at the end of the batch
@@ -181,6 +207,42 @@ class People:
                               track.hands[1 ^ traded],
                               float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
         return True
+
+    def _offset(self, track: Track, person: Person, conf: np.ndarray, t: float) -> None:
+        """``track.joints`` corrected, in place, by its view's learned offset minus the mean
+        of the person's views' offsets; then the view's offset learns from this frame
+        (``offsets``). A view the person does not remember yet (its first frame with them)
+        is left as it is; a person who remembers one view has no offsets (a second view
+        starts them from nothing). In place, so that the arrays ``prepare_frames`` handed
+        over (which the native core takes as they are) hold the corrected joints too."""
+        recent = person.recent
+        if len(recent) < 2:          # one view: nothing to learn against, nothing to correct
+            person.offsets = None
+            return
+        row = recent.get(track.key)
+        if row is None:
+            return
+        live = person.recent_t
+        table = person.offsets
+        if table is None or len(table) != len(live):  # (rows added for more views)
+            grown = np.zeros((len(live), N_JOINTS, 3))
+            if table is not None:
+                keep = min(len(table), len(live))
+                grown[:keep] = table[:keep]
+            table = person.offsets = grown
+        gap = min(max(t - float(live[row]), 0.0), offsets.GAP_MAX_S)
+        alpha = -math.expm1(-gap / self._offset_s)
+        ahead = self._offset_ahead_s
+        dt = min(max(t - person.t, -ahead), ahead)
+        try:
+            if jit.ready():
+                jit.offsets(track.joints, conf, person.joints, person.velocity, person.known,
+                            dt, table, live, row, alpha, INFERRED)
+                return
+        except TypeError:   # arrays the kernel does not take (not float64, not contiguous)
+            pass
+        offsets.learn(track.joints, conf, person.joints, person.velocity, person.known, dt,
+                      table, live, row, alpha, INFERRED)
 
     def prepare_frames(self, transform: np.ndarray, frames: list) -> None:
         """What ``frame`` computes first for each frame (stage-space joints, swapped limbs,
@@ -391,15 +453,9 @@ class People:
         """Each joint's variance from its confidence and its distance from the sensor (whose
         position in stage space is the translation of its transform), all views at once
         (without the kernels; ``jit.frame_r`` gives the same floats per frame)."""
-        joints = np.array([v.joints for v, _ in views])                     # (K, 25, 3)
-        conf = np.array([v.conf for v, _ in views])                         # (K, 25)
-        offset = joints - np.array([where for _, where in views])[:, None]
-        offset *= offset
-        d2 = offset[..., 0] + offset[..., 1]          # .sum(axis=2), the same floats, cheaper
-        d2 += offset[..., 2]
-        seen = conf > 0
-        r = np.where(seen, measurement_variance(np.where(seen, conf, 1.0), np.sqrt(d2),
-                                                self.smoothing), np.nan)
+        r = _variance_rows(np.array([v.joints for v, _ in views]),
+                           np.array([v.conf for v, _ in views]),
+                           np.array([where for _, where in views]), self.smoothing)
         for k, (view, _) in enumerate(views):
             view.r = r[k]
 

@@ -125,6 +125,9 @@ class Person:
     recent: dict = field(default_factory=dict)
     recent_conf: np.ndarray = field(default_factory=lambda: np.zeros((0, N_JOINTS)))
     recent_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: (rows, 25, 3): each remembered view's learned offset, in the rows of ``recent``
+    #: (``offsets``; None: none learned yet)
+    offsets: np.ndarray | None = None
     #: (25,) bool: joints some view has tracked (confidence above the inferred level) since
     #: the person was found
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS, dtype=bool))
@@ -170,6 +173,8 @@ class Person:
         row = self.recent.pop(key, None)
         if row is not None:
             self.recent_t[row] = -np.inf
+            if self.offsets is not None and row < len(self.offsets):
+                self.offsets[row] = 0.0          # (the row's next view starts from nothing)
 
     def measure_size(self, joints: np.ndarray, conf: np.ndarray) -> None:
         """Fold one view's trunk length into the running mean."""
