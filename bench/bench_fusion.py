@@ -17,7 +17,7 @@ by outliers 10-30 cm off in a random direction:
   - the same with smoothing off (each joint its latest accepted measurement);
   - engine CPU per input frame (process() only, no sockets).
 
-Run: python bench/bench_fusion.py [--seconds 20] [--quick] [--json]
+Run: python bench/bench_fusion.py [--seconds 20] [--quick] [--json] [--fusion KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -51,8 +51,12 @@ OUTLIER_P = 0.02                 # share of joints per view replaced by an outli
 OUTLIER_M = (0.10, 0.30)         # ...this far off, in a random direction
 
 
+#: ``--fusion KEY=VALUE``: fusion keys changed from their defaults for every row
+FUSION: dict = {}
+
+
 def make_rig(poses, smoothing: bool) -> Rig:
-    rig = Rig(reference="s0", fusion=FusionSettings())
+    rig = Rig(reference="s0", fusion=FusionSettings(**FUSION))
     rig.smoothing_enabled = smoothing
     rig.stage_frame = poses[0].to_stage
     inv = np.linalg.inv(poses[0].to_stage)
@@ -125,9 +129,15 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--quick", action="store_true", help="6 s per row")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--fusion", action="append", default=[], metavar="KEY=VALUE",
+                        help="a fusion setting other than its default (repeatable), e.g. "
+                             "view_offset_s=0")
     args = parser.parse_args()
     if args.quick:
         args.seconds = 6.0
+    for pair in args.fusion:
+        key, _, value = pair.partition("=")
+        FUSION[key.strip()] = float(value)
     rows = []
     for outliers in (False, True):
         for speed in (0.5, 1.0, 2.0):
@@ -140,7 +150,8 @@ def main() -> int:
         return 0
     print("3 unsynchronised simulated Kinects at 30 Hz (bench_fusion.BENCH_KINECT), +-3 ms jitter, "
           f"20% joints occluded per view, a performer round a {CIRCLE_M:g} m circle, "
-          f"{args.seconds:g} s, first 2 s dropped")
+          f"{args.seconds:g} s, first 2 s dropped"
+          + "".join(f"; fusion {k} {v:g}" for k, v in FUSION.items()))
     print(f"{'outliers':>9} {'speed':>6} {'pipeline':<15} {'lag fr':>7} {'fused mm':>9} "
           f"{'best 1 mm':>10} {'cost p50 us':>12} {'p99 us':>8}")
     for r in rows:
