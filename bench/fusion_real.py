@@ -43,6 +43,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 import time
 
@@ -190,16 +191,14 @@ def judge(take: dict, h: int, methods: dict) -> dict[str, list]:
     return out
 
 
-def load_takes(folder: str, fits_path: str | None, subjects: set[str] | None, every: int,
+def load_takes(folder: str, fits_path: str, subjects: set[str] | None, every: int,
                limit: int) -> tuple[list[dict], dict]:
     found = nucla.triples(folder)               # development subjects only, by file name
     if subjects:
         found = [(s, p) for s, p in found if nc.subject_of(s) in subjects]
     fits = nc.take_fits(found, load_view, copied, fits_path, hypotheses=HYPOTHESES)
-    cache = {}
-    if fits_path:
-        with open(fits_path, encoding="utf-8") as f:
-            cache = json.load(f)
+    with open(fits_path, encoding="utf-8") as f:
+        cache = json.load(f)
     counts = {"triples": len(found), "copied": 0, "no fit": 0, "off the rig": 0}
     takes = []
     for sample, paths in found[::every]:
@@ -246,7 +245,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", help="the N-UCLA all_sqe files (docs/datasets.md)")
     parser.add_argument("--fits", default=None,
-                        help="cache of the per-take fits (JSON; ~1.5 s a pair to compute)")
+                        help="cache of the per-take fits (JSON; ~1.5 s a pair to compute; "
+                             "default: nucla_fits.json beside the folder)")
     parser.add_argument("--subjects", default="",
                         help="comma-separated development subjects (default: all six)")
     parser.add_argument("--bias", default="0.1",
@@ -254,8 +254,8 @@ def main() -> int:
     parser.add_argument("--offset", default="0,0.25,1",
                         help="fusion.view_offset_s values besides the default (0: off)")
     parser.add_argument("--variant", action="append", default=[],
-                        help="an engine with fusion or smoothing keys changed: KEY=VALUE[,...] "
-                             "(repeatable)")
+                        help="an engine with numeric fusion or smoothing keys changed: "
+                             "KEY=VALUE[,...] (repeatable)")
     parser.add_argument("--every", type=int, default=1)
     parser.add_argument("--limit", type=int, default=0)
     args = parser.parse_args()
@@ -266,7 +266,10 @@ def main() -> int:
               file=sys.stderr)
         return 2
     started = time.perf_counter()
-    takes, counts = load_takes(args.folder, args.fits, subjects, args.every, args.limit)
+    # (the fits' lags are read from the cache: there is always one)
+    fits = args.fits or os.path.join(os.path.dirname(os.path.abspath(args.folder)),
+                                     "nucla_fits.json")
+    takes, counts = load_takes(args.folder, fits, subjects, args.every, args.limit)
     if not takes:
         print(f"no usable takes in {args.folder} ({counts}): see docs/datasets.md",
               file=sys.stderr)
