@@ -6,16 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stage.clock import ManualClock
 from stage.engine import jit, offsets
-from stage.engine.engine import Engine
 from stage.errors import ConfigError
 from stage.joints import INFERRED, JOINT_INDEX
-from stage.rig import Rig, load_rig, set_calibration
+from stage.rig import load_rig, set_calibration
 from stage.sensors.sim import standing_pose
-from stage.settings import FusionSettings
 
-from test_engine import VIEW, RecordingTransport, frame, make_engine, send
+from test_engine import make_engine, frame, send
 
 SPINE = JOINT_INDEX["SpineBase"]
 FPS = 30.0
@@ -72,24 +69,21 @@ def test_reference_corrects_reported_joints_and_learns_only_from_tracked_ones():
     assert np.allclose(table[2], -0.01) and np.allclose(table[1], 5.0)   # the others: as they were
 
 
-def _engine(smoothing: bool = True, **fusion):
+def _engine(**fusion):
     """An engine with sensors a (the reference) and b in the same place."""
-    rig = Rig(reference="a", views=[VIEW], fusion=FusionSettings(**fusion))
-    rig.smoothing_enabled = smoothing
+    engine, clock, out = make_engine(**fusion)
+    engine.rig.reference = "a"
     for sensor in ("a", "b"):
-        set_calibration(rig, sensor, np.eye(4), "test")
-    clock = ManualClock(100.0)
-    out = RecordingTransport()
-    return Engine(rig, clock, out), clock, out
+        set_calibration(engine.rig, sensor, np.eye(4), "test")
+    return engine, clock, out
 
 
-def _two_views(view_offset_s: float, apart: float, seconds: float = 2.0, seed: int = 3,
-               smoothing: bool = True, persons: list | None = None):
+def _two_views(view_offset_s: float, apart: float, seconds: float = 2.0, seed: int = 3):
     """One still person seen by two sensors in the same place whose fits put the body
     ``apart`` metres apart along x, frames half a period apart; the fused SpineBase x of
-    every output after the first second (``persons``: gets the ids the engine gave)."""
+    every output after the first second."""
     rng = np.random.default_rng(seed)
-    engine, clock, out = _engine(smoothing, view_offset_s=view_offset_s)
+    engine, clock, out = _engine(view_offset_s=view_offset_s)
     body = standing_pose((0.0, 2.5), np.pi)
     xs = []
     for k in range(int(seconds * FPS)):
@@ -102,8 +96,6 @@ def _two_views(view_offset_s: float, apart: float, seconds: float = 2.0, seed: i
                 (last,) = out.of("/jointCoordinates")[-1:]
                 xs.append(last[2 + 5 * SPINE])
         out.clear()
-    if persons is not None:
-        persons += list(engine.people.persons)
     return np.array(xs), body[SPINE, 0]
 
 
@@ -117,18 +109,6 @@ def test_two_views_apart_no_longer_swing_and_meet_at_their_mean():
     assert swing_off > 0.01                        # the defect: 1 cm and more, every frame
     assert swing_on < 0.3 * swing_off and swing_on < 0.004
     assert abs(on.mean() - (x0 + 0.04)) < 0.01     # the views' mean, not one of them
-
-
-def test_smoothing_off_keeps_one_person_and_takes_the_offsets_off():
-    """With smoothing off a person's velocity is the jump between two views' positions; it
-    used to carry the person away from the next view when they were compared, and the two
-    views became two persons. Now they stay one, and the offsets stop the swing (each joint
-    is its latest measurement, so without them it swings the whole 8 cm)."""
-    for view_offset_s, swing in ((0.0, (0.07, 0.09)), (0.25, (0.0, 0.005))):
-        persons: list = []
-        xs, x0 = _two_views(view_offset_s, 0.08, smoothing=False, persons=persons)
-        assert len(persons) == 1
-        assert swing[0] <= np.abs(np.diff(xs)).mean() <= swing[1]
 
 
 def test_one_view_alone_is_never_corrected():

@@ -86,8 +86,6 @@ class People:
         self.rig, self.clock, self.output, self.listeners = rig, clock, output, listeners
         self.drops, self.latency, self.counts = drops, latency, counts
         self.tracker = Tracker(rig.fusion)
-        if not rig.smoothing_enabled:
-            self.tracker.ahead_s = 0.0
         #: the arrays persons are settled from, a row per person (for the compiled settle)
         self.bank = PersonBank()
         smoothing = rig.smoothing

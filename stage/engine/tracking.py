@@ -186,15 +186,14 @@ class Person:
             self.size_n += 1
             self.size = size if self.size is None else self.size + (size - self.size) / self.size_n
 
-    def distance(self, joints: np.ndarray, conf: np.ndarray, t: float,
-                 ahead: float = 0.5) -> float | None:
+    def distance(self, joints: np.ndarray, conf: np.ndarray, t: float) -> float | None:
         """Mean distance (m) from a view's joints to this person predicted at ``t``.
 
         Compared on the torso joints both have (all shared joints if no torso),
         so a view that sees only part of the body is not judged by a centre
         that jumps with what happens to be occluded.
         """
-        dt = min(max(t - self.t, 0.0), ahead)
+        dt = min(max(t - self.t, 0.0), 0.5)
         if jit.ready():
             try:
                 return jit.distance(joints, conf, self.joints, self.velocity, self.known, dt,
@@ -242,9 +241,6 @@ class Tracker:
         self.persons: dict[int, Person] = {}
         self._next_id = 1
         self._close_since: dict[tuple[int, int], float] = {}
-        #: how far (s) a person's velocity carries them to a view's time when they are
-        #: compared (0 with smoothing off: that velocity is the jump between two views)
-        self.ahead_s = 0.5
         #: persons lost recently: (id, torso centre (3,), trunk length m, when lost)
         self.departed: list[tuple[int, np.ndarray, float, float]] = []
         #: person id -> (when "picked up again" was last logged, picks since not logged)
@@ -256,8 +252,7 @@ class Tracker:
         if track.person is not None:
             person = self.persons[track.person]
             # a person's only view stays with it: no distance needed (this runs per view)
-            d = (None if len(person.tracks) == 1
-                 else person.distance(track.joints, track.conf, t, self.ahead_s))
+            d = None if len(person.tracks) == 1 else person.distance(track.joints, track.conf, t)
             if d is None or d <= fs.release_m:
                 track.far_frames = 0
                 return person
@@ -271,7 +266,7 @@ class Tracker:
         for person in self.persons.values():
             if any(other.client == track.client for other in person.tracks):
                 continue  # one sensor never sees one person twice
-            d = person.distance(track.joints, track.conf, t, self.ahead_s)
+            d = person.distance(track.joints, track.conf, t)
             if d is not None and d <= best_d:
                 best, best_d = person, d
         if best is None:
