@@ -92,10 +92,10 @@ class People:
         if not rig.smoothing_enabled:
             smoothing = dataclasses.replace(smoothing, **_UNSMOOTHED)
         self.smoothing: KalmanSettings = smoothing
-        self._offset_s = rig.fusion.view_offset_s
-        #: how far a person's velocity may carry them to a frame's time for ``_offset``
-        #: (smoothing off: none, its velocity is the difference of two views' positions)
-        self._offset_ahead_s = offsets.GAP_MAX_S if rig.smoothing_enabled else 0.0
+        #: ``fusion.view_offset_s``; 0 (off) with smoothing off, where each joint is its
+        #: latest measurement: a joint back from an occlusion is then its old position, and
+        #: learning from it moved the views by tens of centimetres (bench_fusion.py, stop 44)
+        self._offset_s = rig.fusion.view_offset_s if rig.smoothing_enabled else 0.0
         self.fuser = Fuser(smoothing, rig.fusion)
         #: ``fusion.native``: the core that folds a datagram's usual views in one compiled
         #: call (``native``), the persons it holds bound to it; None: the Python path alone
@@ -232,8 +232,7 @@ class People:
             table = person.offsets = grown
         gap = min(max(t - float(live[row]), 0.0), offsets.GAP_MAX_S)
         alpha = -math.expm1(-gap / self._offset_s)
-        ahead = self._offset_ahead_s
-        dt = min(max(t - person.t, -ahead), ahead)
+        dt = min(max(t - person.t, -offsets.GAP_MAX_S), offsets.GAP_MAX_S)
         try:
             if jit.ready():
                 jit.offsets(track.joints, conf, person.joints, person.velocity, person.known,
