@@ -180,12 +180,7 @@ class People:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
         if self._offset_s > 0.0 and person.t != _NEVER:
-            if r is _NO_R:
-                # the variances by where the sensor saw the joints, before they are moved
-                # (as jit.frame_r gives them with the kernels)
-                r = _variance_rows(track.joints[None], conf[None], transform[None, :3, 3],
-                                   self.smoothing)[0]
-            self._offset(track, person, conf, t)
+            r = self._offset(track, person, transform, conf, r, t)
         if person.t == _NEVER:
             # a person found in this batch: later views of the batch associate against this
             # view until its filter is folded in at the end of the batch
@@ -208,20 +203,28 @@ class People:
                               float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
         return True
 
-    def _offset(self, track: Track, person: Person, conf: np.ndarray, t: float) -> None:
+    def _offset(self, track: Track, person: Person, transform: np.ndarray, conf: np.ndarray,
+                r: np.ndarray, t: float) -> np.ndarray:
         """``track.joints`` corrected, in place, by its view's learned offset minus the mean
         of the person's views' offsets; then the view's offset learns from this frame
         (``offsets``). A view the person does not remember yet (its first frame with them)
         is left as it is; a person who remembers one view has no offsets (a second view
         starts them from nothing). In place, so that the arrays ``prepare_frames`` handed
-        over (which the native core takes as they are) hold the corrected joints too."""
+        over (which the native core takes as they are) hold the corrected joints too.
+
+        Returns the frame's variances ``r``: without the kernels (``_NO_R``) they are
+        computed here, by where the sensor saw the joints before they move, as
+        ``jit.frame_r`` gives them with the kernels."""
         recent = person.recent
         if len(recent) < 2:          # one view: nothing to learn against, nothing to correct
             person.offsets = None
-            return
+            return r
         row = recent.get(track.key)
         if row is None:
-            return
+            return r
+        if r is _NO_R:
+            r = _variance_rows(track.joints[None], conf[None], transform[None, :3, 3],
+                               self.smoothing)[0]
         live = person.recent_t
         table = person.offsets
         if table is None or len(table) != len(live):  # (rows added for more views)
@@ -237,11 +240,12 @@ class People:
             if jit.ready():
                 jit.offsets(track.joints, conf, person.joints, person.velocity, person.known,
                             dt, table, live, row, alpha, INFERRED)
-                return
+                return r
         except TypeError:   # arrays the kernel does not take (not float64, not contiguous)
             pass
         offsets.learn(track.joints, conf, person.joints, person.velocity, person.known, dt,
                       table, live, row, alpha, INFERRED)
+        return r
 
     def prepare_frames(self, transform: np.ndarray, frames: list) -> None:
         """What ``frame`` computes first for each frame (stage-space joints, swapped limbs,
