@@ -83,6 +83,19 @@ def _engine(smoothing: bool = True, **fusion):
     return Engine(rig, clock, out), clock, out
 
 
+def _feed_still(engine, clock, apart: float, frames: int) -> np.ndarray:
+    """``frames`` frame periods of one still person seen by sensors a and b, whose fits put
+    the body ``apart`` metres apart along x, half a period apart; the body (a's view)."""
+    body = standing_pose((0.0, 2.5), np.pi)
+    for _ in range(frames):
+        for sensor, shift in (("a", 0.0), ("b", apart)):
+            clock.advance(0.5 / FPS)
+            joints = body.copy()
+            joints[:, 0] += shift
+            send(engine, frame(sensor, 0, joints))
+    return body
+
+
 def _two_views(view_offset_s: float, apart: float, seconds: float = 2.0, seed: int = 3):
     """One still person seen by two sensors in the same place whose fits put the body
     ``apart`` metres apart along x, frames half a period apart; the fused SpineBase x of
@@ -123,13 +136,7 @@ def test_smoothing_off_leaves_the_views_as_they_are():
     runs = []
     for view_offset_s in (0.0, 0.25):
         engine, clock, out = _engine(False, view_offset_s=view_offset_s)
-        body = standing_pose((0.0, 2.5), np.pi)
-        for _ in range(20):
-            for sensor, shift in (("a", 0.0), ("b", 0.08)):
-                clock.advance(0.5 / FPS)
-                joints = body.copy()
-                joints[:, 0] += shift
-                send(engine, frame(sensor, 0, joints))
+        _feed_still(engine, clock, 0.08, 20)
         runs.append([m.params for _, m in out.sent])
     assert runs[0] == runs[1] and len(runs[0]) > 20
 
@@ -150,13 +157,7 @@ def test_one_view_alone_is_never_corrected():
 
 def test_a_view_that_leaves_takes_its_offset_and_a_new_view_starts_uncorrected():
     engine, clock, out = _engine()
-    body = standing_pose((0.0, 2.5), np.pi)
-    for _ in range(10):
-        for sensor, shift in (("a", 0.0), ("b", 0.05)):
-            clock.advance(0.5 / FPS)
-            joints = body.copy()
-            joints[:, 0] += shift
-            send(engine, frame(sensor, 0, joints))
+    body = _feed_still(engine, clock, 0.05, 10)
     (person,) = engine.people.persons.values()
     row = person.recent[("b", 0)]
     assert np.abs(person.offsets[row, SPINE, 0]) > 0.01        # learned
