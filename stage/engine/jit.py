@@ -548,23 +548,26 @@ def _offsets(z, conf, joints, velocity, known, dt, offsets, live, row, alpha, tr
     for k in range(offsets.shape[0]):
         if live[k] != -np.inf:
             n += 1
-    d = np.empty(3)
     for j in range(z.shape[0]):
-        for a in range(3):
-            # the mean as learn sums it: the first live row, then the others in turn
-            first = True
-            mean = 0.0
-            for k in range(offsets.shape[0]):
-                if live[k] != -np.inf:
-                    mean = offsets[k, j, a] if first else mean + offsets[k, j, a]
-                    first = False
-            mean /= n
-            d[a] = z[j, a] - (joints[j, a] + velocity[j, a] * dt)
-            if conf[j] > 0.0:
-                z[j, a] -= offsets[row, j, a] - mean
-        if conf[j] > tracked and known[j] and d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= cap2:
+        # the innovation of the joint as the sensor saw it (scalars: no array per call)
+        d0 = z[j, 0] - (joints[j, 0] + velocity[j, 0] * dt)
+        d1 = z[j, 1] - (joints[j, 1] + velocity[j, 1] * dt)
+        d2 = z[j, 2] - (joints[j, 2] + velocity[j, 2] * dt)
+        if conf[j] > 0.0:
             for a in range(3):
-                offsets[row, j, a] += alpha * (d[a] - offsets[row, j, a])
+                # the mean as learn sums it: the first live row, then the others in turn
+                first = True
+                mean = 0.0
+                for k in range(offsets.shape[0]):
+                    if live[k] != -np.inf:
+                        mean = offsets[k, j, a] if first else mean + offsets[k, j, a]
+                        first = False
+                mean /= n
+                z[j, a] -= offsets[row, j, a] - mean
+        if conf[j] > tracked and known[j] and d0 * d0 + d1 * d1 + d2 * d2 <= cap2:
+            offsets[row, j, 0] += alpha * (d0 - offsets[row, j, 0])
+            offsets[row, j, 1] += alpha * (d1 - offsets[row, j, 1])
+            offsets[row, j, 2] += alpha * (d2 - offsets[row, j, 2])
 
 
 def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)

@@ -25,9 +25,9 @@ as learned from the frames before it:
 The offsets are the person's (``Person.offsets``), a row per view in the rows of
 ``Person.recent`` (the views it remembers: a view's first frame with a person is not
 corrected, a view that leaves takes its offset with it, and a person down to one view
-forgets them all, so that the next view to join starts from nothing on both sides). The learning rate of a frame
-is ``1 - exp(-gap / view_offset_s)``, the gap since the view's previous frame (at most
-``GAP_MAX_S``), so it does not depend on the sensor's frame rate.
+forgets them all, so that the next view to join starts from nothing on both sides). The
+learning rate of a frame is ``1 - exp(-gap / view_offset_s)``, the gap since the view's
+previous frame (at most ``GAP_MAX_S``), so it does not depend on the sensor's frame rate.
 
 ``learn`` is the reference (and the code run without the compiled kernels); ``jit._offsets``
 is the same operations in the same order, compiled.
