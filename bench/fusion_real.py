@@ -27,8 +27,10 @@ Methods, in the same run: the engine with the default rig, with other
 ``fusion.view_offset_s`` (``--offset``; 0 turns the view offsets off) and
 ``fusion.view_bias_m`` (``--bias``), with any fusion or smoothing keys changed
 (``--variant``), and with smoothing off; and the references a user could have without us:
-each input view alone (raw) and the plain mean of the two input views (raw). Each stream's
-jitter is printed too (each sample's distance from the line between its neighbours).
+each input view alone (raw), the plain mean of the two input views (raw, the second
+interpolated to the first's times: it looks up to a frame ahead) and the live mean (after
+each frame, the mean of each view's latest frame: what a live fuser without a filter gives,
+using nothing captured later, as the engine). Each stream's jitter is printed too (each sample's distance from the line between its neighbours).
 ``--subjects`` splits the development subjects (tune on some, check on the others).
 
     python bench/fusion_real.py bench/data/nucla --fits bench/data/nucla_fits.json
@@ -312,6 +314,7 @@ def main() -> int:
             (ta, ja, pa), (tb, jb, pb) = (raw_series(skel, lag, take["matrices"][s])
                                           for s, skel, lag in inputs)
             methods["raw mean of the two"] = _mean_series(ta, ja, pa, tb, jb, pb)
+            methods["live mean of the two"] = _live_mean_series(ta, ja, pa, tb, jb, pb)
             methods = {_generic(n, inputs): m for n, m in methods.items()}
             for name, series in methods.items():
                 jitter.setdefault(name, []).extend(zigzag(*series))
@@ -345,6 +348,29 @@ def _mean_series(ta, ja, pa, tb, jb, pb):
         joints.append(np.where(both[:, None], (ja[k] + j) / 2, 0.0))
         ok.append(both)
         times.append(at)
+    return np.array(times), np.array(joints).reshape(-1, 25, 3), np.array(ok).reshape(-1, 25)
+
+
+def _live_mean_series(ta, ja, pa, tb, jb, pb):
+    """The plain mean a live fuser without a filter gives: after each frame of either view,
+    the mean of each view's latest frame (where both have a joint). Unlike
+    ``_mean_series``, which interpolates the second view to the first's times and so looks
+    up to a frame ahead, it uses no frame captured after its time, as the engine."""
+    events = sorted([(t, 0, k) for k, t in enumerate(ta)] + [(t, 1, k) for k, t in enumerate(tb)])
+    last = [None, None]
+    times, joints, ok = [], [], []
+    for at, s, k in events:
+        last[s] = k
+        if last[0] is None or last[1] is None:
+            continue
+        both = pa[last[0]] & pb[last[1]]
+        mean = np.where(both[:, None], (ja[last[0]] + jb[last[1]]) / 2, 0.0)
+        if times and times[-1] == at:           # frames of one instant: one sample
+            joints[-1], ok[-1] = mean, both
+            continue
+        times.append(at)
+        joints.append(mean)
+        ok.append(both)
     return np.array(times), np.array(joints).reshape(-1, 25, 3), np.array(ok).reshape(-1, 25)
 
 
