@@ -80,6 +80,10 @@ GROUPS = {
     "extremities": ("WristLeft", "WristRight", "HandLeft", "HandRight", "AnkleLeft",
                     "AnkleRight", "FootLeft", "FootRight"),
 }
+#: the bands of the two input views' disagreement on a joint the report splits by, mm
+APART_MM = (0, 50, 100, 200, 400, float("inf"))
+#: the raw input views' names in ``judge`` (``_generic``)
+RAW_A, RAW_B = "raw input view A alone", "raw input view B alone"
 GROUP_OF = {JOINT_INDEX[n]: g for g, names in GROUPS.items() for n in names}
 
 
@@ -168,11 +172,13 @@ def raw_series(skel: np.ndarray, lag: float, matrix: np.ndarray
 
 def judge(take: dict, h: int, methods: dict) -> dict[str, list]:
     """Per method, the distances (m) of its estimates to held-out view ``h``'s joints, over
-    the frames and joints every method has; and each joint's group."""
+    the frames and joints every method has; each joint's group; and how far apart (m) the two
+    raw input views put it there (``_apart``)."""
     skel, lag = take["views"][h], take["lags"][h]
     times, joints, present = raw_series(skel, lag, take["matrices"][h])
     out: dict[str, list] = {name: [] for name in methods}
     out["_group"] = []
+    out["_apart"] = []
     for k, at in enumerate(times):
         est = {}
         for name, (ts, js, ok) in methods.items():
@@ -190,6 +196,8 @@ def judge(take: dict, h: int, methods: dict) -> dict[str, list]:
             for name, (js, _) in est.items():
                 out[name].extend(np.linalg.norm(js[idx] - joints[k][idx], axis=1))
             out["_group"].extend(GROUP_OF.get(int(i), "other") for i in idx)
+            a, b = est[RAW_A][0], est[RAW_B][0]
+            out["_apart"].extend(np.linalg.norm(a[idx] - b[idx], axis=1))
     return out
 
 
@@ -298,6 +306,7 @@ def main() -> int:
     dist: dict[str, list] = {}
     jitter: dict[str, list] = {}
     groups: list[str] = []
+    apart: list[float] = []
     persons_extra: dict[str, int] = {}
     for take in takes:
         for h in range(3):
@@ -322,9 +331,11 @@ def main() -> int:
             for name, d in got.items():
                 if name == "_group":
                     groups.extend(d)
+                elif name == "_apart":
+                    apart.extend(d)
                 else:
                     dist.setdefault(name, []).extend(d)
-    report(dist, jitter, groups, persons_extra, time.perf_counter() - started)
+    report(dist, jitter, groups, apart, persons_extra, time.perf_counter() - started)
     return 0
 
 
@@ -374,7 +385,7 @@ def _live_mean_series(ta, ja, pa, tb, jb, pb):
     return np.array(times), np.array(joints).reshape(-1, 25, 3), np.array(ok).reshape(-1, 25)
 
 
-def report(dist: dict[str, list], jitter: dict[str, list], groups: list[str],
+def report(dist: dict[str, list], jitter: dict[str, list], groups: list[str], apart: list,
            persons_extra: dict[str, int], seconds: float) -> None:
     g = np.array(groups)
     n = len(g)
@@ -388,6 +399,17 @@ def report(dist: dict[str, list], jitter: dict[str, list], groups: list[str],
               f"{np.percentile(d, 90):6.1f} | "
         row += " ".join(f"{np.sqrt(np.mean(d[g == k] ** 2)):15.1f}" for k in GROUPS)
         print(row)
+    a = np.array(apart) * 1000
+    print("\nby how far apart the two input views put the joint (mm): share of the joints, "
+          "then each method's rms")
+    bands = [(lo, hi) for lo, hi in zip(APART_MM[:-1], APART_MM[1:])]
+    print(f"{'views apart':44} " + " ".join(f"{f'{lo:g}-{hi:g}':>9}" for lo, hi in bands))
+    masks = [(a >= lo) & (a < hi) for lo, hi in bands]
+    print(f"{'share of the joints':44} " + " ".join(f"{100 * m.mean():8.0f}%" for m in masks))
+    for name, d in dist.items():
+        d = np.array(d) * 1000
+        print(f"{name:44} " + " ".join(
+            f"{np.sqrt(np.mean(d[m] ** 2)) if m.any() else float('nan'):9.1f}" for m in masks))
     print("\njitter: each sample's distance from the line between its neighbours, mm "
           "(every joint each series reports)")
     print(f"{'method':44} {'samples':>8} {'rms':>6} {'p50':>6} {'p90':>6}")
