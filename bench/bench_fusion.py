@@ -15,6 +15,7 @@ by outliers 10-30 cm off in a random direction:
   - mean joint error of the fused output, and of the best single sensor (its own
     frames through its calibration) measured in the same run: the reference;
   - the same with smoothing off (each joint its latest accepted measurement);
+  - how many persons the engine made of the one performer (1; the error is person 1's);
   - engine CPU per input frame (process() only, no sockets).
 
 Run: python bench/bench_fusion.py [--seconds 20] [--quick] [--json] [--fusion KEY=VALUE]
@@ -79,6 +80,7 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, outliers:
     cost = []
     frames = []
     engine.listeners.append(frames.append)
+    ids: set[int] = set()
     for t, s in events:
         clock.set(max(clock.now(), t + 0.002))
         a = speed * t / CIRCLE_M                                  # radians round the circle
@@ -107,6 +109,8 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, outliers:
         single[s].append(float(np.linalg.norm(stage[ok] - truth[ok], axis=1).mean()))
         if len(frames) == emitted:
             continue   # nothing fused from this frame (never happens once the person is found)
+        for f in frames[emitted:]:
+            ids.update(f.bodies)
         body = frames[-1].bodies[1]
         sent = body.conf > 0
         err = body.joints - truth
@@ -118,6 +122,7 @@ def run(seconds: float, speed: float, n_sensors: int, smoothing: bool, outliers:
         "lag_frames": -float(np.mean(along)) / per_frame if per_frame else 0.0,
         "fused_error_mm": 1e3 * float(np.mean(errors)),
         "best_single_error_mm": 1e3 * min(float(np.mean(v)) for v in single.values()),
+        "persons": len(ids),
         "outputs_per_input": len(errors) / max(sum(len(v) for v in single.values()), 1),
         "cost_us_p50": float(np.percentile(cost_us, 50)),
         "cost_us_p99": float(np.percentile(cost_us, 99)),
@@ -153,11 +158,11 @@ def main() -> int:
           f"{args.seconds:g} s, first 2 s dropped"
           + "".join(f"; fusion {k} {v:g}" for k, v in FUSION.items()))
     print(f"{'outliers':>9} {'speed':>6} {'pipeline':<15} {'lag fr':>7} {'fused mm':>9} "
-          f"{'best 1 mm':>10} {'cost p50 us':>12} {'p99 us':>8}")
+          f"{'best 1 mm':>10} {'persons':>8} {'cost p50 us':>12} {'p99 us':>8}")
     for r in rows:
         print(f"{'2 %' if r['outliers'] else 'none':>9} {r['speed_m_s']:>6.1f} {r['pipeline']:<15} "
               f"{r['lag_frames']:>7.2f} {r['fused_error_mm']:>9.1f} {r['best_single_error_mm']:>10.1f} "
-              f"{r['cost_us_p50']:>12.0f} {r['cost_us_p99']:>8.0f}")
+              f"{r['persons']:>8d} {r['cost_us_p50']:>12.0f} {r['cost_us_p99']:>8.0f}")
     shipped = [r for r in rows if r["pipeline"] == "shipped"]
     worst_lag = max(abs(r["lag_frames"]) for r in shipped)
     worse = [r for r in shipped if r["fused_error_mm"] >= r["best_single_error_mm"]]

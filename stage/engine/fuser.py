@@ -26,6 +26,13 @@ the largest group, so one sensor's bad joint is dropped even when the filter
 is too unsure to judge it (just after a person is found, after an
 occlusion). A view that joins an instant and leaves the choice made for the
 earlier ones unchanged is a plain update; otherwise the instant is replayed.
+
+Smoothing off (``hold``): each joint is its latest accepted measurement. The filter runs
+with motion noise so large that an update puts a joint at its measurement, and every
+velocity is set to zero after each fold: the velocity such a filter estimates is the jump
+between two sensors' views of one joint over the few milliseconds between their frames
+(tens of metres a second), which carried a joint no view reports now, and the person
+when views are matched to persons, metres away (two persons for one on real takes).
 """
 
 from __future__ import annotations
@@ -192,12 +199,21 @@ class FoldStats:
     restarted: int = 0       # joints started afresh after two rejections in a row
 
 
+def _held(state: FilterState) -> FilterState:
+    """``state`` with every velocity zero (a copy: states kept in a history are shared)."""
+    held = state.copy()
+    held.x[1] = 0.0
+    return held
+
+
 class Fuser:
     """Folds views into ``BodyFilter``s; see the module docstring."""
 
     def __init__(self, smoothing: KalmanSettings, fusion: FusionSettings,
-                 q_scale: np.ndarray | None = None) -> None:
+                 q_scale: np.ndarray | None = None, hold: bool = False) -> None:
         self.s, self.f = smoothing, fusion
+        #: smoothing off: every velocity zero after a fold (see the module docstring)
+        self.hold = hold
         self.q_scale = q_scale
         self.stats = FoldStats()
         #: after a fold whose every view went in by the plain path in one wave: (the
@@ -277,6 +293,12 @@ class Fuser:
         st.rejected += rejected
         st.restarted += restarted
         k = len(items)
+        if self.hold:
+            # (new arrays: a step that changed nothing leaves the state before's own; the
+            # rows not measured now were held before, so their positions are as kept)
+            held = _held(work)
+            work.x, work.P, work.mu, work.block = held.x, held.P, held.mu, held.block
+            vel = np.zeros_like(vel)
         # each person's rows as views made by iterating the reshaped arrays (in C: cheaper
         # than slicing each in Python)
         pos, vel = pos.reshape(k, n, 3), vel.reshape(k, n, 3)
@@ -378,6 +400,8 @@ class Fuser:
             after, outcome, used, counts, last = step_views(
                 state, np.array([v.t for v in group]), np.array([v.joints for v in group]),
                 np.where(masks, r, np.nan), self.s, self.q_scale)
+            if self.hold:
+                after = [_held(a) for a in after]
             st = self.stats
             total = counts.sum(axis=0).tolist()
             st.restarted += total[0]
@@ -395,6 +419,9 @@ class Fuser:
             state = before
             k = g
         body.state = state
+        if self.hold:               # (each state was held as it was stepped)
+            body.output = (body.newest, state.estimate()[0], np.zeros((N_JOINTS, 3)))
+            return
         # (the newest view is the last one stepped: the kernel's estimate at its time)
         body.output = (body.newest, *(state.predicted(body.newest) if last is None else last))
 

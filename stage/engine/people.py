@@ -96,11 +96,13 @@ class People:
         #: latest measurement: a joint back from an occlusion is then its old position, and
         #: learning from it moved the views by tens of centimetres (bench_fusion.py, stop 44)
         self._offset_s = rig.fusion.view_offset_s if rig.smoothing_enabled else 0.0
-        self.fuser = Fuser(smoothing, rig.fusion)
+        # smoothing off: each joint its latest accepted measurement, every velocity zero
+        # (``fuser``); the native core, which keeps the filter's velocities, is not used
+        self.fuser = Fuser(smoothing, rig.fusion, hold=not rig.smoothing_enabled)
         #: ``fusion.native``: the core that folds a datagram's usual views in one compiled
         #: call (``native``), the persons it holds bound to it; None: the Python path alone
         self.core: NativeCore | None = None
-        if rig.fusion.native:
+        if rig.fusion.native and rig.smoothing_enabled:
             try:
                 self.core = NativeCore(smoothing, rig.fusion, self.fuser.q_scale)
             except RuntimeError as exc:
