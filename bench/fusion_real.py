@@ -82,6 +82,10 @@ GROUPS = {
 }
 #: the bands of the two input views' disagreement on a joint the report splits by, mm
 APART_MM = (0, 50, 100, 200, 400, float("inf"))
+#: ``--three``: two views this close on a joint agree (m)...
+PAIR_M = 0.10
+#: ...and a third this far from their mean is the odd one (m)
+ODD_M = 0.30
 #: the raw input views' names in ``judge`` (``_generic``)
 RAW_A, RAW_B = "raw input view A alone", "raw input view B alone"
 GROUP_OF = {JOINT_INDEX[n]: g for g, names in GROUPS.items() for n in names}
@@ -268,6 +272,9 @@ def main() -> int:
                              "KEY=VALUE[,...] (repeatable)")
     parser.add_argument("--every", type=int, default=1)
     parser.add_argument("--limit", type=int, default=0)
+    parser.add_argument("--three", action="store_true",
+                        help="also fuse all three views and measure how each method stays "
+                             "with two views that agree where the third is far off")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
     subjects = {s.strip() for s in args.subjects.split(",") if s.strip()} or None
@@ -335,6 +342,8 @@ def main() -> int:
                     apart.extend(d)
                 else:
                     dist.setdefault(name, []).extend(d)
+    if args.three:
+        three_views(takes, engines)
     report(dist, jitter, groups, apart, persons_extra, time.perf_counter() - started)
     return 0
 
@@ -362,27 +371,71 @@ def _mean_series(ta, ja, pa, tb, jb, pb):
     return np.array(times), np.array(joints).reshape(-1, 25, 3), np.array(ok).reshape(-1, 25)
 
 
-def _live_mean_series(ta, ja, pa, tb, jb, pb):
-    """The plain mean a live fuser without a filter gives: after each frame of either view,
-    the mean of each view's latest frame (where both have a joint). Unlike
-    ``_mean_series``, which interpolates the second view to the first's times and so looks
-    up to a frame ahead, it uses no frame captured after its time, as the engine."""
-    events = sorted([(t, 0, k) for k, t in enumerate(ta)] + [(t, 1, k) for k, t in enumerate(tb)])
-    last = [None, None]
+def _live_mean_series(*series):
+    """The plain mean a live fuser without a filter gives: after each frame of any view,
+    the mean of each view's latest frame (where every view has the joint); ``series`` is
+    (times, joints, present) of each view, flattened. Unlike ``_mean_series``, which
+    interpolates the second view to the first's times and so looks up to a frame ahead, it
+    uses no frame captured after its time, as the engine."""
+    views = [series[k:k + 3] for k in range(0, len(series), 3)]
+    events = sorted((t, v, k) for v, (ts, _, _) in enumerate(views) for k, t in enumerate(ts))
+    last: list[int | None] = [None] * len(views)
     times, joints, ok = [], [], []
-    for at, s, k in events:
-        last[s] = k
-        if last[0] is None or last[1] is None:
+    for at, v, k in events:
+        last[v] = k
+        if any(i is None for i in last):
             continue
-        both = pa[last[0]] & pb[last[1]]
-        mean = np.where(both[:, None], (ja[last[0]] + jb[last[1]]) / 2, 0.0)
+        every = np.logical_and.reduce([p[i] for (_, _, p), i in zip(views, last)])
+        mean = sum(j[i] for (_, j, _), i in zip(views, last)) / len(views)
+        mean = np.where(every[:, None], mean, 0.0)
         if times and times[-1] == at:           # frames of one instant: one sample
-            joints[-1], ok[-1] = mean, both
+            joints[-1], ok[-1] = mean, every
             continue
         times.append(at)
         joints.append(mean)
-        ok.append(both)
+        ok.append(every)
     return np.array(times), np.array(joints).reshape(-1, 25, 3), np.array(ok).reshape(-1, 25)
+
+
+def three_views(takes: list[dict], engines: dict) -> None:
+    """All three views fused; where two views agree on a joint (within ``PAIR_M``) and the
+    third is far from them (beyond ``ODD_M``), how close each method stays to the pair.
+    There is no truth here either, but a view two others contradict is most likely the wrong
+    one (a limb it fitted wrongly): this is what the gate's choice is for, and what the
+    held-out runs, which leave two views, cannot show."""
+    dist: dict[str, list] = {}
+    for take in takes:
+        inputs = [(s, take["views"][s], take["lags"][s]) for s in range(3)]
+        raws = [raw_series(skel, lag, take["matrices"][s]) for s, skel, lag in inputs]
+        methods = {name: fused_series(rig_with(fusion, smoothing), inputs, take["matrices"])[:3]
+                   for name, (fusion, smoothing) in engines.items()}
+        methods["live mean of the three"] = _live_mean_series(*[x for r in raws for x in r])
+        for at in raws[0][0]:
+            views = [interpolate(*r, at) for r in raws]
+            est = {name: interpolate(*m, at) if len(m[0]) else None for name, m in methods.items()}
+            if any(v is None for v in views) or any(e is None for e in est.values()):
+                continue
+            common = np.logical_and.reduce([v[1] for v in views] + [e[1] for e in est.values()])
+            for j in np.flatnonzero(common):
+                p = [v[0][j] for v in views]
+                for a, b, c in ((0, 1, 2), (0, 2, 1), (1, 2, 0)):
+                    pair = (p[a] + p[b]) / 2
+                    if (np.linalg.norm(p[a] - p[b]) <= PAIR_M
+                            and np.linalg.norm(p[c] - pair) > ODD_M):
+                        for name, (js, _) in est.items():
+                            dist.setdefault(name, []).append(np.linalg.norm(js[j] - pair))
+                        dist.setdefault("the odd view", []).append(np.linalg.norm(p[c] - pair))
+                        break
+    n = len(dist.get("the odd view", []))
+    print(f"\nall three views fused: {n} joints where two views agree within {PAIR_M * 100:g} cm "
+          f"and the third is over {ODD_M * 100:g} cm from them; each method's distance to the "
+          f"pair's mean, mm")
+    print(f"{'method':44} {'rms':>6} {'p50':>6} {'p90':>6} {'nearer the odd view':>20}")
+    odd = np.array(dist.get("the odd view", [])) * 1000
+    for name, d in dist.items():
+        d = np.array(d) * 1000
+        print(f"{name:44} {np.sqrt(np.mean(d * d)):6.1f} {np.percentile(d, 50):6.1f} "
+              f"{np.percentile(d, 90):6.1f} {100 * np.mean(d > odd / 2):19.0f}%")
 
 
 def report(dist: dict[str, list], jitter: dict[str, list], groups: list[str], apart: list,
