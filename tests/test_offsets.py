@@ -54,9 +54,10 @@ def test_reference_corrects_reported_joints_and_learns_only_from_tracked_ones():
     z = np.zeros((25, 3))
     conf = np.full(25, 1.0)
     conf[1], conf[2] = 0.0, INFERRED
-    person = np.full((25, 3), -0.1)      # every view joint is 0.1 m from the person, each axis
+    person = np.full((25, 3), -0.05)     # every view joint is 5 cm from the person, each axis
     known = np.ones(25, dtype=bool)
     known[4] = False
+    person[5] = -0.1                     # 17 cm: beyond CAP_M (15 cm), teaches nothing
     table = np.zeros((3, 25, 3))
     table[0], table[2] = 0.02, -0.01                 # this view's, and another view's
     table[1] = 5.0                                   # a free row: not in the mean
@@ -66,9 +67,10 @@ def test_reference_corrects_reported_joints_and_learns_only_from_tracked_ones():
                   INFERRED)
     assert np.allclose(out[0], -0.015) and np.allclose(out[2], -0.015)  # reported: corrected
     assert np.allclose(out[1], 0.0)                                      # not reported
-    assert np.allclose(table[0, 0], 0.02 + 0.5 * (0.1 - 0.02))          # learned
+    assert np.allclose(table[0, 0], 0.02 + 0.5 * (0.05 - 0.02))         # learned
     assert np.allclose(table[0, 1], 0.02) and np.allclose(table[0, 2], 0.02)  # not tracked
     assert np.allclose(table[0, 4], 0.02)                                # no state to learn from
+    assert np.allclose(table[0, 5], 0.02) and np.allclose(out[5], -0.015)  # too far: corrected only
     assert np.allclose(table[2], -0.01) and np.allclose(table[1], 5.0)   # the others: as they were
 
 

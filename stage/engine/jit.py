@@ -27,7 +27,10 @@ replaces, which stays as reference and fallback:
   ``handbank.use_kernels``; ``handbank.ArrayHandVoter`` calls them).
 
 The results are the numpy code's up to the last bit of exp, log and expm1, which come from
-another library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them).
+another library than numpy's (tests/test_jit.py and tests/test_kalman.py compare them; on a
+CPU with AVX-512 numpy's own differ from the C library's for many inputs, so where a test
+holds a kernel to its reference to the bit, the reference runs with the C library's:
+tests/libm.py).
 
 numba is a dependency; should it fail to import or to compile on some machine, or with
 ``STAGE_JIT=0`` in the environment, the engine logs one line and runs the numpy code
