@@ -20,6 +20,18 @@ def _joints(args: list) -> tuple[int, dict[str, np.ndarray]]:
     return args[0], {rest[k]: np.array(rest[k + 1:k + 4]) for k in range(0, len(rest), 5)}
 
 
+def _send(engine, body: np.ndarray, sensor: str, shift: float) -> np.ndarray:
+    """A frame of ``body`` moved ``shift`` m along x from ``sensor``; b never reports the
+    left hand. The joints sent."""
+    joints = body.copy()
+    joints[:, 0] += shift
+    conf = np.ones(25)
+    if sensor == "b":
+        conf[HAND] = 0.0
+    send(engine, frame(sensor, 0, joints, conf))
+    return joints
+
+
 def test_two_sensors_apart_make_one_person_whose_joints_are_the_latest_measurements():
     """Two sensors see one still person 8 cm apart along x, their frames half a period
     apart, and only a sees the left hand. Every output is one person (before, the filter's
@@ -34,12 +46,7 @@ def test_two_sensors_apart_make_one_person_whose_joints_are_the_latest_measureme
     for k in range(int(2 * FPS)):
         for sensor, shift in (("a", 0.0), ("b", 0.08)):
             clock.advance(0.5 / FPS)
-            joints = body.copy()
-            joints[:, 0] += shift
-            conf = np.ones(25)
-            if sensor == "b":
-                conf[HAND] = 0.0
-            send(engine, frame(sensor, 0, joints, conf))
+            joints = _send(engine, body, sensor, shift)
             sent = out.of("/jointCoordinates")
             assert {args[0] for args in sent} <= {1}, f"frame {k}: persons {sent}"
             if k < 2 or not sent:
@@ -67,12 +74,7 @@ def test_views_of_one_instant_make_one_person_held_where_they_were_seen():
     for k in range(int(2 * FPS)):
         clock.advance(1.0 / FPS)
         for sensor, shift in (("a", 0.0), ("b", 0.15)):
-            joints = body.copy()
-            joints[:, 0] += shift
-            conf = np.ones(25)
-            if sensor == "b":
-                conf[HAND] = 0.0
-            send(engine, frame(sensor, 0, joints, conf))
+            _send(engine, body, sensor, shift)
         sent = out.of("/jointCoordinates")
         assert {args[0] for args in sent} <= {1}, f"frame {k}: persons {sent}"
         if k >= 2:
