@@ -30,7 +30,10 @@ Methods, in the same run: the engine with the default rig, with other
 each input view alone (raw), the plain mean of the two input views (raw, the second
 interpolated to the first's times: it looks up to a frame ahead) and the live mean (after
 each frame, the mean of each view's latest frame: what a live fuser without a filter gives,
-using nothing captured later, as the engine). Each stream's jitter is printed too (each sample's distance from the line between its neighbours).
+using nothing captured later, as the engine). Each stream's jitter is printed too (each
+sample's distance from the line between its neighbours), and every method's error split by
+how far apart the two input views put the joint. ``--three`` also fuses all three views and
+measures how each method stays with two views that agree where the third is far off.
 ``--subjects`` splits the development subjects (tune on some, check on the others).
 
     python bench/fusion_real.py bench/data/nucla --fits bench/data/nucla_fits.json
