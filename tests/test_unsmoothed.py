@@ -52,7 +52,7 @@ def test_two_sensors_apart_make_one_person_whose_joints_are_the_latest_measureme
             if k < 2 or not sent:
                 out.clear()
                 continue
-            pid, got = _joints(sent[-1])
+            _, got = _joints(sent[-1])
             for j in (JOINT_INDEX["SpineBase"], JOINT_INDEX["Head"], JOINT_INDEX["FootRight"]):
                 assert np.allclose(got[names[j]], joints[j], atol=1e-4), (k, sensor, names[j])
             assert np.allclose(got[names[HAND]], body[HAND], atol=1e-4), (k, sensor)
