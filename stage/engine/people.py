@@ -306,11 +306,12 @@ class People:
     # ------------------------------------------------------------ fusion
     def flush(self) -> None:
         """Fold the batch's frames into their persons, then send what changed."""
-        if self._framed:
-            self._framed.clear()
-            self._batch = None
         if self._views:
             self._fold()
+        if self._framed:
+            # (after the fold: the core takes the batch's arrays as they are, ``_fold_core``)
+            self._framed.clear()
+            self._batch = None
         self._emit()
 
     def _fold(self) -> None:
