@@ -40,7 +40,11 @@ PARTS = (
     ("stage.engine.people", "People", "frame", "frame (each)"),
     ("stage.engine.tracking", "Tracker", "associate", "  associate"),
     ("stage.engine.tracking", "Person", "distance", "    a person's distance"),
+    ("stage.engine.people", "People", "_offset", "  view offset"),
     ("stage.engine.people", "People", "_fold", "fold and settle"),
+    ("stage.engine.people", "People", "_fold_native", "  native core's persons"),
+    ("stage.engine.native", "NativeCore", "fold", "    core fold"),
+    ("stage.engine.jit", "_compiled", "_native_fold", "      its kernel"),
     ("stage.engine.fuser", "Fuser", "fold", "  fold"),
     ("stage.engine.fuser", "Fuser", "_fold_plain", "    plain wave"),
     ("stage.engine.kalman", None, "step_folded", "      filter step"),
@@ -67,7 +71,13 @@ def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
         except ImportError:     # an older tree without this module: its parts not shown
             continue
         obj = getattr(mod, owner, None) if owner else mod
-        fn = getattr(obj, name, None)
+        table = isinstance(obj, dict)   # jit._compiled: kernels called out of the table
+        if table:
+            if not obj:                 # (compiled on the engine's first datagram)
+                getattr(mod, "ready", lambda: None)()
+            fn = obj.get(name)
+        else:
+            fn = getattr(obj, name, None)
         if fn is None:          # an older tree without this part: not shown
             continue
 
@@ -78,6 +88,9 @@ def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
             finally:
                 acc[_label] += time.thread_time_ns() - c
                 calls[_label] += 1
+        if table:
+            obj[name] = timed
+            continue
         setattr(obj, name, functools.wraps(fn)(timed))
         # callers that imported the function by name (fuser: step_folded)
         if owner is None:
