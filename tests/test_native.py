@@ -397,3 +397,67 @@ def test_visitors_coming_and_going_through_both_paths_send_the_same(tmp_path):
     assert stats_a["replays"] > 0 and stats_a["joints_disagreeing"] > 0
     assert sent_a == sent_b and len(sent_a) > 500
     assert native["folded"] > 0.6 * len(items) and native["replayed"] > 0
+
+
+def _elements(bundle: bytes) -> list[bytes]:
+    """A flat bundle's elements, in order."""
+    out, k = [], 16
+    while k < len(bundle):
+        size = int.from_bytes(bundle[k:k + 4], "big")
+        out.append(bundle[k + 4:k + 4 + size])
+        k += 4 + size
+    return out
+
+
+def test_the_cores_view_offsets_are_learned_as_the_python_path_learns_them():
+    """The view offsets of the core's persons are learned on its rows, for a batch's frames in
+    one call before the fold (``People._offsets_held``). Engines with the core on and off
+    send the same datagrams when the frames are rows of the batch's arrays, when a datagram
+    holds one skeleton (its frame is no such row: corrected in a copy and written back),
+    and when a ``/lostUser`` follows a frame in its datagram (the offsets are learned
+    before the view is forgotten); the core's persons have offsets learned."""
+    from stage.engine.people import People
+    from stage.sensors.protocol import encode_bundle, encode_message
+    poses, data = three_dancers(seconds=3.0)
+    shaped, lost = [], 0
+    for n, (t, d) in enumerate(data):
+        parts = _elements(d)
+        if 120 <= n < 150 and n % 3 == 0 and len(parts) == 9:   # s0: a skeleton a datagram
+            shaped += [(t, encode_bundle(parts[k:k + 3])) for k in (0, 3, 6)]
+        elif n in (181, 211) and len(parts) == 9:                # s1: user 0 lost after its frame
+            shaped.append((t, encode_bundle(parts + [encode_message("/lostUser", "s1", 0)])))
+            lost += 1
+        else:
+            shaped.append((t, d))
+    assert lost == 2
+    calls = {"batch": 0, "copies": 0, "dropping": 0}
+    learn, drop = People._offsets_held, People.drop_track
+
+    def counted(self):
+        calls["batch" if all(h[0][0] >= 0 for h in self._held_offsets) else "copies"] += 1
+        return learn(self)
+
+    def dropping(self, track, t):
+        calls["dropping"] += bool(self._held_offsets)
+        return drop(self, track, t)
+    runs = []
+    People._offsets_held, People.drop_track = counted, dropping
+    try:
+        for native in (False, True):
+            engine, recorder, frames = _engine(poses, native)
+            runs.append((_play(engine, recorder, shaped), frames, engine.people.stats(), engine))
+    finally:
+        People._offsets_held, People.drop_track = learn, drop
+    (sent_a, frames_a, stats_a, _), (sent_b, frames_b, stats_b, engine) = runs
+    stats_b.pop("native")
+    assert stats_a == stats_b
+    assert sent_a == sent_b
+    for a, b in zip(frames_a, frames_b, strict=True):
+        assert a.keys() == b.keys()
+        for pid in a:
+            for x, y in zip(a[pid], b[pid]):
+                np.testing.assert_array_equal(x, y)
+    core = engine.people.core
+    assert core.folded > 0.8 * len(data)
+    assert calls["batch"] > 100 and calls["copies"] >= 5 and calls["dropping"] >= 1
+    assert np.abs(core.offsets).max() > 0.001            # learned, in the core's rows

@@ -166,6 +166,7 @@ def test_a_view_that_leaves_takes_its_offset_and_a_new_view_starts_uncorrected()
     track = engine.clients["b"].tracks[0]
     engine.people.drop_track(track, clock.now())
     assert ("b", 0) not in person.recent and not person.offsets[row].any()
+    assert not person.offsets.any()        # one view left: it has no offset either
     # a view new to the person: its first frame goes in as the sensor sent it
     engine.clients["b"].tracks.clear()
     joints = body.copy()

@@ -18,6 +18,8 @@ replaces, which stays as reference and fallback:
   measurement variances; ``_frame_r_many`` does that for a datagram's frames in one call;
 - ``_distance``: ``tracking.Person.distance``;
 - ``_offsets``: ``offsets.learn``, a view's learned offset taken off its joints;
+  ``_native_offsets`` does it for a batch's frames of the native core's persons, on its
+  rows (compiled with the core's kernel, ``warm_native``);
 - ``_gate``: ``calibration.gate.JumpGate.check_many``, without the GIL;
 - ``_view_joints``: ``sensors.encode.encode_view_joints``, the fused skeleton sent to the
   views (the same bytes);
@@ -1021,6 +1023,28 @@ def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ri
     ring_view[s, dst] = ring_view[s, src]
 
 
+def _native_offsets(ints, times, z, conf, recent_t, joints, velocity, known, offsets, offset_s,
+                    gap_max, tracked, cap2):  # pragma: no cover (compiled)
+    """The view offsets (``offsets.learn``) of a batch's K frames of persons the native core
+    holds, in the batch's order, as ``people.People._offset`` does them one by one. Frame i
+    is z[ints[i, 0]] (25, 3) with confidences conf[ints[i, 0]], corrected in place; it is
+    the view in row ints[i, 2] of the person in slot ints[i, 1], captured at times[i, 0],
+    the person's newest frame being at times[i, 1]. The person's joints, velocities, known
+    joints and views' times are the core's rows (``joints`` ... ``recent_t``), its offsets
+    ``offsets`` (S, R, 25, 3); ``cap2`` is ``offsets.CAP_M`` squared."""
+    for i in range(ints.shape[0]):
+        k = ints[i, 0]
+        s = ints[i, 1]
+        row = ints[i, 2]
+        t = times[i, 0]
+        live = recent_t[s]
+        gap = min(max(t - live[row], 0.0), gap_max)
+        alpha = -math.expm1(-gap / offset_s)
+        dt = min(max(t - times[i, 1], -gap_max), gap_max)
+        _offsets(z[k], conf[k], joints[s], velocity[s], known[s], dt, offsets[s], live, row,
+                 alpha, tracked, cap2)
+
+
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
                  ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, head, steps, valid,
                  newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
@@ -1340,6 +1364,9 @@ _SIGNATURES = {
 #: (``warm_native``): 6-7 s more of a first start's compilation on this VM, for engines
 #: that do not use it
 _NATIVE_SIGNATURES = {
+    "_native_offsets": "void(int64[:, ::1], float64[:, ::1], float64[:, :, ::1], float64[:, ::1], "
+                       "float64[:, ::1], float64[:, :, ::1], float64[:, :, ::1], boolean[:, ::1], "
+                       "float64[:, :, :, ::1], float64, float64, float64, float64)",
     "_native_fold": "int64(int64[::1], float64[::1], float64[:, :, ::1], float64[:, ::1], "
                     "float64[:, ::1], int64[::1], int64[::1], float64[::1], float64[::1], "
                     "float64[:, :, :, :, :, ::1], float64[:, :, ::1], float64[:, :, :, ::1], "

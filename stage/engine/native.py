@@ -59,7 +59,7 @@ _TORSO = np.array(TORSO)
 DEPTH = 64
 
 #: the arrays a bound person's attributes are views of
-_BOUND = (*(f[0] for f in _FIELDS), "recent_conf", "recent_t")
+_BOUND = (*(f[0] for f in _FIELDS), "recent_conf", "recent_t", "offsets")
 
 
 class NativeCore:
@@ -141,6 +141,10 @@ class NativeCore:
         self.centre = np.zeros((n, 3))
         self.recent_conf = np.zeros((n, r, N_JOINTS))
         self.recent_t = np.full((n, r), -np.inf)
+        #: each view's learned offset (``offsets``), a row per row of ``recent_t``: the
+        #: person's ``offsets`` (zeros where the Python path has none yet; learned by
+        #: ``jit._native_offsets``, ``people.People._offsets_held``)
+        self.offsets = np.zeros((n, r, N_JOINTS, 3))
         self.owners = [None] * n
         self.bound = [False] * n
         self.recent = [{} for _ in range(n)]
@@ -162,6 +166,7 @@ class NativeCore:
         n, r = self.recent_t.shape
         self.recent_conf = np.concatenate((self.recent_conf, np.zeros((n, r, N_JOINTS))), axis=1)
         self.recent_t = np.concatenate((self.recent_t, np.full((n, r), -np.inf)), axis=1)
+        self.offsets = np.concatenate((self.offsets, np.zeros((n, r, N_JOINTS, 3))), axis=1)
         self._rows = 2 * r
         self._args = None
         self._rebind()
@@ -182,7 +187,7 @@ class NativeCore:
                 "ring_used", "ring_mask", "ring_view", "head", "steps", "valid", "seeded",
                 "newest", "anchor",
                 "person_t",
-                *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t")
+                *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t", "offsets")
 
     def take(self, person, bind: bool = False) -> int:
         """Take ``person`` (a ``tracking.Person`` the Python path has folded, with a centre)
@@ -246,6 +251,10 @@ class NativeCore:
         n = len(person.recent_t)
         self.recent_conf[s, :n] = person.recent_conf
         self.recent_t[s, :n] = person.recent_t
+        self.offsets[s] = 0.0         # (none learned: the Python path's None)
+        if person.offsets is not None:
+            n = min(len(person.offsets), self.offsets.shape[1])
+            self.offsets[s, :n] = person.offsets[:n]
         if bind:
             self.recent[s] = person.recent
             self._bind(s, person)

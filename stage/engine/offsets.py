@@ -30,7 +30,10 @@ learning rate of a frame is ``1 - exp(-gap / view_offset_s)``, the gap since the
 previous frame (at most ``GAP_MAX_S``), so it does not depend on the sensor's frame rate.
 
 ``learn`` is the reference (and the code run without the compiled kernels); ``jit._offsets``
-is the same operations in the same order, compiled.
+is the same operations in the same order, compiled. For the persons the native core holds,
+the offsets are rows of the core's (``NativeCore.offsets``) and a batch's frames learn
+theirs in one call before the fold (``jit._native_offsets``, ``People._offsets_held``), in
+the same order, with the same floats.
 """
 
 from __future__ import annotations

@@ -113,6 +113,10 @@ class People:
         #: with the core: the last ``prepare_frames`` call's arrays (joints, conf, variances)
         #: and their rows as handed to the views, which the core then takes as they are
         self._batch: tuple | None = None
+        #: this batch's frames of persons the core holds whose view offsets are still to be
+        #: learned (``_offsets_held``): ((row in the batch's arrays or -1, slot, view row),
+        #: (capture time, the person's newest time), joints, confidences)
+        self._held_offsets: list[tuple] = []
         #: person id -> its skeleton as the core encoded it in this batch
         self._encoded: dict[int, bytes] = {}
         #: person id -> datagrams in a row the Python path folded it with no view dropped late
@@ -154,10 +158,11 @@ class People:
         to ``hand``)."""
         r = _NO_R          # the variances: here with the kernels, else for the batch in _fold
         size = None        # the trunk: here with the kernels, else in _fold
+        pos = -1           # the frame's row in the batch's arrays (``prepare_frames``)
         framed = self._framed.get(id(joints)) if self._framed else None
         if framed is not None and framed[0] is joints and framed[1] is conf \
                 and framed[2] is transform:
-            _, _, _, track.joints, conf, traded, r, size, n_seen = framed
+            _, _, _, track.joints, conf, traded, r, size, n_seen, pos = framed
         elif jit.ready():
             track.joints, conf, traded, r, size, n_seen = jit.frame_r(
                 transform, joints, conf, self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
@@ -182,7 +187,19 @@ class People:
             return False  # nothing tracked in this frame: no position to associate or fuse
         person = self.tracker.associate(track, t)
         if self._offset_s > 0.0 and person.t != _NEVER:
-            r = self._offset(track, person, transform, conf, r, t)
+            held = person.filter.native
+            if held is not None and r is not _NO_R:
+                # the core's person: its offsets are learned on the core's rows, for the
+                # batch's frames in one call before the fold (``_offsets_held``)
+                # (a person that remembers one view has no offsets; a view it does not
+                # remember yet is left as it is: ``_offset``)
+                recent = person.recent
+                row = recent.get(track.key, -1) if len(recent) > 1 else -1
+                if row >= 0:
+                    self._held_offsets.append(((pos, held[1], row), (t, person.t),
+                                               track.joints, conf))
+            else:
+                r = self._offset(track, person, transform, conf, r, t)
         if person.t == _NEVER:
             # a person found in this batch: later views of the batch associate against this
             # view until its filter is folded in at the end of the batch
@@ -270,9 +287,10 @@ class People:
         j_out, c_out, bits, r_out, sizes = out
         framed = self._framed
         js, cs, rs = list(j_out), list(c_out), list(r_out)
-        for m, j, c, b, r, size, n in zip(frames, js, cs, bits.tolist(), rs,
-                                          sizes[:, 0].tolist(), sizes[:, 1].tolist()):
-            framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size, int(n))
+        for k, (m, j, c, b, r, size, n) in enumerate(zip(frames, js, cs, bits.tolist(), rs,
+                                                      sizes[:, 0].tolist(),
+                                                      sizes[:, 1].tolist())):
+            framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size, int(n), k)
         if self.core is not None:
             self._batch = (j_out, c_out, r_out, js, cs, rs)
 
@@ -296,6 +314,8 @@ class People:
 
     def drop_track(self, track: Track, t: float) -> None:
         self._give_reports()       # (its reports before it is forgotten, as they came)
+        if self._held_offsets:     # (learned from the person's views as they were)
+            self._offsets_held()
         pid = self.tracker.unbind(track, t)
         person = self.persons.get(pid) if pid is not None else None
         if person is not None:
@@ -314,7 +334,36 @@ class People:
             self._batch = None
         self._emit()
 
+    def _offsets_held(self) -> None:
+        """The view offsets of the batch's frames of persons the native core holds, in one
+        compiled call (``jit._native_offsets``), as ``_offset`` would have done them frame
+        by frame, in their order: before anything reads the frames' joints or changes the
+        persons' views (the fold, a track dropped mid-batch). Frames that are rows of the
+        batch's arrays (``prepare_frames``) are corrected there, others in copies written
+        back."""
+        held, self._held_offsets = self._held_offsets, []
+        core = self.core
+        batch = self._batch
+        ints = [h[0] for h in held]
+        if batch is not None and all(i[0] >= 0 and batch[3][i[0]] is h[2]
+                                     for i, h in zip(ints, held)):
+            z, conf, copies = batch[0], batch[1], False
+        else:
+            z = np.array([h[2] for h in held])
+            conf = np.array([h[3] for h in held])
+            ints = [(k, s, row) for k, (_, s, row) in enumerate(ints)]
+            copies = True
+        jit._compiled["_native_offsets"](
+            np.array(ints, dtype=np.int64), np.array([h[1] for h in held]), z, conf,
+            core.recent_t, core.joints, core.velocity, core.known, core.offsets,
+            self._offset_s, offsets.GAP_MAX_S, INFERRED, offsets.CAP_M * offsets.CAP_M)
+        if copies:
+            for k, h in enumerate(held):
+                h[2][...] = z[k]
+
     def _fold(self) -> None:
+        if self._held_offsets:
+            self._offsets_held()
         views, self._views = self._views, []
         everyone, core = views, self.core
         if core is not None and views:

@@ -173,8 +173,13 @@ class Person:
         row = self.recent.pop(key, None)
         if row is not None:
             self.recent_t[row] = -np.inf
-            if self.offsets is not None and row < len(self.offsets):
-                self.offsets[row] = 0.0          # (the row's next view starts from nothing)
+            if self.offsets is not None:
+                if len(self.recent) < 2:
+                    # one view left: it has no offset (``People._offset`` forgets the table
+                    # at its next frame; the native core's persons keep theirs, zeroed here)
+                    self.offsets[...] = 0.0
+                elif row < len(self.offsets):
+                    self.offsets[row] = 0.0      # (the row's next view starts from nothing)
 
     def measure_size(self, joints: np.ndarray, conf: np.ndarray) -> None:
         """Fold one view's trunk length into the running mean."""
