@@ -461,3 +461,45 @@ def test_the_cores_view_offsets_are_learned_as_the_python_path_learns_them():
     assert core.folded > 0.8 * len(data)
     assert calls["batch"] > 100 and calls["copies"] >= 5 and calls["dropping"] >= 1
     assert np.abs(core.offsets).max() > 0.001            # learned, in the core's rows
+
+
+def test_a_backlog_of_several_sensors_datagrams_learns_the_same_offsets():
+    """Several sensors' datagrams taken as one batch (a backlog: ``Engine.run`` takes it in
+    one go): each sensor's frames are prepared in their own call, so the batch's arrays are
+    the last sensor's, and a frame of another sensor (here one of three, where the last
+    sensor's datagram holds two skeletons) is corrected in a copy. Engines with the core on
+    and off send the same."""
+    from stage.sensors.messages import Inbound
+    from stage.sensors.protocol import decode_datagram, encode_bundle
+    poses, data = three_dancers(seconds=3.0)
+    trimmed = []
+    for n, (t, d) in enumerate(data):
+        parts = _elements(d)
+        if n % 3 == 2 and len(parts) == 9:          # s2: two skeletons (and their hands)
+            d = encode_bundle(parts[:6])
+        trimmed.append((t, d))
+    runs = []
+    for native in (False, True):
+        engine, recorder, _ = _engine(poses, native)
+        sent, last, n = [], 0.0, 0
+        while n < len(trimmed):
+            # from 1.5 s on, each frame's three datagrams as one batch
+            together = 3 if n >= 135 and n % 3 == 0 else 1
+            items = []
+            for t, d in trimmed[n:n + together]:
+                engine.clock.set(t)
+                items += [Inbound(m, t, ("127.0.0.1", 7000), tt)
+                          for m, tt in decode_datagram(d).messages]
+            engine.process(items)
+            n += together
+            if engine.clock.now() - last >= 0.02:
+                engine.tick(engine.clock.now())
+                last = engine.clock.now()
+            sent.append(list(recorder.sent))
+            recorder.sent.clear()
+        runs.append((sent, engine.people.stats(), engine))
+    (sent_a, stats_a, _), (sent_b, stats_b, engine) = runs
+    native_stats = stats_b.pop("native")
+    assert stats_a == stats_b and sent_a == sent_b
+    assert native_stats["folded"] > 0.5 * len(sent_b)
+    assert np.abs(engine.people.core.offsets).max() > 0.001

@@ -345,8 +345,11 @@ class People:
         core = self.core
         batch = self._batch
         ints = [h[0] for h in held]
-        if batch is not None and all(i[0] >= 0 and batch[3][i[0]] is h[2]
-                                     for i, h in zip(ints, held)):
+        # (the rows of the batch's last ``prepare_frames`` call: with several sensors' frames
+        # in one batch, a backlog, the others' rows are another call's)
+        rows = batch[3] if batch is not None else ()
+        if rows and all(0 <= i[0] < len(rows) and rows[i[0]] is h[2]
+                        for i, h in zip(ints, held)):
             z, conf, copies = batch[0], batch[1], False
         else:
             z = np.array([h[2] for h in held])
