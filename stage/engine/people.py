@@ -128,7 +128,9 @@ class People:
         self.forecaster = Forecaster(smoothing, rig.forecast)
         self.horizons: dict[float, int] = {}
         self._forecasts: dict[tuple[int, float], Forecast] = {}   # this emission's
-        self._views: list[tuple[Person, View, np.ndarray]] = []   # with the sensor's position
+        #: the batch's views, each with its sensor's transform (whose translation is where
+        #: the sensor is: the variances without the kernels, ``_variances``)
+        self._views: list[tuple[Person, View, np.ndarray]] = []
         self._dirty: dict[int, list[float]] = {}   # person id -> arrivals of frames folded in
         self._hands_dirty: set[int] = set()         # persons whose hand vote may have changed
         #: the batch's hand reports, in the order they came, each the voter's method and its
@@ -209,7 +211,7 @@ class People:
             person.t = t
         # without the kernels, the measurement variances are computed for the batch in _fold
         view = View(track.key, t, track.joints, conf, r, arrival, size=size)
-        self._views.append((person, view, transform[:3, 3]))
+        self._views.append((person, view, transform))
         if hands:
             for item in hands:
                 track.hands[item.message.hand] = item.message.state
@@ -374,7 +376,7 @@ class People:
             if not views:
                 return
         live = [(p, v) for p, v, _ in views if self.persons.get(p.id) is p]
-        missing = [(v, where) for _, v, where in views if v.r is _NO_R]
+        missing = [(v, transform[:3, 3]) for _, v, transform in views if v.r is _NO_R]
         if missing:
             self._variances(missing)
         # in the order of the persons' ids (each person's views in their own order), so that
