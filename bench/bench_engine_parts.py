@@ -42,6 +42,7 @@ PARTS = (
     ("stage.engine.tracking", "Person", "distance", "    a person's distance"),
     ("stage.engine.people", "People", "_offset", "  view offset"),
     ("stage.engine.people", "People", "_fold", "fold and settle"),
+    ("stage.engine.people", "People", "_offsets_held", "  view offsets (core)"),
     ("stage.engine.people", "People", "_fold_native", "  native core's persons"),
     ("stage.engine.native", "NativeCore", "fold", "    core fold"),
     ("stage.engine.jit", "_compiled", "_native_fold", "      its kernel"),
