@@ -212,6 +212,35 @@ def test_a_small_bump_is_caught_by_the_fitness_monitor(tmp_path):
     assert err["rot_deg"] < 1.0, err
 
 
+def test_judging_in_chunks_wakes_at_once_when_a_sensor_drifts_apart(tmp_path):
+    """While all agree the monitor judges 0.3 s chunks (``idle_poll_s``); the jump gate's
+    distances wake it as soon as a bumped sensor's views move away from the others, so a
+    bump under the jump gate is caught as soon as judging every poll catches it. Without the
+    wake (``idle_wake_m`` inf) the same bumps are caught up to 0.2 s later."""
+    def detected(phase: float, **settings) -> tuple[float, float]:
+        run = Run(tmp_path, n=3, **settings)
+        judged = []
+        monitor = run.cal._monitor
+        run.cal._monitor = lambda *a: (judged.append(run.t), monitor(*a))[1]
+        run.run_until(4.0 + phase)
+        rate = len(judged) / run.t
+        bump_t = run.t
+        run.bump("s2", 3.0)      # 13 cm: under the jump gate
+        run.run_until(5.5 + phase)
+        suspect = run.events("suspect", "s2")
+        assert len(suspect) == 1 and "stayed below" in suspect[0].detail
+        return suspect[0].t - bump_t, rate
+
+    phases = (0.0, 0.1, 0.2)
+    every, rate_every = zip(*[detected(p, idle_poll_s=0.1) for p in phases])
+    woken, rate = zip(*[detected(p) for p in phases])
+    asleep, _ = zip(*[detected(p, idle_wake_m=float("inf")) for p in phases])
+    # judgements a second before the bump: every 0.1 s poll, or 0.3 s chunks
+    assert min(rate_every) > 8.0 and max(rate) < 4.5, (rate_every, rate)
+    assert max(w - e for w, e in zip(woken, every)) <= 0.01, (woken, every)
+    assert max(a - e for a, e in zip(asleep, every)) >= 0.1, (asleep, every)
+
+
 def test_a_glitch_is_restored_without_recalibration(tmp_path):
     run = Run(tmp_path, n=2)
     run.run_until(3.0)

@@ -513,7 +513,7 @@ def test_jump_gate_kernel_is_the_numpy_gate():
     gates = [JumpGate(), JumpGate()]
     people = rng.uniform(-2, 2, (4, 1, 3)) + rng.normal(0, 0.15, (4, 5, 3))   # torso points
     offset = {s: np.zeros(3) for s in "abc"}
-    jumps = 0
+    jumps, drifted = 0, []
     for f in range(600):
         people += rng.normal(0, 0.01, (4, 1, 3))
         if f % 97 == 50:
@@ -542,6 +542,14 @@ def test_jump_gate_kernel_is_the_numpy_gate():
                 if want is not None:
                     jumps += 1
                     assert got[0] == want[0] and got[1] == pytest.approx(want[1], rel=1e-9)
+        if f % 10 == 9:  # how far each sensor's views drifted from the others, chunk by chunk
+            a, b = gates
+            assert a.apart.keys() == b.apart.keys()
+            for s in a.apart:
+                assert a.apart[s] == pytest.approx(b.apart[s], rel=1e-9)
+            drifted.append(max(a.apart.values(), default=0.0) > 0.1)
+            a.apart.clear()
+            b.apart.clear()
     a, b = gates
     n = len(a._index)
     for name in ("_t", "_x", "_v", "_links"):
@@ -549,6 +557,8 @@ def test_jump_gate_kernel_is_the_numpy_gate():
                                    atol=1e-12, err_msg=name)
     np.testing.assert_array_equal(a._m[:n], b._m[:n])
     assert jumps > 5
+    # the sensors agree until the first bump (frame 50), and drift apart from it on
+    assert drifted[:5] == [False] * 5 and drifted[5]
 
 
 def test_no_numba_is_one_line_and_the_numpy_engine():

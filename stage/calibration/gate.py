@@ -30,12 +30,17 @@ INF = float("inf")
 
 class JumpGate:
     def __init__(self, agree_m: float = 0.15, gate_m: float = 0.30, link_s: float = 0.5,
-                 capacity: int = 32, points: int = len(TORSO), min_joints: int = 2) -> None:
-        self.agree_m, self.gate_m, self.link_s = agree_m, gate_m, link_s
+                 capacity: int = 32, points: int = len(TORSO), min_joints: int = 2,
+                 same_m: float = 0.5) -> None:
+        self.agree_m, self.gate_m, self.link_s, self.same_m = agree_m, gate_m, link_s, same_m
         self.points, self.min_joints = points, min_joints
         self._index: dict[tuple[str, int], int] = {}
         self._sensors: dict[str, int] = {}
         self._trusted = np.zeros(8, dtype=bool)
+        #: per sensor, the farthest its views were from every other trusted sensor's views
+        #: (the nearest one's distance, m) in any check since ``apart.clear()``: the live
+        #: calibrator judges larger chunks only while nobody drifted apart (see ``_note_apart``)
+        self.apart: dict[str, float] = {}
         self._alloc(capacity)
 
     def _alloc(self, capacity: int) -> None:
@@ -127,6 +132,16 @@ class JumpGate:
                 / np.maximum(count, 1)[..., None] + self._v[:n] * dt[:, None])  # (k, n, 3)
         return valid, np.sqrt(np.einsum("kij,kij->ki", mean, mean))
 
+    def _note_apart(self, sensor: str, d: np.ndarray) -> None:
+        """One check of ``sensor``'s views at one instant, ``d`` their distances to the views
+        compared with (inf where not compared): how close the closest two came. A bumped
+        sensor moves every view of it at once, so its closest one moves away too; one view
+        of a crowd tracked badly does not. Nothing compared, or nothing within ``same_m`` (only
+        other people's views: a view the others do not see): nothing noted."""
+        closest = float(d.min()) if d.size else INF
+        if closest < self.same_m and closest > self.apart.get(sensor, 0.0):
+            self.apart[sensor] = closest
+
     def check(self, sensor: str, user: int, t: float, points: np.ndarray, tracked: np.ndarray,
               ) -> tuple[list[str], float] | None:
         """Record a view's stage-space torso joints (P, 3) at time t, ``tracked`` (P,) bool:
@@ -169,6 +184,7 @@ class JumpGate:
         mean = (np.matmul(common[:, None, :].astype(float), self._x[:n] - x)[:, 0]
                 / np.maximum(count, 1)[:, None] + self._v[:n] * dt[:, None])
         d = np.sqrt(np.einsum("ij,ij->i", mean, mean))
+        self._note_apart(sensor, np.where(valid, d, INF))
         agree = valid & (d <= self.agree_m)
         if agree.any():
             self._links[i, :n][agree] = t
@@ -184,9 +200,10 @@ class JumpGate:
                         tracked: np.ndarray) -> list[tuple[list[str], float] | None]:
         """``check_many`` in one compiled call (``jit.gate``, without the GIL)."""
         n = len(self._index)
-        jumped, dmax = jit.gate(rows, t, points, tracked, self._t, self._x, self._m, self._v,
+        jumped, dmax, d = jit.gate(rows, t, points, tracked, self._t, self._x, self._m, self._v,
                                 self._owner, self._trusted, self._links, self._sensors[sensor],
                                 n, self.min_joints, self.agree_m, self.gate_m, self.link_s)
+        self._note_apart(sensor, d)
         out: list[tuple[list[str], float] | None] = [None] * len(rows)
         for r in np.flatnonzero(dmax >= 0.0):
             names = {k: s for s, k in self._sensors.items()}
@@ -214,6 +231,7 @@ class JumpGate:
         if found is None:
             return out
         valid, d = found
+        self._note_apart(sensor, np.where(valid, d, INF))
         n = len(self._index)
         agree = valid & (d <= self.agree_m)                                 # (k, n)
         agreed = agree.any(axis=1)

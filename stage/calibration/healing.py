@@ -90,7 +90,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         self._states: dict[str, SensorState] = {}
         self._order: list[str] = []
         s = self.settings
-        self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
+        self._gate = self._new_gate()
         self._monitored_to = -INF
         self._window = PairWindow(s.window_s)   # trusted pairs' joint distances
         self._held_since: float | None = None   # everything looked wrong at once since then
@@ -199,7 +199,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
                   self.last_crash, self.crashes, exc_info=exc)
         with self._lock:
             s = self.settings
-            self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
+            self._gate = self._new_gate()
             self._copies = CopyDetector(s.identical_frames)
             self._buffers.clear()
             self._kept_bin.clear()
@@ -214,6 +214,10 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._held_since = None
             self._jumps.clear()
 
+    def _new_gate(self) -> JumpGate:
+        s = self.settings
+        return JumpGate(s.agree_m, s.gate_m, s.link_s, same_m=s.match_m)
+
     def _forget_gone(self) -> None:
         """Sensors the engine no longer knows are forgotten (caller holds the lock), so
         ever new sensor ids cannot grow the calibrator's tables."""
@@ -221,8 +225,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         for sid in gone:
             del self._states[sid]
         self._order = [sid for sid in self._order if sid in self._states]
-        s = self.settings
-        self._gate = JumpGate(s.agree_m, s.gate_m, s.link_s)
+        self._gate = self._new_gate()
         for sid, st in self._states.items():
             self._gate.trust(sid, st.state == "ok")
 
@@ -504,8 +507,12 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._rebudget(now)
             t1 = now - s.delay_s
             if (self._idle and t1 - self._monitored_to < s.idle_poll_s
+                    and max(self._gate.apart.values(), default=0.0) <= s.idle_wake_m
                     and not any(self._lag_due(st, now) for st in self._states.values())):
-                return  # all calibrated and trusted: the monitor judges larger chunks
+                # all calibrated, trusted and close to each other in every frame the jump
+                # gate compared since the last judgement: the monitor judges larger chunks
+                return
+            self._gate.apart.clear()   # (frames drained from now on: for the next poll)
             t0 = max(self._monitored_to, t1 - s.window_s)
             oldest = min([t0] + [max(st.collected_to, st.collect_from)
                                  for st in self._states.values() if st.pairs is not None

@@ -92,12 +92,17 @@ class LiveSettings:
     match_m: float = 0.5          # views further apart than this are different people
     identical_frames: int = 5
     poll_s: float = 0.1
-    idle_poll_s: float = 0.1      # ... but while every sensor is calibrated, trusted and
+    idle_poll_s: float = 0.3      # ... but while every sensor is calibrated, trusted and
                                   # agrees, the monitor judges the frames in chunks this long
-                                  # (polls between do nothing unless a lag search is due). 0.3
-                                  # saves ~3 % of a core at 6 sensors x 6 people but catches a
-                                  # bump under the jump gate 0.1-0.25 s later (4 degrees: 1.0 s
-                                  # instead of 0.77-0.87 s), so the default keeps every poll
+                                  # (polls between do nothing unless a lag search is due) ...
+    idle_wake_m: float = 0.10     # ... and while, in every frame the jump gate compared since
+                                  # the last judgement, each sensor's closest view was within
+                                  # this of another trusted sensor's: a bump under the jump
+                                  # gate moves them apart, and the next poll judges at once
+                                  # (4 degrees caught as soon as judging every poll; inf: 0.1 to
+                                  # 0.2 s later). Saves 1.5-2 % of a core at 6 sensors x 6
+                                  # people; views further apart than this (N-UCLA's Kinect v1:
+                                  # 11 cm, median) keep every poll
     delay_s: float = 0.1          # frames are judged once the partners' later frames are in
     buffer_s: float = 4.0
     frame_budget: float = 540.0   # frames a second the calibrator keeps at most: above it (more

@@ -1719,8 +1719,9 @@ _NO_TRACKED = np.zeros((1, 1), dtype=np.bool_)
 def gate(rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray, T: np.ndarray,
          X: np.ndarray, Mk: np.ndarray, V: np.ndarray, owner: np.ndarray, trusted: np.ndarray,
          links: np.ndarray, own: int, n: int, min_joints: int, agree_m: float, gate_m: float,
-         link_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """The compiled ``_gate``: (jumped (k, n) bool, the largest distance per view); the
+         link_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled ``_gate``: (jumped (k, n) bool, the largest distance per view, the
+    distances (k, n): inf where the two views were not compared); the
     gate's arrays updated in place. Runs without the GIL (the calibrator's worker thread
     then leaves the engine thread its core)."""
     k = len(rows)
@@ -1730,7 +1731,7 @@ def gate(rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray, T:
                        np.ascontiguousarray(tracked, dtype=bool), T, X, Mk, V, owner, trusted,
                        links, int(own), int(n), int(min_joints), float(agree_m), float(gate_m),
                        float(link_s), valid, d, jumped, dmax)
-    return jumped, dmax
+    return jumped, dmax, d
 
 
 def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,
