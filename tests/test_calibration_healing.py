@@ -224,11 +224,16 @@ def test_judging_in_chunks_wakes_at_once_when_a_sensor_drifts_apart(tmp_path):
         run.cal._monitor = lambda *a: (judged.append(run.t), monitor(*a))[1]
         run.run_until(4.0 + phase)
         rate = len(judged) / run.t
+        assert run.cal.stats()["judgements"] == len(judged)
+        assert run.cal.stats()["woken"] == 0        # nobody drifted apart before the bump
         bump_t = run.t
         run.bump("s2", 3.0)      # 13 cm: under the jump gate
         run.run_until(5.5 + phase)
         suspect = run.events("suspect", "s2")
         assert len(suspect) == 1 and "stayed below" in suspect[0].detail
+        # chunks woken by the drift: counted, so that an installer can see it happen
+        assert (run.cal.stats()["woken"] > 0) == (run.cal.settings.idle_wake_m < 1.0
+                                                    and run.cal.settings.idle_poll_s > 0.1)
         return suspect[0].t - bump_t, rate
 
     phases = (0.0, 0.1, 0.2)

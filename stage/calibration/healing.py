@@ -117,6 +117,9 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         self._rate: float | None = None   # frames ingested a second, last measured
         #: frames left out of the buffers by ``frame_budget`` (copy-checked all the same)
         self.frames_thinned = 0
+        #: the monitor's judgements, and those of them the jump gate brought forward (a
+        #: sensor's views drifted ``idle_wake_m`` from the others within a chunk)
+        self.judgements = self.woken = 0
         #: times the calibrator failed and was restarted, and the last failure (health)
         self.crashes = 0
         self.last_crash = ""
@@ -142,13 +145,16 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
         """The ``calibrator`` section of ``/stage/stats`` (any thread; counters only):
         frames ingested a second (null before the first second), the frame budget, the
         rate each view is kept at while over it (null: every frame kept), the frames left
-        out by the budget and dropped from a full inbox, and the restarts after a failure."""
+        out by the budget and dropped from a full inbox, the monitor's judgements and those
+        the jump gate brought forward, and the restarts after a failure."""
         every, rate = self._keep_every, self._rate
         return {"frames_per_s": None if rate is None else round(rate, 1),
                 "frame_budget": self.settings.frame_budget,
                 "kept_hz": round(1.0 / every, 2) if every else None,
                 "frames_thinned": self.frames_thinned,
                 "inbox_dropped": self.inbox_dropped,
+                "judgements": self.judgements,
+                "woken": self.woken,
                 "crashes": self.crashes}
 
     def request(self, sensors: list[str] | None = None, pairs: int | None = None) -> list[str]:
@@ -507,11 +513,13 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._rebudget(now)
             t1 = now - s.delay_s
             if (self._idle and t1 - self._monitored_to < s.idle_poll_s
-                    and max(self._gate.apart.values(), default=0.0) <= s.idle_wake_m
                     and not any(self._lag_due(st, now) for st in self._states.values())):
-                # all calibrated, trusted and close to each other in every frame the jump
-                # gate compared since the last judgement: the monitor judges larger chunks
-                return
+                # all calibrated and trusted: the monitor judges larger chunks, unless a
+                # sensor's views drifted apart from the others' since the last judgement
+                # (in the frames the jump gate compared)
+                if max(self._gate.apart.values(), default=0.0) <= s.idle_wake_m:
+                    return
+                self.woken += 1
             self._gate.apart.clear()   # (frames drained from now on: for the next poll)
             t0 = max(self._monitored_to, t1 - s.window_s)
             oldest = min([t0] + [max(st.collected_to, st.collect_from)
@@ -550,6 +558,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             views.setdefault(view.sensor, []).append(view)
         self._yield()
         if s.heal and t1 > t0:
+            self.judgements += 1
             self._monitor(now, t0, t1, views, states, epochs)
             self._monitored_to = t1
             self._yield()
