@@ -157,7 +157,15 @@ class MidiView(View):
         now = self._ctx.now() if self._ctx else 0.0
         try:
             self._send(self.scheduler.due(now))
-            self._send(self.scheduler.silence(now))
+            silence = self.scheduler.silence(now)
+            self._send(silence)
+            again: dict[int, tuple[PortSink, list[bytes]]] = {}
+            for out in silence:     # (sent again by a JACK port as it closes)
+                for sink in self.routes.get(out.output, ()):
+                    if isinstance(sink, PortSink):
+                        again.setdefault(id(sink), (sink, []))[1].append(out.data)
+            for sink, messages in again.values():
+                sink.again_at_close(messages)
             if self.clock_bpm:
                 for port in self.ports.values():
                     port.send(STOP)

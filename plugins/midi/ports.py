@@ -132,6 +132,14 @@ def match_port(wanted: str, available: Sequence[str]) -> int | None:
 # jackd (256 frames at 48 kHz) and three busy loops on this 2-core machine: closing right
 # after sending lost 20-30 of 60 messages; closing 20 or 50 ms after the last one lost none.
 JACK_DRAIN_S = 0.1
+# A JACK client that misses the period in which the stop's note-offs and all-notes-off
+# pass (an xrun: a synth, or jack_midi_dump, starved by other load) never gets them: the
+# note sounds on. A JACK port sends what it was given for that (``again_at_close``) again,
+# JACK_STOP_REPEATS times JACK_STOP_REPEAT_S apart, before it drains and closes. Measured
+# with a dummy jackd and six busy loops on this 2-core machine (tests/test_midi.py's
+# performer stopping mid-phrase, 12 runs each way): see docs/reports/issue-10.md, stop 47.
+JACK_STOP_REPEATS = 3
+JACK_STOP_REPEAT_S = 0.1
 
 
 class PortSink:
@@ -150,6 +158,7 @@ class PortSink:
     down_since: float | None = None
     down_s = 0.0
     destination: str | None = None
+    _again: tuple[bytes, ...] = ()
 
     def __init__(self, name: str, api: int, client: str = "stage", existing: bool = True) -> None:
         """existing: look ``name`` up among the destinations first (False: always a new port)."""
@@ -259,11 +268,21 @@ class PortSink:
         except Exception:  # a vanished destination must not stop the show; counted
             self.errors += 1
 
+    def again_at_close(self, messages: list[bytes]) -> None:
+        """Messages a JACK port sends again before it closes (the stop's silence): see
+        ``JACK_STOP_REPEATS``. Idempotent ones only: note-offs, all-notes-off."""
+        self._again = tuple(messages)
+
     def close(self) -> None:
-        """Close the port; a JACK port first lets its last messages reach JACK."""
+        """Close the port; a JACK port first sends the stop's silence again (a client in an
+        xrun missed it) and lets its last messages reach JACK."""
         if self._out is None:
             return
         if self.api_id == rtmidi.API_UNIX_JACK:
+            for _ in range(JACK_STOP_REPEATS if self._again and self.connected else 0):
+                time.sleep(JACK_STOP_REPEAT_S)
+                for data in self._again:
+                    self.send(data)
             wait = self._last_send + JACK_DRAIN_S - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
