@@ -62,7 +62,7 @@ def run(drain: float, n: int, repeats: int = 0) -> tuple[int, int]:
             mine = [bytes((0x80, i % 128, 0)), bytes((0x81, i % 128, 0))]
             for data in mine:
                 sink.send(data)
-            sink.again_at_close(mine)
+                sink.again_at_close(data)
             sink.close()
     finally:
         ports.JACK_DRAIN_S, ports.JACK_STOP_REPEATS = saved

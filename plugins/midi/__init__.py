@@ -159,13 +159,10 @@ class MidiView(View):
             self._send(self.scheduler.due(now))
             silence = self.scheduler.silence(now)
             self._send(silence)
-            again: dict[int, tuple[PortSink, list[bytes]]] = {}
             for out in silence:     # (sent again by a JACK port as it closes)
                 for sink in self.routes.get(out.output, ()):
                     if isinstance(sink, PortSink):
-                        again.setdefault(id(sink), (sink, []))[1].append(out.data)
-            for sink, messages in again.values():
-                sink.again_at_close(messages)
+                        sink.again_at_close(out.data)
             if self.clock_bpm:
                 for port in self.ports.values():
                     port.send(STOP)

@@ -270,10 +270,10 @@ class PortSink:
         except Exception:  # a vanished destination must not stop the show; counted
             self.errors += 1
 
-    def again_at_close(self, messages: list[bytes]) -> None:
-        """Messages a JACK port sends again before it closes (the stop's silence): see
+    def again_at_close(self, data: bytes) -> None:
+        """A message a JACK port sends again before it closes (the stop's silence): see
         ``JACK_STOP_REPEATS``. Idempotent ones only: note-offs, all-notes-off."""
-        self._again = tuple(messages)
+        self._again = self._again + (data,)   # (a tuple: the class default is shared)
 
     def close(self) -> None:
         """Close the port; a JACK port first sends the stop's silence again (a client in an
