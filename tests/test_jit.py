@@ -561,6 +561,78 @@ def test_jump_gate_kernel_is_the_numpy_gate():
     assert drifted[:5] == [False] * 5 and drifted[5]
 
 
+def test_jump_gate_of_a_datagram_is_the_gate_of_its_placed_views():
+    """``JumpGate.check_frames`` (one compiled call on a datagram's skeletons as decoded)
+    against the numpy gate fed what the calibrator computed from the same skeletons before
+    (the torso joints tracked, placed by the sensor's transform; skeletons tracking none
+    left out): the same jumps, the same ``apart``, the same recorded state, while the
+    sensors are trusted and untrusted and bumped now and then."""
+    from stage.calibration.gate import JumpGate
+    from stage.joints import TORSO
+    torso = np.array(TORSO)
+    rng = np.random.default_rng(11)
+    fast, slow = JumpGate(), JumpGate()
+    # each sensor's transform: a turn about the vertical and a shift
+    mats = {}
+    for k, s in enumerate("abc"):
+        a = 0.7 * k
+        m = np.eye(4)
+        m[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+        m[:3, 3] = rng.normal(0, 1, 3)
+        mats[s] = m
+    people = rng.uniform(-2, 2, (4, 1, 3)) + rng.normal(0, 0.2, (4, 25, 3))  # stage space
+    offset = {s: np.zeros(3) for s in "abc"}
+    jumps, judged, left_out = 0, 0, 0
+    for f in range(600):
+        people += rng.normal(0, 0.01, (4, 1, 3))
+        if f % 97 == 50:
+            offset["abc"[f % 3]] = rng.normal(0, 0.4, 3)                   # a bump
+        for s in "abc":
+            if f % 40 == 0:
+                trusted = bool(rng.random() < 0.85)
+                fast.trust(s, trusted)
+                slow.trust(s, trusted)
+            users = tuple(u for u in range(4) if rng.random() < 0.9)
+            if not users:
+                continue
+            t = f / 30 + rng.uniform(0, 0.005)
+            m = mats[s]
+            on_stage = people[list(users)] + offset[s] + rng.normal(0, 0.01, (len(users), 25, 3))
+            joints = np.ascontiguousarray((on_stage - m[:3, 3]) @ m[:3, :3])    # sensor space
+            conf = rng.choice([0.0, 0.5, 1.0], (len(users), 25), p=[0.1, 0.1, 0.8])
+            if f % 7 == 3:
+                conf[0, torso] = 0.5                     # tracks no torso joint: left out
+                left_out += 1
+            got = fast.check_frames(s, users, t, joints, conf, m)
+            tracked = conf[:, torso] >= 1.0
+            seen = np.flatnonzero(tracked.any(axis=1))
+            placed = joints[seen][:, torso] @ m[:3, :3].T + m[:3, 3]
+            want = []
+            if len(seen):     # (the calibrator calls the gate only with a view to judge)
+                with jit.disabled():
+                    want = slow.check_many(s, [users[k] for k in seen], t, placed,
+                                           tracked[seen])
+            want = [(int(seen[r]), w) for r, w in enumerate(want) if w is not None]
+            judged += len(seen)
+            assert [r for r, _ in got] == [r for r, _ in want]
+            for (_, g), (_, w) in zip(got, want):
+                jumps += 1
+                assert g[0] == w[0] and g[1] == pytest.approx(w[1], rel=1e-9)
+        if f % 10 == 9:
+            assert fast.apart.keys() == slow.apart.keys()
+            for s in fast.apart:
+                assert fast.apart[s] == pytest.approx(slow.apart[s], rel=1e-9)
+            fast.apart.clear()
+            slow.apart.clear()
+    n = len(fast._index)
+    assert n == len(slow._index)
+    for name in ("_t", "_x", "_v", "_links"):
+        np.testing.assert_allclose(getattr(fast, name)[:n], getattr(slow, name)[:n], rtol=1e-9,
+                                   atol=1e-9, err_msg=name)
+    np.testing.assert_array_equal(fast._m[:n], slow._m[:n])
+    assert jumps > 5 and left_out > 50 and judged > 5000
+
+
 def test_no_numba_is_one_line_and_the_numpy_engine():
     """A machine where numba will not import: building an engine logs one line and the
     engine fuses with the numpy code."""

@@ -15,6 +15,7 @@ import logging
 
 import numpy as np
 
+from ..engine import jit
 from ..frames import SensorFrame
 from ..joints import TORSO
 from .livestate import LiveEvent, SensorState
@@ -54,7 +55,27 @@ class FrameChecks:
         if len(group) == 1:
             self._check_jump(*group[0])
             return
-        st = group[0][1]
+        first, st = group[0]
+        # the usual datagram: every skeleton of it, as decoded (rows of its own two arrays,
+        # in order: the engine applies a datagram's skeletons in the order they came): judged
+        # in one compiled call, without stacking what the decoder had stacked already
+        joints, conf, m = first.joints.base, first.conf.base, first.transform
+        if (joints is not None and conf is not None and len(joints) == len(group) == len(conf)
+                and jit.ready()
+                and all(f.joints.base is joints and f.conf.base is conf and f.transform is m
+                        for f, _ in group)):
+            t = first.t - st.lag_s  # on stage time
+            try:
+                jumps = self._gate.check_frames(st.sensor, tuple(f.user for f, _ in group), t,
+                                                joints, conf, m)
+            except TypeError:   # arrays the kernel does not take (not C-ordered float64)
+                pass
+            else:
+                for r, jumped in jumps:
+                    if st.state != "ok":
+                        break  # left out by an earlier view of this datagram
+                    self._jumped(st, group[r][0].user, t, jumped)
+                return
         frames = [f for f, _ in group if f.transform is not None]
         if not frames:
             return

@@ -26,6 +26,7 @@ from ..engine import jit
 from ..joints import TORSO
 
 INF = float("inf")
+_TORSO = np.array(TORSO, dtype=np.int64)
 
 
 class JumpGate:
@@ -41,6 +42,9 @@ class JumpGate:
         #: (the nearest one's distance, m) in any check since ``apart.clear()``: the live
         #: calibrator judges larger chunks only while nobody drifted apart (see ``_note_apart``)
         self.apart: dict[str, float] = {}
+        #: (sensor, users) -> their rows, for ``check_frames`` (a row never changes)
+        self._rows: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
+        self._scratch: tuple = ()
         self._alloc(capacity)
 
     def _alloc(self, capacity: int) -> None:
@@ -209,6 +213,55 @@ class JumpGate:
             names = {k: s for s, k in self._sensors.items()}
             out[r] = (sorted({names[k] for k in self._owner[:n][jumped[r]]}), float(dmax[r]))
         return out
+
+    def check_frames(self, sensor: str, users: tuple[int, ...], t: float, joints: np.ndarray,
+                     conf: np.ndarray, matrix: np.ndarray,
+                     ) -> list[tuple[int, tuple[list[str], float]]]:
+        """``check_many`` of one datagram's skeletons as decoded, in one compiled call
+        (only while ``jit.ready()``): joints (k, J, 3) and conf (k, J) C-contiguous
+        float64 in the sensor's space, ``matrix`` (4, 4) its sensor -> stage transform,
+        ``users`` their (distinct) user ids. The torso joints the sensor tracks (conf >= 1)
+        are placed on stage and judged; a skeleton that tracks none of them is not
+        recorded. Returns (index in ``users``, result) for each view that jumped, in order
+        (``check``'s result); most datagrams: none.
+
+        The same records, links and ``apart`` as the calibrator's numpy preparation
+        followed by ``check_many`` (tests/test_jit.py); without its five array copies and
+        its Python steps per skeleton (issue 10, stop 48: 106 us of a paced 6 x 6
+        datagram's 45 us gate)."""
+        key = (sensor, users)
+        rows = self._rows.get(key)
+        if rows is None:
+            if len(self._rows) > 256:      # arbitrary user ids must not grow it for good
+                self._rows.clear()
+            rows = self._rows[key] = np.array([self._row(sensor, u) for u in users],
+                                              dtype=np.int64)
+        k, cap = len(users), len(self._t)
+        scratch = self._scratch
+        if not scratch or len(scratch[2]) < k or scratch[4].shape[1] != cap:
+            rows_k = max(k, 16)
+            scratch = self._scratch = (
+                np.empty((rows_k, self.points, 3)), np.empty((rows_k, self.points), bool),
+                np.empty(rows_k, np.int64), np.empty((rows_k, cap), bool),
+                np.empty((rows_k, cap)), np.empty((rows_k, cap), bool), np.empty(rows_k),
+                np.empty(3))
+        n = len(self._index)
+        jit.gate_frames(rows, t, joints, conf, _TORSO, matrix, scratch, self._t, self._x,
+                        self._m, self._v, self._owner, self._trusted, self._links,
+                        self._sensors[sensor], n, self.min_joints, self.agree_m, self.gate_m,
+                        self.link_s)
+        found = scratch[7]
+        closest = found[2]
+        if closest < self.same_m and closest > self.apart.get(sensor, 0.0):
+            self.apart[sensor] = float(closest)
+        if not found[1]:
+            return []
+        keep, jumped, dmax = scratch[2], scratch[5], scratch[6]
+        names = {i: s for s, i in self._sensors.items()}
+        owner = self._owner[:n]
+        return [(int(keep[r]), (sorted({names[i] for i in owner[jumped[r, :n]]}),
+                                float(dmax[r])))
+                for r in range(int(found[0])) if dmax[r] >= 0.0]
 
     def check_many(self, sensor: str, users: list[int], t: float, points: np.ndarray,
                    tracked: np.ndarray) -> list[tuple[list[str], float] | None]:

@@ -292,16 +292,22 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             drained = True
             with self._lock:
                 group: list[tuple[SensorFrame, SensorState]] = []  # one datagram's, to judge
+                users: set[int] = set()         # ... their users, its sensor and time
+                sensor, t = None, None
+                pop, keep = self._inbox.popleft, self._keep
                 for _ in range(min(DRAIN_CHUNK, len(self._inbox))):
-                    entry = self._inbox.popleft()
+                    entry = pop()
                     frame = entry[0]
-                    if group and (frame.t != group[0][0].t or frame.sensor != group[0][0].sensor
-                                  or any(f.user == frame.user for f, _ in group)):
+                    if group and (frame.t != t or frame.sensor != sensor or frame.user in users):
                         self._check_jumps(group)
                         group = []
-                    st = self._keep(*entry)
+                        users = set()
+                    st = keep(*entry)
                     if st is not None:
+                        if not group:
+                            sensor, t = frame.sensor, frame.t
                         group.append((frame, st))
+                        users.add(frame.user)
                 if group:
                     self._check_jumps(group)
         if drained:
@@ -336,7 +342,8 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._tracks_seen[key] = track
             self._gate.forget(frame.sensor, frame.user)
             self._runs[key] = self._runs.get(key, 0) + 1
-        self._latest = max(self._latest, frame.t)
+        if frame.t > self._latest:
+            self._latest = frame.t
         if s.identical_frames > 0:
             pair = self._copies.check(frame.sensor, frame.t, frame.joints, frame.conf)
             if pair is not None:

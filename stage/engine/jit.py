@@ -776,6 +776,57 @@ def _gate(rows, t, points, tracked, T, X, Mk, V, owner, trusted, links, own, n, 
                     dmax[r] = d[r, j]
 
 
+def _gate_frames(rows, t, joints, conf, torso, matrix, points, tracked, keep, T, X, Mk, V,
+                 owner, trusted, links, own, n, min_joints, agree_m, gate_m, link_s, valid, d,
+                 jumped, dmax, found):  # pragma: no cover (compiled)
+    """``_gate`` of one datagram's k skeletons as the engine decoded them: joints (k, J, 3)
+    and conf (k, J) in the sensor's space, ``matrix`` its sensor -> stage transform. Each
+    skeleton's ``torso`` joints that the sensor tracks (conf >= 1) are placed on stage into
+    ``points`` and ``tracked`` (scratch, at least (k, P, 3) and (k, P)); a skeleton that
+    tracks none of them is left out, as ``calibration.checks`` leaves it out: ``keep``
+    gets the skeletons judged, in order, and ``_gate`` judges them (its outputs are rows
+    0 .. judged - 1 of valid, d, jumped, dmax). Writes found[0] the number judged,
+    found[1] how many jumped, found[2] the closest any judged view came to a view it
+    was compared with (inf: none compared)."""
+    k = joints.shape[0]
+    p = torso.shape[0]
+    judged = 0
+    for r in range(k):
+        seen = False
+        for q in range(p):
+            c = conf[r, torso[q]] >= 1.0
+            tracked[judged, q] = c
+            seen = seen or c
+        if not seen:
+            continue
+        for q in range(p):
+            x = joints[r, torso[q], 0]
+            y = joints[r, torso[q], 1]
+            z = joints[r, torso[q], 2]
+            for a in range(3):
+                points[judged, q, a] = (matrix[a, 0] * x + matrix[a, 1] * y + matrix[a, 2] * z
+                                        + matrix[a, 3])
+        keep[judged] = r
+        judged += 1
+    found[0] = judged
+    found[1] = 0
+    closest = np.inf
+    if judged > 0:
+        krows = np.empty(judged, dtype=np.int64)
+        for r in range(judged):
+            krows[r] = rows[keep[r]]
+        _gate(krows, t, points[:judged], tracked[:judged], T, X, Mk, V, owner, trusted, links,
+              own, n, min_joints, agree_m, gate_m, link_s, valid[:judged], d[:judged],
+              jumped[:judged], dmax[:judged])
+        for r in range(judged):
+            if dmax[r] >= 0.0:
+                found[1] += 1
+            for j in range(n):
+                if d[r, j] < closest:
+                    closest = d[r, j]
+    found[2] = closest
+
+
 #: "/jointCoordinates" padded (a constant of ``_view_joints``: iterating a str there made
 #: numba compile its unicode support, a second more of compilation)
 _JC_ADDRESS = np.frombuffer(b"/jointCoordinates\0\0\0", dtype=np.uint8).copy()
@@ -1357,6 +1408,12 @@ _SIGNATURES = {
              "float64[:, :, ::1], boolean[:, ::1], float64[:, ::1], int64[::1], boolean[::1], "
              "float64[:, ::1], int64, int64, int64, float64, float64, float64, boolean[:, ::1], "
              "float64[:, ::1], boolean[:, ::1], float64[::1])",
+    "_gate_frames": "void(int64[::1], float64, float64[:, :, ::1], float64[:, ::1], int64[::1], "
+                    "float64[:, ::1], float64[:, :, ::1], boolean[:, ::1], int64[::1], "
+                    "float64[::1], float64[:, :, ::1], boolean[:, ::1], float64[:, ::1], "
+                    "int64[::1], boolean[::1], float64[:, ::1], int64, int64, int64, float64, "
+                    "float64, float64, boolean[:, ::1], float64[:, ::1], boolean[:, ::1], "
+                    "float64[::1], float64[::1])",
     "_view_joints": "int64(int64, float64[:, ::1], float64[::1], uint8[::1], int64[::1], "
                     "uint8[::1])",
 }
@@ -1406,7 +1463,7 @@ _HAND_SIGNATURES = {
 #: kernel on the engine's or the receiver's path (a few microseconds each, several per
 #: skeleton) that let it go would hand it to the calibrator at every call and wait, on
 #: its way out, for the calibrator to give it back (up to the 5 ms switch interval).
-_NOGIL = frozenset({"_gate"})
+_NOGIL = frozenset({"_gate", "_gate_frames"})
 _compiled: dict = {}
 #: the kernels as Python functions (what numba compiles)
 _PYTHON = {name: globals()[name] for name in _SIGNATURES}
@@ -1732,6 +1789,22 @@ def gate(rows: np.ndarray, t: float, points: np.ndarray, tracked: np.ndarray, T:
                        links, int(own), int(n), int(min_joints), float(agree_m), float(gate_m),
                        float(link_s), valid, d, jumped, dmax)
     return jumped, dmax, d
+
+
+def gate_frames(rows: np.ndarray, t: float, joints: np.ndarray, conf: np.ndarray,
+                torso: np.ndarray, matrix: np.ndarray, scratch: tuple, T: np.ndarray,
+                X: np.ndarray, Mk: np.ndarray, V: np.ndarray, owner: np.ndarray,
+                trusted: np.ndarray, links: np.ndarray, own: int, n: int, min_joints: int,
+                agree_m: float, gate_m: float, link_s: float) -> None:
+    """The compiled ``_gate_frames``: one datagram's skeletons (joints (k, J, 3), conf (k,
+    J), C-contiguous float64) judged by the gate without the GIL; ``scratch`` (points,
+    tracked, keep, valid, d, jumped, dmax, found) holds what it writes, each at least k
+    rows (n columns), found (3,) float64 (see ``_gate_frames``)."""
+    points, tracked, keep, valid, d, jumped, dmax, found = scratch
+    _compiled["_gate_frames"](rows, float(t), joints, conf, torso, matrix, points, tracked,
+                              keep, T, X, Mk, V, owner, trusted, links, int(own), int(n),
+                              int(min_joints), float(agree_m), float(gate_m), float(link_s),
+                              valid, d, jumped, dmax, found)
 
 
 def carry(joints: np.ndarray, reported: np.ndarray, tracked: np.ndarray, offsets: np.ndarray,
