@@ -504,6 +504,19 @@ def test_a_scanner_that_cannot_cache_is_compiled_without_a_cache(monkeypatch, ca
 
 
 @needs_jit
+def _gate_rig(rng, people, frames=600):
+    """The jump gate tests' show: ``people`` (4, J, 3) wander, a sensor of "abc" is bumped
+    every 97 frames and sensors are trusted anew every 40; yields (frame, sensor, its
+    offset now, its new trust or None) for each sensor's turn at each frame."""
+    offset = {s: np.zeros(3) for s in "abc"}
+    for f in range(frames):
+        people += rng.normal(0, 0.01, (4, 1, 3))
+        if f % 97 == 50:
+            offset["abc"[f % 3]] = rng.normal(0, 0.4, 3)                   # a bump
+        for s in "abc":
+            yield f, s, offset[s], (bool(rng.random() < 0.85) if f % 40 == 0 else None)
+
+
 def test_jump_gate_kernel_is_the_numpy_gate():
     """Two gates fed the same three sensors' views of four people for 20 s, in datagrams
     and one view at a time, while the sensors are trusted and untrusted and one is bumped
@@ -512,44 +525,41 @@ def test_jump_gate_kernel_is_the_numpy_gate():
     rng = np.random.default_rng(8)
     gates = [JumpGate(), JumpGate()]
     people = rng.uniform(-2, 2, (4, 1, 3)) + rng.normal(0, 0.15, (4, 5, 3))   # torso points
-    offset = {s: np.zeros(3) for s in "abc"}
     jumps, drifted = 0, []
-    for f in range(600):
-        people += rng.normal(0, 0.01, (4, 1, 3))
-        if f % 97 == 50:
-            offset["abc"[f % 3]] = rng.normal(0, 0.4, 3)          # a bump
-        for s in "abc":
-            if f % 40 == 0:
-                trusted = bool(rng.random() < 0.85)
-                for g in gates:
-                    g.trust(s, trusted)
-            users = [u for u in range(4) if rng.random() < 0.9]
-            if not users:
-                continue
-            t = f / 30 + rng.uniform(0, 0.005)
-            points = people[users] + offset[s] + rng.normal(0, 0.01, (len(users), 5, 3))
-            tracked = rng.random((len(users), 5)) < 0.8
-            results = []
-            for compiled, g in zip((True, False), gates):
-                with (contextlib.nullcontext() if compiled else jit.disabled()):
-                    if f % 2:
-                        results.append(g.check_many(s, users, t, points, tracked))
-                    else:
-                        results.append([g.check(s, u, t, points[k], tracked[k])
-                                        for k, u in enumerate(users)])
-            for got, want in zip(*results):
-                assert (got is None) == (want is None)
-                if want is not None:
-                    jumps += 1
-                    assert got[0] == want[0] and got[1] == pytest.approx(want[1], rel=1e-9)
-        if f % 10 == 9:  # how far each sensor's views drifted from the others, chunk by chunk
+    for f, s, offset, trusted in _gate_rig(rng, people):
+        if s == "a" and f and f % 10 == 0:
+            # how far each sensor's views drifted from the others, chunk by chunk (the
+            # chunk of frames f - 10 .. f - 1)
             a, b = gates
             assert a.apart.keys() == b.apart.keys()
-            for s in a.apart:
-                assert a.apart[s] == pytest.approx(b.apart[s], rel=1e-9)
+            for sensor in a.apart:
+                assert a.apart[sensor] == pytest.approx(b.apart[sensor], rel=1e-9)
             drifted.append(max(a.apart.values(), default=0.0) > 0.1)
             a.apart.clear()
             b.apart.clear()
+        if trusted is not None:
+            for g in gates:
+                g.trust(s, trusted)
+        users = [u for u in range(4) if rng.random() < 0.9]
+        if not users:
+            continue
+        t = f / 30 + rng.uniform(0, 0.005)
+        points = people[users] + offset + rng.normal(0, 0.01, (len(users), 5, 3))
+        tracked = rng.random((len(users), 5)) < 0.8
+        results = []
+        for compiled, g in zip((True, False), gates):
+            with (contextlib.nullcontext() if compiled else jit.disabled()):
+                if f % 2:
+                    results.append(g.check_many(s, users, t, points, tracked))
+                else:
+                    results.append([g.check(s, u, t, points[k], tracked[k])
+                                    for k, u in enumerate(users)])
+        for got, want in zip(*results):
+            assert (got is None) == (want is None)
+            if want is not None:
+                jumps += 1
+                assert got[0] == want[0] and got[1] == pytest.approx(want[1], rel=1e-9)
+
     a, b = gates
     n = len(a._index)
     for name in ("_t", "_x", "_v", "_links"):
@@ -581,49 +591,43 @@ def test_jump_gate_of_a_datagram_is_the_gate_of_its_placed_views():
         m[:3, 3] = rng.normal(0, 1, 3)
         mats[s] = m
     people = rng.uniform(-2, 2, (4, 1, 3)) + rng.normal(0, 0.2, (4, 25, 3))  # stage space
-    offset = {s: np.zeros(3) for s in "abc"}
     jumps, judged, left_out = 0, 0, 0
-    for f in range(600):
-        people += rng.normal(0, 0.01, (4, 1, 3))
-        if f % 97 == 50:
-            offset["abc"[f % 3]] = rng.normal(0, 0.4, 3)                   # a bump
-        for s in "abc":
-            if f % 40 == 0:
-                trusted = bool(rng.random() < 0.85)
-                fast.trust(s, trusted)
-                slow.trust(s, trusted)
-            users = tuple(u for u in range(4) if rng.random() < 0.9)
-            if not users:
-                continue
-            t = f / 30 + rng.uniform(0, 0.005)
-            m = mats[s]
-            on_stage = people[list(users)] + offset[s] + rng.normal(0, 0.01, (len(users), 25, 3))
-            joints = np.ascontiguousarray((on_stage - m[:3, 3]) @ m[:3, :3])    # sensor space
-            conf = rng.choice([0.0, 0.5, 1.0], (len(users), 25), p=[0.1, 0.1, 0.8])
-            if f % 7 == 3:
-                conf[0, torso] = 0.5                     # tracks no torso joint: left out
-                left_out += 1
-            got = fast.check_frames(s, users, t, joints, conf, m)
-            tracked = conf[:, torso] >= 1.0
-            seen = np.flatnonzero(tracked.any(axis=1))
-            placed = joints[seen][:, torso] @ m[:3, :3].T + m[:3, 3]
-            want = []
-            if len(seen):     # (the calibrator calls the gate only with a view to judge)
-                with jit.disabled():
-                    want = slow.check_many(s, [users[k] for k in seen], t, placed,
-                                           tracked[seen])
-            want = [(int(seen[r]), w) for r, w in enumerate(want) if w is not None]
-            judged += len(seen)
-            assert [r for r, _ in got] == [r for r, _ in want]
-            for (_, g), (_, w) in zip(got, want):
-                jumps += 1
-                assert g[0] == w[0] and g[1] == pytest.approx(w[1], rel=1e-9)
-        if f % 10 == 9:
+    for f, s, offset, trusted in _gate_rig(rng, people):
+        if s == "a" and f and f % 10 == 0:      # the chunk of frames f - 10 .. f - 1
             assert fast.apart.keys() == slow.apart.keys()
-            for s in fast.apart:
-                assert fast.apart[s] == pytest.approx(slow.apart[s], rel=1e-9)
+            for sensor in fast.apart:
+                assert fast.apart[sensor] == pytest.approx(slow.apart[sensor], rel=1e-9)
             fast.apart.clear()
             slow.apart.clear()
+        if trusted is not None:
+            fast.trust(s, trusted)
+            slow.trust(s, trusted)
+        users = tuple(u for u in range(4) if rng.random() < 0.9)
+        if not users:
+            continue
+        t = f / 30 + rng.uniform(0, 0.005)
+        m = mats[s]
+        on_stage = people[list(users)] + offset + rng.normal(0, 0.01, (len(users), 25, 3))
+        joints = np.ascontiguousarray((on_stage - m[:3, 3]) @ m[:3, :3])    # sensor space
+        conf = rng.choice([0.0, 0.5, 1.0], (len(users), 25), p=[0.1, 0.1, 0.8])
+        if f % 7 == 3:
+            conf[0, torso] = 0.5                     # tracks no torso joint: left out
+            left_out += 1
+        got = fast.check_frames(s, users, t, joints, conf, m)
+        tracked = conf[:, torso] >= 1.0
+        seen = np.flatnonzero(tracked.any(axis=1))
+        placed = joints[seen][:, torso] @ m[:3, :3].T + m[:3, 3]
+        want = []
+        if len(seen):     # (the calibrator calls the gate only with a view to judge)
+            with jit.disabled():
+                want = slow.check_many(s, [users[k] for k in seen], t, placed,
+                                       tracked[seen])
+        want = [(int(seen[r]), w) for r, w in enumerate(want) if w is not None]
+        judged += len(seen)
+        assert [r for r, _ in got] == [r for r, _ in want]
+        for (_, g), (_, w) in zip(got, want):
+            jumps += 1
+            assert g[0] == w[0] and g[1] == pytest.approx(w[1], rel=1e-9)
     n = len(fast._index)
     assert n == len(slow._index)
     for name in ("_t", "_x", "_v", "_links"):
