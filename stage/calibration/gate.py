@@ -136,6 +136,12 @@ class JumpGate:
                 / np.maximum(count, 1)[..., None] + self._v[:n] * dt[:, None])  # (k, n, 3)
         return valid, np.sqrt(np.einsum("kij,kij->ki", mean, mean))
 
+    def _away_from(self, jumped: np.ndarray) -> list[str]:
+        """The sensors (sorted names) owning the views marked in ``jumped`` (the first
+        ``len(jumped)`` rows): those a view jumped away from."""
+        names = {k: s for s, k in self._sensors.items()}
+        return sorted({names[k] for k in self._owner[:len(jumped)][jumped]})
+
     def _note_apart(self, sensor: str, d: np.ndarray) -> None:
         """One check of ``sensor``'s views at one instant, ``d`` their distances to the views
         compared with (inf where not compared): how close the closest two came. A bumped
@@ -197,8 +203,7 @@ class JumpGate:
         jumped = valid & (d >= self.gate_m) & (t - self._links[i, :n] <= self.link_s)
         if not jumped.any():
             return None
-        names = {k: s for s, k in self._sensors.items()}
-        return sorted({names[k] for k in owner[jumped]}), float(d[jumped].max())
+        return self._away_from(jumped), float(d[jumped].max())
 
     def _check_compiled(self, sensor: str, rows: np.ndarray, t: float, points: np.ndarray,
                         tracked: np.ndarray) -> list[tuple[list[str], float] | None]:
@@ -210,8 +215,7 @@ class JumpGate:
         self._note_apart(sensor, d)
         out: list[tuple[list[str], float] | None] = [None] * len(rows)
         for r in np.flatnonzero(dmax >= 0.0):
-            names = {k: s for s, k in self._sensors.items()}
-            out[r] = (sorted({names[k] for k in self._owner[:n][jumped[r]]}), float(dmax[r]))
+            out[r] = (self._away_from(jumped[r]), float(dmax[r]))
         return out
 
     def check_frames(self, sensor: str, users: tuple[int, ...], t: float, joints: np.ndarray,
@@ -257,10 +261,7 @@ class JumpGate:
         if not found[1]:
             return []
         keep, jumped, dmax = scratch[2], scratch[5], scratch[6]
-        names = {i: s for s, i in self._sensors.items()}
-        owner = self._owner[:n]
-        return [(int(keep[r]), (sorted({names[i] for i in owner[jumped[r, :n]]}),
-                                float(dmax[r])))
+        return [(int(keep[r]), (self._away_from(jumped[r, :n]), float(dmax[r])))
                 for r in range(int(found[0])) if dmax[r] >= 0.0]
 
     def check_many(self, sensor: str, users: list[int], t: float, points: np.ndarray,
@@ -290,16 +291,12 @@ class JumpGate:
         agreed = agree.any(axis=1)
         jumped = (valid & (d >= self.gate_m) & ~agreed[:, None]
                   & (t - self._links[rows_a, :n] <= self.link_s))
-        names = None
-        owner = self._owner[:n]
         for r, i in enumerate(rows):
             if agreed[r]:
                 self._links[i, :n][agree[r]] = t
                 self._links[:n, i][agree[r]] = t
             elif jumped[r].any():
-                names = names or {k: s for s, k in self._sensors.items()}
-                out[r] = (sorted({names[k] for k in owner[jumped[r]]}),
-                          float(d[r][jumped[r]].max()))
+                out[r] = (self._away_from(jumped[r]), float(d[r][jumped[r]].max()))
         return out
 
 
