@@ -68,6 +68,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 # the server subprocesses import the snapshot of stage/ taken when the run started
@@ -490,6 +491,18 @@ class Options:
                                          # (rows "python"); None: the rig's default
 
 
+def save_lean(rig: Rig, path: str) -> None:
+    """Write ``rig`` with only the settings that differ from their defaults, so that a
+    ``--tree`` from before a setting was added reads the file too (``Rig.save`` writes
+    every setting, and a rig key a tree does not know is refused)."""
+    data, default = rig.to_dict(), Rig().to_dict()
+    for section in ("clients", "limits", "alerts", "fusion", "smoothing", "forecast"):
+        data[section] = {k: v for k, v in data[section].items()
+                         if k not in default[section] or default[section][k] != v}
+    with open(path, "w", encoding="utf-8") as f:
+        yaml.safe_dump(data, f, sort_keys=False)
+
+
 def run_config(sensors: int, people: int, opt: Options) -> dict:
     scene = Scene.make(people, seed=10 * people)
     loads = [SensorLoad(sid, p, scene, seed=1000 * sensors + 10 * people + k,
@@ -505,7 +518,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
         rig.fusion = dataclasses.replace(rig.fusion, native=opt.native)
     if not opt.kinect_errors:      # (the model's own errors are the point there)
         check_scene(loads, rig)
-    rig.save(rig_path)
+    save_lean(rig, rig_path)
     log_path = os.path.join(tmp.name, "server.log")
     fingerprint = source_fingerprint(opt.src)
     trace_prefix = None
