@@ -22,8 +22,23 @@ Figures, per hand over the whole run:
 - reference, the same stream in the same run: the engine's voters' very inputs
   replayed through the hold alone (issue 10's rule, without rule 6 of
   docs/osc-api.md: ``hold only``), the per-frame majority vote the engine used
-  before (each sensor's latest state, a tie to the higher code, no hold), and
-  each single sensor's raw stream.
+  before (each sensor's latest state, a tie to the higher code, no hold),
+  each single sensor's raw stream, and the textbook change detector on the very
+  reports: a CUSUM per hand and state over the misread model's log-likelihood
+  ratio (``cusum h=N``, below), at thresholds 3 to 6.
+
+The CUSUM reference. With a misread probability of 0.2, a wrong report one of the
+two other states, a report of state s is 0.8/0.1 = 8 times likelier when the hand is
+in s than when it is in the reported state c, a report of c 8 times less likely, a
+report of the third state or of ``unknown`` equally likely: each report adds +1, -1
+or 0 (in units of log 8) to the log-likelihood ratio of "the hand changed to s",
+and Page's CUSUM -- the running sum minus its lowest value, a change reported when
+it reaches h -- is the detector with the smallest worst-case delay for its false
+alarm rate when reports are independent (Lorden 1971, Moustakides 1986). It knows the
+misread rate, which the engine does not; it starts from the first known report, as the
+engine does. Its rows draw the front of false changes against delay that the same
+reports allow: a row with fewer false changes and shorter delays than every
+threshold is beyond that front.
 
 Targets (issue 10): fewer than 2 false fused changes per minute; a true change
 reported within 150 ms (of the first datagram that shows it).
@@ -261,8 +276,11 @@ def run(seed: int, duration: float, fusion: dict | None = None) -> dict:
             single_last[(sensor, hand)] = state
     old = judge(old_changes, truth, first_seen, minutes)
     singles = {sid: judge(ch, truth, first_seen, minutes) for sid, ch in sorted(single.items())}
+    sequential = {str(h): judge(cusum(reports, h), truth, first_seen, minutes)
+                  for h in CUSUM_THRESHOLDS}
     return {"seed": seed, "duration_s": duration, "engine_cpu_s": cpu, "fused": fused,
-            "hold_only": hold_only, "old_majority": old, "single_sensor": singles}
+            "hold_only": hold_only, "old_majority": old, "single_sensor": singles,
+            "cusum": sequential}
 
 
 def replay(calls: list[tuple], fusion, evidence: bool) -> list[tuple[float, int, int]]:
@@ -280,6 +298,38 @@ def replay(calls: list[tuple], fusion, evidence: bool) -> list[tuple[float, int,
         else:
             for hand in voter.update(args[0]):
                 changes.append((args[1], hand, int(voter.reported[hand])))
+    return changes
+
+
+#: the CUSUM reference's thresholds, in units of log 8 (module docstring)
+CUSUM_THRESHOLDS = (3, 4, 5, 6)
+
+
+def cusum(reports: list[tuple[float, str, int, int]], threshold: float
+          ) -> list[tuple[float, int, int]]:
+    """The CUSUM reference's /handState changes (module docstring) on ``reports``
+    (arrival, sensor, hand, state, in arrival order)."""
+    known = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
+    current: list[int | None] = [None, None]
+    score = [dict.fromkeys(known, 0.0), dict.fromkeys(known, 0.0)]
+    changes = []
+    for arrival, _, hand, state in reports:
+        if state not in known:
+            continue                            # unknown, notTracked: no evidence
+        now = current[hand]
+        if now is None:
+            current[hand] = state               # the first known state goes at once
+            continue
+        sums = score[hand]
+        for c in known:
+            if c != now:
+                step = 1.0 if state == c else -1.0 if state == now else 0.0
+                sums[c] = max(0.0, sums[c] + step)
+        best = max((c for c in known if c != now), key=lambda c: sums[c])
+        if sums[best] >= threshold:
+            current[hand] = best
+            changes.append((arrival, hand, best))
+            score[hand] = dict.fromkeys(known, 0.0)
     return changes
 
 
@@ -317,6 +367,7 @@ def main(argv: list[str] | None = None) -> int:
         entries = [("fused (shipped)", r["fused"]), ("hold only", r["hold_only"]),
                    ("old majority", r["old_majority"])]
         entries += [(f"sensor {sid}", v) for sid, v in r["single_sensor"].items()]
+        entries += [(f"cusum h={h}", v) for h, v in r["cusum"].items()]
         for label, v in entries:
             d, dt = v["delay_ms"], v["delay_from_truth_ms"]
             delay = (f"{d['p50']:.0f}/{d['p90']:.0f}/{d['max']:.0f}" if d.get("n") else "-")
@@ -334,6 +385,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"true change reported within (worst) {worst_delay:.0f} ms of the first report: "
           f"{'PASS' if worst_delay <= DELAY_TARGET_MS else 'FAIL'} (target {DELAY_TARGET_MS:g} ms); "
           f"{within} of {reported} true changes within it")
+    # the reference's front over all seeds: what the same reports allow (module docstring)
+    for h in CUSUM_THRESHOLDS:
+        h = str(h)
+        false = max(r["cusum"][h]["false_known_per_min"] for r in rows)
+        slowest = max(r["cusum"][h]["delay_ms"].get("max", float("inf")) for r in rows)
+        n_within = sum(r["cusum"][h]["delay_ms"].get("within_target", 0) for r in rows)
+        n = sum(r["cusum"][h]["delay_ms"].get("n", 0) for r in rows)
+        print(f"reference cusum h={h}: false changes per minute (worst seed) {false:.2f}, "
+              f"slowest true change {slowest:.0f} ms, {n_within} of {n} within "
+              f"{DELAY_TARGET_MS:g} ms")
     return 0
 
 

@@ -1,0 +1,56 @@
+"""bench/bench_hands.py's CUSUM reference: the textbook change detector on the reports.
+
+The reference is what the engine's hand voter is judged against, so these tests pin
+its arithmetic on report streams worked out by hand: +1 for the new state, -1 for
+the reported one, 0 for the third state and for unknown, held at 0 from below, a
+change when the sum reaches the threshold.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import bench_hands as bench  # noqa: E402
+
+from stage.joints import HandState  # noqa: E402
+
+O, C, L, U = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO),
+              int(HandState.UNKNOWN))
+
+
+def stream(states: list[int], hand: int = 0, period: float = 0.01) -> list[tuple]:
+    return [(k * period, "kinect-a", hand, s) for k, s in enumerate(states)]
+
+
+def test_the_first_known_state_goes_at_once_and_is_no_change():
+    assert bench.cusum(stream([U, U, C, C]), 3) == []
+
+
+def test_a_change_fires_on_the_report_that_brings_the_sum_to_the_threshold():
+    changes = bench.cusum(stream([O, C, C, O, C, C]), 3)
+    # sums for closed: 1, 2, 1, 2, 3 -> the sixth report (t = 0.05)
+    assert changes == [(0.05, 0, C)]
+
+
+def test_reports_of_the_reported_state_hold_the_sum_at_zero_from_below():
+    # closed: 1, then 0, 0, 0 (held, not -3), then 1, 2 -> no change at threshold 3
+    assert bench.cusum(stream([O, C, O, O, O, C, C]), 3) == []
+    assert bench.cusum(stream([O, C, O, O, O, C, C, C]), 3) == [(0.07, 0, C)]
+
+
+def test_the_third_state_and_unknown_are_no_evidence_either_way():
+    # closed: 1, 1 (lasso), 1 (unknown), 2, 3
+    assert bench.cusum(stream([O, C, L, U, C, C]), 3) == [(0.05, 0, C)]
+
+
+def test_after_a_change_the_sums_start_again_from_the_new_state():
+    changes = bench.cusum(stream([O, C, C, O, O, O]), 2)
+    # closed at t = 0.02; open then counts from 0: 1, 2 -> back to open at t = 0.04
+    assert changes == [(0.02, 0, C), (0.04, 0, O)]
+
+
+def test_hands_are_counted_apart():
+    reports = sorted(stream([O, C, C], hand=0) + stream([O, O, O], hand=1))
+    assert bench.cusum(reports, 2) == [(0.02, 0, C)]
