@@ -98,6 +98,9 @@ class KinectModel:
     occlusion_bias_m: float = 0.04  # hidden joints are pulled this far towards the sensor
     hand_misread_p: float = 0.08    # a visible hand's state reported wrong
     hand_range_m: float = 3.5       # beyond this distance hand states are 'unknown'
+    hand_update_frames: int = 2     # a body's hand states are read every this many frames and
+                                    # repeated in between (NTU RGB+D's Kinect v2 takes: every
+                                    # second frame, so a misread lasts two; docs/sources.md)
     nan_p: float = 0.001            # a skeleton message sent with NaN coordinates (seed 002)
     glitch_p: float = 0.0           # a tracked joint thrown 0.3-1 m off, still 'tracked' (per
                                     # joint per frame; off by default: for robustness tests)
@@ -325,6 +328,17 @@ class UserTrack:
         self.guess = np.zeros((N_JOINTS, 3))             # the offset of each inferred joint
         self.swap_frames = 0                             # frames of limb swap left
         self.swap_joints: np.ndarray | None = None       # which joints trade places
+        self.hand_frames = 0                             # frames reported so far
+        self.hands_read: tuple | None = None             # the hand states last read
+
+    def hands(self, seen: tuple, model: KinectModel) -> tuple:
+        """The hand states this frame reports: ``seen`` (read now) on every
+        ``hand_update_frames``-th frame of the track, the last ones read in between."""
+        every = max(int(model.hand_update_frames), 1)
+        if self.hands_read is None or self.hand_frames % every == 0:
+            self.hands_read = seen
+        self.hand_frames += 1
+        return self.hands_read
 
     def update(self, visible: bool, t: float, model: KinectModel) -> bool:
         """Advance the state machine; True while the sensor reports this body."""

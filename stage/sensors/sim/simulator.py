@@ -281,9 +281,12 @@ class Simulator:
                 if model.mirror_back and faces_away(cam[k]):
                     joints, conf = mirrored(joints, conf)
                     true_hands = (hands[1], hands[0])
-                seen = tuple(sensed_hand(model, run.rng, true_hands[h], float(conf[_HAND[h]]),
-                                         float(np.linalg.norm(cam[k][_HAND[h]])))
-                             for h in (0, 1))
+                # (read every frame, so the random stream does not depend on how often the
+                # sensor updates them; repeated between its updates)
+                seen = track.hands(tuple(sensed_hand(model, run.rng, true_hands[h],
+                                                     float(conf[_HAND[h]]),
+                                                     float(np.linalg.norm(cam[k][_HAND[h]])))
+                                         for h in (0, 1)), model)
                 bodies.append(BodyFrame(performer.name, joints, conf, seen))  # type: ignore[arg-type]
                 if run.rng.random() < model.nan_p:
                     nan_users.add(performer.name)
