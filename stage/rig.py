@@ -33,8 +33,9 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       view_offset_s: 0.25          # a view's steady offset from the others is learned over
                                    # this long and taken off (0: off; stage/engine/offsets.py)
       hand_vote: confidence        # or plain
-      hand_memory_s: 0.03          # a hand report's weight falls by e in this time
+      hand_memory_s: 0.045         # a hand report's weight falls by e in this time
       hand_hold_s: 0.1             # a hand's new state is sent once it has held this long
+      hand_reading_frames: 2       # sensors read hand states every this many frames (Kinect v2: 2)
       rejoin_s: 3.0                # a person lost this recently...
       rejoin_m: 0.75               # ...back this close to where they were lost...
       rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back

@@ -422,9 +422,10 @@ def test_hand_votes_can_be_weighted_by_hand_confidence():
         clock.advance(1 / FPS)
     # the first sensor's "open" is the first known state: reported at once. The two weakly
     # seen opens lose to one confident closed, and that change is reported once it has
-    # held for hand_hold_s (100 ms; issue 10: it used to flip at once, so hands flickered)
+    # held for hand_hold_s (100 ms; issue 10: it used to flip at once, so hands flickered),
+    # counted at the pace of its share of the vote (1 / 1.4: 0.86, so 117 ms)
     assert changes[0] == "open" and changes[-1] == "closed"
-    assert changes.index("closed") == 3       # the frame at 100 ms
+    assert changes.index("closed") == 4       # the frame at 133 ms
     assert engine.persons[1].hands[0] == HandState.CLOSED
 
 
@@ -695,5 +696,7 @@ def test_hand_states_applied_with_their_skeleton_give_what_each_alone_gives(monk
         {c: (v.source, v.last_seen, v.frames) for c, v in b.clients.items()}
     assert {pid: p.hands for pid, p in a.persons.items()} == \
         {pid: p.hands for pid, p in b.persons.items()}
-    assert merged[0] > 1000 and len(out_a.of("/handState")) > 50
+    # (44 hand changes since stop 50's stricter vote, 50-odd before: the paths still differ
+    # in none of them)
+    assert merged[0] > 1000 and len(out_a.of("/handState")) > 30
     assert {"late", "wrong_source", "not_allowed"} <= set().union(*a.drops.snapshot().values())

@@ -52,17 +52,19 @@ def _play(voter, stream) -> list:
     return out
 
 
+@pytest.mark.parametrize("frames", [1, 2])
 @pytest.mark.parametrize("evidence", [True, False])
 @pytest.mark.parametrize("seed", range(6))
-def test_array_voter_reports_what_the_reference_reports(seed, evidence):
-    expected = _play(HandVoter(0.1, 0.1, evidence), _stream(seed))
+def test_array_voter_reports_what_the_reference_reports(seed, evidence, frames):
+    expected = _play(HandVoter(0.1, 0.1, evidence, frames), _stream(seed))
     changes = sum(len(e[0]) for e in expected)
     assert changes > 20          # the stream does change the vote, often
     with jit.disabled():         # the plain functions
-        assert _play(ArrayHandVoter(0.1, 0.1, evidence, slots=2), _stream(seed)) == expected
+        assert _play(ArrayHandVoter(0.1, 0.1, evidence, frames, slots=2),
+                     _stream(seed)) == expected
     if not jit.ready():
         pytest.skip(f"compiled kernels unavailable: {jit.why_not()}")
-    assert _play(ArrayHandVoter(0.1, 0.1, evidence, slots=2), _stream(seed)) == expected
+    assert _play(ArrayHandVoter(0.1, 0.1, evidence, frames, slots=2), _stream(seed)) == expected
 
 
 def test_array_voter_keeps_the_reference_floats():

@@ -38,8 +38,8 @@ F = 20
 (HAS, NEWEST, SHARES, WEIGHT, STATE, SO, SC, SL, NT, PENDING, P_T, P_STATE, P_W, FRESH,
  COUNTED) = 0, 1, 2, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18
 _FORGOTTEN = math.exp(-4.0)
-EVIDENCE_LEAD = 5.0
-EVIDENCE_MARGIN = 3.0
+EVIDENCE_LEAD = 4.0
+EVIDENCE_MARGIN = 2.5
 _OPEN = 2
 
 
@@ -161,13 +161,14 @@ def forget(buf, k):  # pragma: no cover
 
 
 def vote(buf, hand, t, memory):  # pragma: no cover
-    """``HandVoter._vote``'s winner and share, as (code, share)."""
+    """``HandVoter._vote``'s winner and the pace of its hold, as (code, pace)."""
     S = slots_of(buf)
     window = 4.0 * memory
     o = 0.0
     c = 0.0
     lasso = 0.0
     not_tracked = False
+    voters = 0
     n = int(buf[1 + hand])
     for j in range(n):
         b = _slot(S, hand, int(buf[3 + hand * S + j]))
@@ -177,14 +178,24 @@ def vote(buf, hand, t, memory):  # pragma: no cover
         c += buf[b + SC]
         lasso += buf[b + SL]
         not_tracked = not_tracked or buf[b + NT] != 0.0
+        if buf[b + SO] > 0.0 or buf[b + SC] > 0.0 or buf[b + SL] > 0.0:
+            voters += 1
     total = o + c + lasso
     if lasso > 0.0 and lasso >= c and lasso >= o:
-        return 4, lasso / total
+        return 4, pace_of(lasso / total, voters)
     if c > 0.0 and c >= o:
-        return 3, c / total
+        return 3, pace_of(c / total, voters)
     if o > 0.0:
-        return 2, o / total
-    return (1 if not_tracked else 0), 0.5
+        return 2, pace_of(o / total, voters)
+    return (1 if not_tracked else 0), 1.0
+
+
+def pace_of(share, voters):  # pragma: no cover
+    """``hands._pace``."""
+    if voters < 2:
+        return 1.0
+    pace = 4.0 * share - 2.0
+    return 2.0 if pace > 2.0 else pace if pace > 0.0 else 0.0
 
 
 def _before(buf, a, b):  # pragma: no cover
@@ -214,7 +225,7 @@ def _next_fresh(buf, S, hand):  # pragma: no cover
     return first
 
 
-def _evidence(buf, hand, t, hold):  # pragma: no cover
+def _evidence(buf, hand, t, hold, frames):  # pragma: no cover
     """``HandVoter._evidence``: the state the uncounted reports make a clear case for, or
     -1. The reports are taken in order by selection (a few sensors: no sort, nothing
     allocated)."""
@@ -253,7 +264,8 @@ def _evidence(buf, hand, t, hold):  # pragma: no cover
             buf[hb + MARGIN + c] = v if v > 0.0 else 0.0
     best = c2 if buf[hb + LEAD + c2] > buf[hb + LEAD + c1] else c1
     since = buf[hb + SINCE + best]
-    if buf[hb + LEAD + best] >= EVIDENCE_LEAD and buf[hb + MARGIN + best] >= EVIDENCE_MARGIN \
+    if buf[hb + LEAD + best] >= EVIDENCE_LEAD * frames and \
+            buf[hb + MARGIN + best] >= EVIDENCE_MARGIN * frames \
             and since >= 0.0 and t - since >= hold - 1e-9:
         return best
     return -1
@@ -270,7 +282,8 @@ def _report(buf, hb, state):  # pragma: no cover
 
 def update(buf, t, memory, hold, evidence):  # pragma: no cover
     """``HandVoter.update``: bit 0 set if the left hand's reported state changes now, bit 1
-    the right's."""
+    the right's. ``evidence``: 0 for the hold alone, else the frames a reading lasts
+    (``HandVoter.reading_frames``)."""
     S = slots_of(buf)
     last = buf[0]
     dt = 0.0 if math.isnan(last) else max(t - last, 0.0)
@@ -278,8 +291,8 @@ def update(buf, t, memory, hold, evidence):  # pragma: no cover
     changed = 0
     for hand in range(2):
         hb = _hand(S, hand)
-        case = _evidence(buf, hand, t, hold)
-        winner, share = vote(buf, hand, t, memory)
+        case = _evidence(buf, hand, t, hold, evidence if evidence > 0.0 else 1.0)
+        winner, pace = vote(buf, hand, t, memory)
         current = int(buf[hb + REPORTED])
         if winner != current and (current < 0 or current < _OPEN and winner >= _OPEN):
             _report(buf, hb, winner)
@@ -288,8 +301,8 @@ def update(buf, t, memory, hold, evidence):  # pragma: no cover
         cand = int(buf[hb + CAND])
         cand_t = buf[hb + CAND_T]
         if cand >= 0 and cand == winner:
-            # the more sensors agree, the faster its time counts
-            cand_t = cand_t + dt * min(max(2.0 * share, 1.0), 2.0)
+            # its time counts at the pace of its support (hands._pace)
+            cand_t = cand_t + dt * pace
         elif cand >= 0 and cand_t - dt > 0.0:
             cand_t = cand_t - dt                   # a moment lost counts against it
         elif winner == current:
@@ -302,7 +315,7 @@ def update(buf, t, memory, hold, evidence):  # pragma: no cover
         if cand >= 0 and cand_t >= hold - 1e-9:
             _report(buf, hb, cand)
             changed |= 1 << hand
-        elif case >= 0 and evidence:
+        elif case >= 0 and evidence > 0.0:
             _report(buf, hb, case)
             changed |= 1 << hand
     return changed
@@ -325,8 +338,8 @@ def newest(buf):  # pragma: no cover
 _PLAIN = {"add": add, "add_frame": add_frame, "forget": forget, "update": update,
           "vote": vote, "newest": newest}
 _K = dict(_PLAIN)
-HELPERS = ("size", "slots_of", "_hand", "_slot", "add", "vote", "_before", "_next_fresh",
-           "_evidence", "_report")
+HELPERS = ("size", "slots_of", "_hand", "_slot", "add", "vote", "pace_of", "_before",
+           "_next_fresh", "_evidence", "_report")
 
 
 def compiled() -> bool:
@@ -344,11 +357,12 @@ def use_kernels(kernels: dict | None) -> None:
 class ArrayHandVoter:
     """``hands.HandVoter``'s interface on the array (engine thread only)."""
 
-    __slots__ = ("memory_s", "hold_s", "evidence", "buf", "slots")
+    __slots__ = ("memory_s", "hold_s", "evidence", "reading_frames", "buf", "slots")
 
     def __init__(self, memory_s: float, hold_s: float, evidence: bool = True,
-                 slots: int = 4) -> None:
+                 reading_frames: int = 1, slots: int = 4) -> None:
         self.memory_s, self.hold_s, self.evidence = memory_s, hold_s, evidence
+        self.reading_frames = reading_frames
         self.buf = new(slots)
         self.slots: dict[tuple[str, int], int] = {}
 
@@ -383,7 +397,8 @@ class ArrayHandVoter:
         return HandState(_K["vote"](self.buf, hand, t, self.memory_s)[0])
 
     def update(self, t: float) -> list[int]:
-        mask = _K["update"](self.buf, t, self.memory_s, self.hold_s, self.evidence)
+        mask = _K["update"](self.buf, t, self.memory_s, self.hold_s,
+                            float(self.reading_frames) if self.evidence else 0.0)
         return [] if not mask else [0] if mask == 1 else [1] if mask == 2 else [0, 1]
 
     @property

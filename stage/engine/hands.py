@@ -23,11 +23,16 @@ The vote for a hand at time t:
 4. with no known state: ``notTracked`` if any sensor said so, else ``unknown``.
 
 A change of the vote is reported only after the new state has won the vote
-for ``hand_hold_s`` (100 ms by default) -- in all, and counted faster the more
-of the vote it has (twice as fast when every sensor agrees, at its own pace
-with half of it): a moment in which it loses counts against it rather than
-starting the count again, so one misread sensor frame during the hold delays
-the change by that moment only. A wrong state needs most sensors to misread
+for ``hand_hold_s`` (100 ms by default) -- in all, counted at the pace of its
+support (``_pace``: with two or more sensors voting for known states, twice as
+fast when all agree, as fast with three quarters of the votes, not at all with
+half; a lone sensor as fast): a moment in which it loses counts against it
+rather than starting the count again, so one misread sensor frame during the
+hold delays the change by that moment only. (Until stop 50 the pace was twice
+as fast when all agree and as fast with half or less, so a lone sensor always
+went at double pace and two sensors of three misreading alike at 1.33: with
+sensors that repeat each reading over two frames, as a Kinect v2 does, that
+sent 7.5-10 false changes a minute in bench/bench_hands.py.) A wrong state needs most sensors to misread
 it alike, together, for that long. A hand
 whose reported state is not a known state (a new person, a hand that was not
 seen) takes its first known state at once -- there is nothing to flicker from.
@@ -38,9 +43,13 @@ hand and state, counting every sensor report once, in capture order, weighted by
 vote weight,
 
 - ``lead``: +1 when it says the state, -1 when it says the reported state, never
-  below 0, must reach ``EVIDENCE_LEAD`` (5);
+  below 0, must reach ``EVIDENCE_LEAD`` (4) readings;
 - ``margin``: +1 when it says the state, -1 when it says any other known state, never
-  below 0, must reach ``EVIDENCE_MARGIN`` (3);
+  below 0, must reach ``EVIDENCE_MARGIN`` (2.5) readings;
+- a report is 1 / ``reading_frames`` of a reading (``fusion.hand_reading_frames``, 2 by
+  default): a Kinect v2 reads hand states every second frame and repeats them (the NTU
+  RGB+D samples, docs/sources.md), and a misread counted twice made a case twice as fast
+  (until stop 50 the thresholds were 5 and 3 reports, whatever the sensor);
 - and the lead's run must have begun ``hand_hold_s`` or more ago: at the first report for
   the state after the lead last had to be held at 0 (a report against it when it was
   already 0). A lead that falls back to exactly 0 and rises again keeps its beginning:
@@ -69,14 +78,26 @@ from ..joints import HandState
 
 #: a state's decayed weight below this (one report four memories old) no longer counts
 _FORGOTTEN = math.exp(-4.0)
-#: the evidence that reports a change without the hold (module docstring): weighted reports
-#: for the new state over those for the reported one, and over those for any other state
-EVIDENCE_LEAD = 5.0
-EVIDENCE_MARGIN = 3.0
+#: the evidence that reports a change without the hold (module docstring), in readings (a
+#: report is 1 / ``reading_frames`` of one): weighted readings for the new state over those
+#: for the reported one, and over those for any other state
+EVIDENCE_LEAD = 4.0
+EVIDENCE_MARGIN = 2.5
 _KNOWN = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
 #: per reported known state: the other two, in code order
 _OTHERS = {c: tuple(k for k in _KNOWN if k != c) for c in _KNOWN}
 _NEVER = float("-inf")
+
+
+def _pace(share: float, voters: int) -> float:
+    """How fast a winning known state's hold counts, from its share of the known states'
+    votes and the number of sensors voting for any known state (module docstring): twice
+    as fast when all of two or more sensors agree, as fast with three quarters of the
+    votes, not at all with half; a lone sensor, which has no one to agree with, as fast."""
+    if voters < 2:
+        return 1.0
+    pace = 4.0 * share - 2.0
+    return 2.0 if pace > 2.0 else pace if pace > 0.0 else 0.0
 
 
 class HandVoter:
@@ -87,13 +108,17 @@ class HandVoter:
     sensor however often they report.
     """
 
-    __slots__ = ("memory_s", "hold_s", "evidence", "reports", "reported", "_candidate",
+    __slots__ = ("memory_s", "hold_s", "evidence", "reading_frames", "reports", "reported",
+                 "_candidate",
                  "_last_t", "_pending", "_fresh", "_counted", "_lead", "_margin", "_since")
 
-    def __init__(self, memory_s: float, hold_s: float, evidence: bool = True) -> None:
+    def __init__(self, memory_s: float, hold_s: float, evidence: bool = True,
+                 reading_frames: int = 1) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
         #: False: the hold alone reports changes (issue 10's rule; a benchmark's reference)
         self.evidence = evidence
+        #: how many frames one reading of a sensor's hand state lasts (module docstring)
+        self.reading_frames = reading_frames
         #: per hand: sensor key -> [newest report time, shares per state code (5), weight,
         #: state of the newest report, its part of the vote for open, closed and lasso,
         #: whether it has a notTracked share]
@@ -171,11 +196,11 @@ class HandVoter:
         return self._vote(hand, t)[0]
 
     def _vote(self, hand: int, t: float) -> tuple[HandState, float]:
-        """(winner, its share of the known states' total: 1 when every sensor says so; 0.5
-        for unknown and notTracked, which no hold should hurry)."""
+        """(winner, the pace of its hold: ``_pace``)."""
         window = 4.0 * self.memory_s
         o = c = l = 0.0
         not_tracked = False
+        voters = 0
         for newest, _, _, _, so, sc, sl, nt in self.reports[hand].values():
             if t - newest > window:
                 continue
@@ -183,15 +208,17 @@ class HandVoter:
             c += sc
             l += sl
             not_tracked = not_tracked or nt
+            if so > 0.0 or sc > 0.0 or sl > 0.0:
+                voters += 1
         # the largest total wins; a tie between known states goes to the higher code
         total = o + c + l
         if l > 0.0 and l >= c and l >= o:
-            return HandState.LASSO, l / total
+            return HandState.LASSO, _pace(l / total, voters)
         if c > 0.0 and c >= o:
-            return HandState.CLOSED, c / total
+            return HandState.CLOSED, _pace(c / total, voters)
         if o > 0.0:
-            return HandState.OPEN, o / total
-        return (HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN), 0.5
+            return HandState.OPEN, _pace(o / total, voters)
+        return (HandState.NOT_TRACKED if not_tracked else HandState.UNKNOWN), 1.0
 
     def update(self, t: float) -> list[int]:
         """Vote both hands at ``t``; returns the hands whose reported state changes now."""
@@ -200,7 +227,7 @@ class HandVoter:
         changed = []
         for hand in (0, 1):
             case = self._evidence(hand, t)
-            winner, share = self._vote(hand, t)
+            winner, pace = self._vote(hand, t)
             current = self.reported[hand]
             cand = self._candidate[hand]
             if winner != current and (current is None or current < HandState.OPEN
@@ -208,9 +235,8 @@ class HandVoter:
                 self._report(hand, winner, changed)
                 continue
             if cand is not None and cand[0] == winner:
-                # the candidate keeps winning: the more sensors agree, the faster its time
-                # counts (twice as fast when all do, as fast when half the votes are its)
-                cand = (winner, cand[1] + dt * min(max(2.0 * share, 1.0), 2.0))
+                # the candidate keeps winning: its time counts at the pace of its support
+                cand = (winner, cand[1] + dt * pace)
             elif cand is not None and cand[1] - dt > 0.0:
                 cand = (cand[0], cand[1] - dt)          # a moment lost counts against it
             else:
@@ -261,7 +287,9 @@ class HandVoter:
                 margin[c] = v if v > 0.0 else 0.0
         # the first of the two other known states with the largest lead
         best = c2 if lead[c2] > lead[c1] else c1
-        if lead[best] >= EVIDENCE_LEAD and margin[best] >= EVIDENCE_MARGIN and \
+        frames = self.reading_frames
+        if lead[best] >= EVIDENCE_LEAD * frames and \
+                margin[best] >= EVIDENCE_MARGIN * frames and \
                 since[best] >= 0.0 and t - since[best] >= self.hold_s - 1e-9:
             return HandState(best)
         return None

@@ -1455,7 +1455,7 @@ _HAND_SIGNATURES = {
     "add": "void(float64[::1], int64, int64, int64, float64, float64, float64)",
     "add_frame": "void(float64[::1], int64, float64, int64, float64, int64, float64, float64)",
     "forget": "void(float64[::1], int64)",
-    "update": "int64(float64[::1], float64, float64, float64, boolean)",
+    "update": "int64(float64[::1], float64, float64, float64, float64)",
     "vote": "Tuple((int64, float64))(float64[::1], int64, float64, float64)",
     "newest": "float64(float64[::1])",
 }

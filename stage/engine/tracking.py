@@ -146,7 +146,8 @@ class Person:
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
         # the hand votes compiled when the engine's kernels are (the same states, cheaper)
         voter = (ArrayHandVoter if handbank.compiled() else HandVoter)(
-            settings.hand_memory_s, settings.hand_hold_s)
+            settings.hand_memory_s, settings.hand_hold_s,
+            reading_frames=settings.hand_reading_frames)
         return cls(pid, BodyFilter(), voter, t)
 
     def remember(self, key: tuple[str, int], t: float, conf: np.ndarray) -> None:
