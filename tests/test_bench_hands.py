@@ -54,3 +54,22 @@ def test_after_a_change_the_sums_start_again_from_the_new_state():
 def test_hands_are_counted_apart():
     reports = sorted(stream([O, C, C], hand=0) + stream([O, O, O], hand=1))
     assert bench.cusum(reports, 2) == [(0.02, 0, C)]
+
+
+def test_runs_and_the_real_take_figures_on_a_stream_worked_out_by_hand():
+    f = 1 / bench.NTU_FPS
+    # the sensor: open x4, unknown x2, open x2, closed x1, unknown x3 (frames 0-11)
+    states = [O] * 4 + [U] * 2 + [O] * 2 + [C] + [U] * 3
+    raw = bench.runs([k * f for k in range(12)], states, 12 * f)
+    assert [(s, round(start / f), round(d / f), done) for s, start, d, done in raw] == \
+        [(O, 0, 4, True), (U, 4, 2, True), (O, 6, 2, True), (C, 8, 1, True), (U, 9, 3, False)]
+    # the engine: open from 0, carried across the gap, closed at frame 8 for 4 frames, unknown
+    fused = bench.runs([0.0, 8 * f, 12 * f], [O, C, U], 14 * f)
+    figures = bench.hand_figures(raw, fused)
+    assert figures == {"raw_changes": 4, "fused_changes": 2,
+                       "inner_runs": 3, "inner_runs_even": 2,     # 2, 2 and 1 frames
+                       "raw_blips": 2, "fused_blips": 0,          # open x2 and closed x1
+                       "gaps": 1, "gaps_bridged": 1}
+    # an engine that said unknown inside the gap did not carry the state
+    fused = bench.runs([0.0, 5 * f, 6 * f], [O, U, O], 14 * f)
+    assert bench.hand_figures(raw, fused)["gaps_bridged"] == 0
