@@ -32,10 +32,10 @@ hold delays the change by that moment only. (Until stop 50 the pace was twice
 as fast when all agree and as fast with half or less, so a lone sensor always
 went at double pace and two sensors of three misreading alike at 1.33: with
 sensors that repeat each reading over two frames, as a Kinect v2 does, that
-sent 7.5-10 false changes a minute in bench/bench_hands.py.) A wrong state needs most sensors to misread
-it alike, together, for that long. A hand
-whose reported state is not a known state (a new person, a hand that was not
-seen) takes its first known state at once -- there is nothing to flicker from.
+sent 7.5-10 false changes a minute in bench/bench_hands.py.) A wrong state
+needs most sensors to misread it alike, together, for that long. A hand whose
+reported state is not a known state (a new person, a hand that was not seen)
+takes its first known state at once -- there is nothing to flicker from.
 
 Besides the hold, a change is reported on the evidence of the reports themselves,
 once they make a clear case for a known state (a sequential test, like a CUSUM): per
@@ -109,8 +109,8 @@ class HandVoter:
     """
 
     __slots__ = ("memory_s", "hold_s", "evidence", "reading_frames", "reports", "reported",
-                 "_candidate",
-                 "_last_t", "_pending", "_fresh", "_counted", "_lead", "_margin", "_since")
+                 "_candidate", "_last_t", "_pending", "_fresh", "_counted", "_lead", "_margin",
+                 "_since")
 
     def __init__(self, memory_s: float, hold_s: float, evidence: bool = True,
                  reading_frames: int = 1) -> None:
