@@ -73,3 +73,11 @@ def test_runs_and_the_real_take_figures_on_a_stream_worked_out_by_hand():
     # an engine that said unknown inside the gap did not carry the state
     fused = bench.runs([0.0, 5 * f, 6 * f], [O, U, O], 14 * f)
     assert bench.hand_figures(raw, fused)["gaps_bridged"] == 0
+
+
+def test_a_reading_repeated_over_two_frames_counts_once():
+    # every state twice, as a Kinect v2 repeats a reading: the same change as above needs
+    # twice the reports (step 0.5), and fires on the same reading
+    once = bench.cusum(stream([O, C, C, O, C, C]), 3)
+    twice = bench.cusum(stream([O, O, C, C, C, C, O, O, C, C, C, C]), 3, step=0.5)
+    assert once == [(0.05, 0, C)] and twice == [(0.11, 0, C)]
