@@ -28,7 +28,7 @@ Figures, per hand over the whole run:
   before (each sensor's latest state, a tie to the higher code, no hold),
   each single sensor's raw stream, and the textbook change detector on the very
   reports: a CUSUM per hand and state over the misread model's log-likelihood
-  ratio (``cusum h=N``, below), at thresholds 3 to 6.
+  ratio (``cusum h=N``, below), at thresholds 3 to 8.
 
 The CUSUM reference. With a misread probability of 0.2, a wrong report one of the
 two other states, a report of state s is 0.8/0.1 = 8 times likelier when the hand is
@@ -129,13 +129,19 @@ class Transport:
 
     def __init__(self, clock: ManualClock) -> None:
         self.clock = clock
-        self.changes: list[tuple[float, int, int]] = []   # t, hand, state
+        self.messages: list[tuple[float, int, int, int]] = []   # t, person id, hand, state
 
     def send(self, data: bytes, address) -> None:
         if data.startswith(b"/handState"):
             m = OscMessage(data)
-            self.changes.append((self.clock.now(), 0 if m.params[1] == "left" else 1,
-                                 int(parse_hand_state(m.params[2]))))
+            self.messages.append((self.clock.now(), int(m.params[0]),
+                                  0 if m.params[1] == "left" else 1,
+                                  int(parse_hand_state(m.params[2]))))
+
+    @property
+    def changes(self) -> list[tuple[float, int, int]]:
+        """(t, hand, state) of every /handState (one performer: no person id needed)."""
+        return [(t, hand, state) for t, _, hand, state in self.messages]
 
 
 def true_changes(sim: Simulator, duration: float) -> list[tuple[float, int, int]]:
@@ -326,27 +332,12 @@ def replay(calls: list[tuple], fusion, evidence: bool) -> list[tuple[float, int,
 NTU_FPS, BLIP_S = 30.0, 0.1
 
 
-class PersonTransport:
-    """Records the engine's /handState datagrams: (time, person id, hand, state)."""
-
-    def __init__(self, clock: ManualClock) -> None:
-        self.clock = clock
-        self.messages: list[tuple[float, int, int, int]] = []
-
-    def send(self, data: bytes, address) -> None:
-        if data.startswith(b"/handState"):
-            m = OscMessage(data)
-            self.messages.append((self.clock.now(), int(m.params[0]),
-                                  0 if m.params[1] == "left" else 1,
-                                  int(parse_hand_state(m.params[2]))))
-
-
 def runs(times: list[float], states: list[int], end: float) -> list[tuple[int, float, float, bool]]:
     """(state, start, duration, finished) of each run of equal states; ``times[k]``: when
     ``states[k]`` began to hold (a frame's time, or a change's); the last run lasts to
     ``end`` and is not finished."""
     out = []
-    for k, (t, state) in enumerate(zip(times, states)):
+    for t, state in zip(times, states):
         if out and out[-1][0] == state:
             continue
         if out:
@@ -370,8 +361,8 @@ def hand_figures(raw: list[tuple[int, float, float, bool]],
             # until the sensor said it again (a frame's slack for the engine's own timing)
             slack = 0.5 / NTU_FPS
             before = [s for s, t0, _, _ in fused if t0 <= start + slack]
-            inside = [t0 for _, t0, _, _ in fused if start + slack < t0 < start + duration + slack]
-            if before and before[-1] == raw[k - 1][0] and not inside:
+            changed = [t0 for _, t0, _, _ in fused if start + slack < t0 < start + duration + slack]
+            if before and before[-1] == raw[k - 1][0] and not changed:
                 bridged += 1
     # the sensor's runs that begin and end inside the take, in frames: all even when it
     # reads hand states every second frame (docs/sources.md)
@@ -403,7 +394,7 @@ def real_ntu(folder: str) -> list[dict]:
             recording = Path(tmp) / "take.rec"
             import_ntu([str(path)], str(recording), fps=NTU_FPS)
             clock = ManualClock(0.0)
-            transport = PersonTransport(clock)
+            transport = Transport(clock)
             rig = Rig()
             rig.views = [VIEW]
             engine = Engine(rig, clock, transport)

@@ -417,3 +417,14 @@ def test_the_default_model_fits_two_views_like_real_recordings():
         if not kinect:
             assert 0.05 <= median <= 0.08, median
         assert lo <= rms / median <= hi, (kinect, median, rms / median)
+
+
+@pytest.mark.parametrize("every", [1, 2, 3])
+def test_a_track_reads_its_hands_every_n_frames_and_repeats_them_between(every):
+    from stage.sensors.sim.kinect import UserTrack
+    model = KinectModel(hand_update_frames=every)
+    track = UserTrack(np.random.default_rng(0), model)
+    # a different pair read in every frame: only every n-th is reported, then repeated
+    reads = [(HandState(2 + k % 3), HandState(2 + (k + 1) % 3)) for k in range(9)]
+    reported = [track.hands(seen, model) for seen in reads]
+    assert reported == [reads[k - k % every] for k in range(9)]
