@@ -7,6 +7,7 @@ A rig never mentions music. Every key, each optional (defaults shown)::
     stage_frame: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]
     sensors:
       kinect-a: {type: kinect2}
+      laptop-cam: {type: webcam-mediapipe, hand_reading_frames: 1}   # see fusion's key
       kinect-b:
         type: kinect2
         calibration: {matrix: [[...4x4...]], method: rigid, fitness: 0.97, rms_m: 0.021,
@@ -35,7 +36,9 @@ A rig never mentions music. Every key, each optional (defaults shown)::
       hand_vote: confidence        # or plain
       hand_memory_s: 0.045         # a hand report's weight falls by e in this time
       hand_hold_s: 0.1             # a hand's new state is sent once it has held this long
-      hand_reading_frames: 2       # sensors read hand states every this many frames (Kinect v2: 2)
+      hand_reading_frames: null    # all sensors read hand states every this many frames;
+                                   # null: each sensor's own key, else by its registered type
+                                   # (kinect2 2, webcam-mediapipe 1, others 2)
       rejoin_s: 3.0                # a person lost this recently...
       rejoin_m: 0.75               # ...back this close to where they were lost...
       rejoin_size_m: 0.05          # ...with a trunk length this close gets their id back
@@ -110,6 +113,9 @@ class SensorConfig:
     calibration: Calibration | None = None
     #: where this sensor may send from (an address or network); None: any allowed address
     address: Networks | None = None
+    #: the frames one of its hand-state readings lasts (None: ``fusion.hand_reading_frames``,
+    #: else by its type: ``stage.engine.hands.reading_frames``)
+    hand_reading_frames: int | None = None
 
 
 @dataclass
@@ -157,6 +163,8 @@ class Rig:
             entry: dict[str, Any] = {"type": cfg.type}
             if cfg.address is not None:
                 entry["address"] = list(cfg.address.entries)
+            if cfg.hand_reading_frames is not None:
+                entry["hand_reading_frames"] = cfg.hand_reading_frames
             if cfg.calibration is not None:
                 c = cfg.calibration
                 entry["calibration"] = {
@@ -212,8 +220,10 @@ def load_rig(path: str) -> Rig:
     sensors = where.mapping(data.get("sensors"), "'sensors'")
     for sid, entry in sensors.items():
         entry = where.mapping(entry, f"sensor '{sid}'", sensors.value_marks.get(sid))
-        where.check_keys(entry, ("type", "calibration", "address"), f"sensor '{sid}'")
+        where.check_keys(entry, ("type", "calibration", "address", "hand_reading_frames"),
+                         f"sensor '{sid}'")
         config = SensorConfig(str(sid), str(entry.get("type", "kinect2")))
+        config.hand_reading_frames = _reading_frames(where, entry, f"sensor '{sid}'")
         if entry.get("address") is not None:
             config.address = _networks(where, entry, "address")
         if entry.get("calibration") is not None:
@@ -285,6 +295,19 @@ def _networks(where: Where, mapping: dict, key: str) -> Networks:
         raise where.at_key(mapping, key, f"'{key}': {exc}") from None
 
 
+def _reading_frames(where: Where, mapping: dict, what: str) -> int | None:
+    """A ``hand_reading_frames`` key: a whole number of frames, 1-8, or null (not set)."""
+    value = mapping.get("hand_reading_frames")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 8:
+        raise where.at_key(mapping, "hand_reading_frames",
+                           f"'hand_reading_frames' of {what} must be a whole number of frames "
+                           f"1-8 (a Kinect v2 2, a client reading hands every frame 1) or "
+                           f"null, got {value!r}")
+    return value
+
+
 def _optional_number(where: Where, mapping: dict, key: str) -> float | None:
     if mapping.get(key) is None:
         return None
@@ -319,7 +342,9 @@ def _settings(where: Where, data: dict, key: str, cls: type) -> Any:
     values: dict[str, Any] = {}
     for name, value in section.items():
         default = fields[name].default
-        if isinstance(default, bool):
+        if name == "hand_reading_frames":
+            values[name] = _reading_frames(where, section, f"'{key}'")
+        elif isinstance(default, bool):
             if not isinstance(value, bool):
                 raise where.at_key(section, name, f"'{name}' must be true or false")
             values[name] = value

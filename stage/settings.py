@@ -98,10 +98,12 @@ class FusionSettings:
     hand_memory_s: float = 0.045  # a hand report's weight falls by e every this many seconds
     hand_hold_s: float = 0.1     # a hand's new state must win the vote this long to be reported
                                  # (time counts up to twice as fast the more sensors agree)
-    hand_reading_frames: int = 2  # a sensor reads hand states every this many frames and
-                                 # repeats them in between (Kinect v2: 2, docs/sources.md; 1 for
-                                 # a client that reads them every frame): the vote's evidence
-                                 # counts a reading once (docs/osc-api.md, rule 6)
+    hand_reading_frames: int | None = None  # every sensor reads hand states every this many
+                                 # frames and repeats them in between, so the vote's evidence
+                                 # counts a reading once (docs/osc-api.md, rule 6); None: by
+                                 # each sensor's type (Kinect v2 2, docs/sources.md; the
+                                 # webcam client 1; others 2: ``hands.READING_FRAMES``), or
+                                 # the sensor's own ``hand_reading_frames`` in the rig
     rejoin_s: float = 3.0        # a person lost this recently...
     rejoin_m: float = 0.75       # ...who reappears this close to where they were lost...
     rejoin_size_m: float = 0.05  # ...with a trunk length this close to theirs gets their id back

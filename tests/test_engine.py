@@ -700,3 +700,71 @@ def test_hand_states_applied_with_their_skeleton_give_what_each_alone_gives(monk
     # in none of them)
     assert merged[0] > 1000 and len(out_a.of("/handState")) > 30
     assert {"late", "wrong_source", "not_allowed"} <= set().union(*a.drops.snapshot().values())
+
+
+def _disputed_change(sensor_types: tuple[str, str], rig_frames=(None, None),
+                     fusion_frames=None) -> tuple[float, Engine]:
+    """Two sensors, each registered as ``sensor_types[k]``, see a hand go from open to closed
+    at 0.5 s while each misreads a fifth of its frames (seeded; sensor 1's frames 5 ms after
+    sensor 0's). Returns when the engine sent the closed state, after the change."""
+    poses = ring_poses(2)
+    engine, clock, out = make_engine(poses, hand_reading_frames=fusion_frames)
+    for k, frames in enumerate(rig_frames):
+        engine.rig.sensors[f"s{k}"].hand_reading_frames = frames
+    for k, kind in enumerate(sensor_types):
+        send(engine, encode_message("/registerDevice", f"s{k}", kind))
+    rng = np.random.default_rng(262)
+    truth = standing_pose((0.0, 0.0), 0.0)
+    start, sent = clock.now(), None
+    for f in range(40):
+        state = "open" if f / FPS < 0.5 else "closed"
+        said = [state if rng.random() >= 0.2 else
+                [x for x in ("open", "closed", "lasso") if x != state][int(rng.integers(2))]
+                for _ in range(2)]
+        for k in range(2):
+            before = len(out.of("/handState"))
+            send(engine, frame(f"s{k}", 0, poses[k].observe(truth), hands=(said[k], "open")))
+            if sent is None and f / FPS >= 0.5 and any(
+                    p[1] == "left" and p[2] == "closed" for p in out.of("/handState")[before:]):
+                sent = clock.now() - start - 0.5
+            clock.advance(0.005 if k == 0 else 1 / FPS - 0.005)
+    return sent, engine
+
+
+def test_each_sensor_counts_hand_readings_by_its_type_unless_the_rig_says_otherwise():
+    # the engine's own view of rule 6 (docs/osc-api.md): a Kinect v2 repeats each hand
+    # reading over two frames, so its reports are half a reading each and a disputed change
+    # takes longer to make its case than with the webcam client, which reads every frame
+    kinect, engine = _disputed_change(("kinect2", "kinect2"))
+    assert {c: s["hand_reading_frames"] for c, s in engine.stats()["clients"].items()} == \
+        {"s0": 2, "s1": 2}
+    webcam, engine = _disputed_change(("webcam-mediapipe", "webcam-mediapipe"))
+    assert {c: s["hand_reading_frames"] for c, s in engine.stats()["clients"].items()} == \
+        {"s0": 1, "s1": 1}
+    assert {t.hand_step for c in engine.clients.values() for t in c.tracks.values()} == {1.0}
+    assert webcam is not None and kinect is not None and webcam < kinect
+    # the rig's key for one sensor, then for all, takes precedence over the type
+    same, engine = _disputed_change(("webcam-mediapipe", "webcam-mediapipe"), rig_frames=(2, 2))
+    assert same == kinect
+    same, engine = _disputed_change(("webcam-mediapipe", "webcam-mediapipe"), fusion_frames=2)
+    assert same == kinect
+    same, engine = _disputed_change(("kinect2", "kinect2"), rig_frames=(1, None),
+                                    fusion_frames=1)
+    assert same == webcam
+    # a type nobody knows counts as a Kinect's; a mixed rig lies between the two
+    other, engine = _disputed_change(("a-third-party-client", "unknown"))
+    assert other == kinect
+    mixed, engine = _disputed_change(("kinect2", "webcam-mediapipe"))
+    assert {c: s["hand_reading_frames"] for c, s in engine.stats()["clients"].items()} == \
+        {"s0": 2, "s1": 1}
+    assert webcam <= mixed <= kinect
+
+
+def test_a_sensor_registering_again_as_another_type_counts_its_readings_anew():
+    engine, clock, out = make_engine(ring_poses(1))
+    send(engine, encode_message("/registerDevice", "s0", "kinect2"))
+    send(engine, frame("s0", 0, standing_pose((0.0, 2.5), 0.0), hands=("open", "open")))
+    (track,) = engine.clients["s0"].tracks.values()
+    assert track.hand_step == 0.5
+    send(engine, encode_message("/registerDevice", "s0", "webcam-mediapipe"))
+    assert track.hand_step == 1.0 and engine.stats()["clients"]["s0"]["hand_reading_frames"] == 1

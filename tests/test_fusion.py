@@ -121,13 +121,13 @@ def test_a_misread_frame_does_not_flicker_and_a_real_change_is_reported_after_th
     assert 0.5 + 0.1 <= changes[0][0] <= 0.5 + 0.15           # the change: held 100 ms
 
 
-def two_sensors(voter, frames):
-    """Feed (t, state of sensor 0, state of sensor 1) frames, sensor 1 5 ms after sensor 0;
-    returns the (t, state) changes reported."""
+def two_sensors(voter, frames, steps=(1.0, 1.0)):
+    """Feed (t, state of sensor 0, state of sensor 1) frames, sensor 1 5 ms after sensor 0,
+    each report ``steps[k]`` of a reading; returns the (t, state) changes reported."""
     out = []
     for t, a, b in frames:
         for k, (dt, state) in enumerate(((0.0, a), (0.005, b))):
-            voter.add((f"s{k}", 0), 0, state, 1.0, t + dt)
+            voter.add((f"s{k}", 0), 0, state, 1.0, t + dt, steps[k])
             if voter.update(t + dt):
                 out.append((t + dt, voter.reported[0]))
     return out
@@ -150,8 +150,15 @@ def test_a_change_two_sensors_dispute_is_reported_on_the_evidence_before_the_hol
     assert changes[0] == (0.0, O) and len(changes) == 2
     t, state = changes[1]
     assert state == C and t == pytest.approx(0.5 + 4 / 30 + 0.005)
-    halves = two_sensors(Voter(memory_s=0.03, hold_s=0.1, reading_frames=2), frames)
+    halves = two_sensors(Voter(memory_s=0.03, hold_s=0.1), frames, steps=(0.5, 0.5))
     assert [s for _, s in halves] == [O, C] and halves[1][0] == pytest.approx(0.5 + 5 / 30 + 0.005)
+    # a rig of one of each: each sensor's reports count by its own cadence, so the case
+    # falls between the two (here at 0.5 + 5/30, on sensor 0's report; 138 ms when the
+    # halves are sensor 0's instead, whose misreads then weigh less)
+    mixed = two_sensors(Voter(memory_s=0.03, hold_s=0.1), frames, steps=(1.0, 0.5))
+    assert [s for _, s in mixed] == [O, C] and mixed[1][0] == pytest.approx(0.5 + 5 / 30)
+    mixed = two_sensors(Voter(memory_s=0.03, hold_s=0.1), frames, steps=(0.5, 1.0))
+    assert mixed[1] == changes[1]
     hold_only = two_sensors(Voter(memory_s=0.03, hold_s=0.1, evidence=False), frames)
     assert [s for _, s in hold_only] == [O, C] and hold_only[1][0] == pytest.approx(0.7)
 

@@ -12,11 +12,13 @@ from stage.engine.hands import HandVoter
 from stage.joints import HandState
 
 
-def _stream(seed: int, steps: int = 1500):
+def _stream(seed: int, steps: int = 1500, frames=(1,)):
     """Reports, forgets and votes from up to seven sensors that misread often: times mostly
-    rising at 30 Hz, some repeated and some out of order, weights 0-1."""
+    rising at 30 Hz, some repeated and some out of order, weights 0-1; sensor k's reading
+    lasts ``frames[k % len(frames)]`` frames."""
     rng = np.random.default_rng(seed)
     keys = [(f"s{k}", int(rng.integers(0, 3))) for k in range(7)]
+    step = {key: 1.0 / frames[k % len(frames)] for k, key in enumerate(keys)}
     truth = [HandState.OPEN, HandState.OPEN]
     t = 0.0
     for _ in range(steps):
@@ -35,7 +37,7 @@ def _stream(seed: int, steps: int = 1500):
         state = truth[hand] if rng.random() < 0.6 else HandState(int(rng.integers(0, 5)))
         weight = float(rng.choice([1.0, 0.5, 0.0, rng.random()]))
         when = t - float(rng.choice([0.0, 0.0, 0.0, 0.05]))   # some out of order
-        yield ("add", key, hand, state, weight, when)
+        yield ("add", key, hand, state, weight, when, step[key])
 
 
 def _play(voter, stream) -> list:
@@ -52,25 +54,26 @@ def _play(voter, stream) -> list:
     return out
 
 
-@pytest.mark.parametrize("frames", [1, 2])
+@pytest.mark.parametrize("frames", [(1,), (2,), (2, 1, 3)])   # (2, 1, 3): a mixed rig
 @pytest.mark.parametrize("evidence", [True, False])
 @pytest.mark.parametrize("seed", range(6))
 def test_array_voter_reports_what_the_reference_reports(seed, evidence, frames):
-    expected = _play(HandVoter(0.1, 0.1, evidence, frames), _stream(seed))
+    expected = _play(HandVoter(0.1, 0.1, evidence), _stream(seed, frames=frames))
     changes = sum(len(e[0]) for e in expected)
     assert changes > 20          # the stream does change the vote, often
     with jit.disabled():         # the plain functions
-        assert _play(ArrayHandVoter(0.1, 0.1, evidence, frames, slots=2),
-                     _stream(seed)) == expected
+        assert _play(ArrayHandVoter(0.1, 0.1, evidence, slots=2),
+                     _stream(seed, frames=frames)) == expected
     if not jit.ready():
         pytest.skip(f"compiled kernels unavailable: {jit.why_not()}")
-    assert _play(ArrayHandVoter(0.1, 0.1, evidence, frames, slots=2), _stream(seed)) == expected
+    assert _play(ArrayHandVoter(0.1, 0.1, evidence, slots=2),
+                 _stream(seed, frames=frames)) == expected
 
 
 def test_array_voter_keeps_the_reference_floats():
     """Beyond the states reported: the evidence and the candidate's time, bit for bit."""
     ref, arr = HandVoter(0.1, 0.1), ArrayHandVoter(0.1, 0.1, slots=1)
-    for event in _stream(11, 3000):
+    for event in _stream(11, 3000, frames=(2, 1, 3)):
         for v in (ref, arr):
             if event[0] == "add":
                 v.add(*event[1:])
@@ -103,3 +106,11 @@ def test_a_frame_gives_both_hands_in_one_call():
     b.add_frame(("s0", 1), HandState.CLOSED, 0.7, HandState.LASSO, 0.4, 1.0)
     assert np.array_equal(a.buf, b.buf, equal_nan=True)
     assert b.update(1.0) == [0, 1] and b.reported == [HandState.CLOSED, HandState.LASSO]
+    # a sensor whose reports are half a reading each: its evidence weight halved, in both
+    a.update(1.0)
+    a.add(("s1", 0), 0, HandState.OPEN, 0.9, 1.1, 0.5)
+    a.add(("s1", 0), 1, HandState.OPEN, 0.3, 1.1, 0.5)
+    b.add_frame(("s1", 0), HandState.OPEN, 0.9, HandState.OPEN, 0.3, 1.1, 0.5)
+    assert np.array_equal(a.buf, b.buf, equal_nan=True)
+    S = handbank.slots_of(b.buf)
+    assert b.buf[handbank._slot(S, 0, b.slots[("s1", 0)]) + handbank.P_W] == 0.45

@@ -99,6 +99,12 @@ def test_save_failure_leaves_the_old_file(tmp_path, monkeypatch):
      "view_bias_m for views of one instant"),
     ("smoothing: {process_noise: 4}\n", "rig.yaml:1:28: 'smoothing: process_noise' is no longer "
      "used: the filter now has two motion models: smoothing: quiet_noise and fast_noise"),
+    ("sensors:\n  a: {hand_reading_frames: 0}\n", "rig.yaml:2:28: 'hand_reading_frames' of "
+     "sensor 'a' must be a whole number of frames 1-8 (a Kinect v2 2, a client reading hands "
+     "every frame 1) or null, got 0"),
+    ("fusion: {hand_reading_frames: 1.5}\n", "rig.yaml:1:31: 'hand_reading_frames' of 'fusion' "
+     "must be a whole number of frames 1-8 (a Kinect v2 2, a client reading hands every frame "
+     "1) or null, got 1.5"),
     ("fusion: {hand_vote: loud}\n", "rig.yaml:1:9: 'hand_vote' must be 'plain' or 'confidence', got 'loud'"),
     ("smoothing: {quiet_noise: fast}\n", "rig.yaml:1:26: 'quiet_noise' must be a number, got 'fast'"),
     ("server: [1, 2]\n", "rig.yaml:1:9: 'server' must be a mapping (key: value lines)"),
@@ -114,6 +120,20 @@ def test_mistakes_get_one_line_errors_with_position(tmp_path, text, expected):
     else:
         assert message == expected
     assert "\n" not in message
+
+
+def test_hand_reading_frames_load_per_sensor_and_for_all_and_round_trip(tmp_path):
+    path = write(tmp_path, "sensors:\n  a: {type: kinect2}\n  cam: {type: webcam-mediapipe, "
+                           "hand_reading_frames: 1}\nfusion: {hand_reading_frames: null}\n")
+    rig = load_rig(path)
+    assert rig.sensors["a"].hand_reading_frames is None
+    assert rig.sensors["cam"].hand_reading_frames == 1
+    assert rig.fusion.hand_reading_frames is None        # null: by each sensor's type
+    rig.fusion = type(rig.fusion)(hand_reading_frames=3)
+    rig.save()
+    again = load_rig(path)
+    assert again.sensors["cam"].hand_reading_frames == 1 and again.fusion.hand_reading_frames == 3
+    assert "hand_reading_frames" not in again.to_dict()["sensors"]["a"]
 
 
 def test_missing_rig_file_is_a_clear_error(tmp_path):

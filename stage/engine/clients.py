@@ -39,6 +39,7 @@ from ..joints import TORSO
 from ..rig import Rig
 from ..sensors.protocol import Inbound, JointCoordinates, Message, RegisterDevice
 from ..stats import DropCounter
+from .hands import reading_frames
 from .tracking import OffsetEstimator, Track
 
 log = logging.getLogger("stage.engine")
@@ -134,6 +135,22 @@ class ClientState:
         self.streamed = 0                 # /jointCoordinates accepted from it
         self.frame_source: tuple[str, int] | None = None  # the socket its skeletons come from
         self.restarts = 0
+        #: the frames its hand-state readings last and the part of one each report is
+        #: (``hands.reading_frames``; set by the registry from the rig and its type)
+        self.hand_frames = 2
+        self.hand_step = 0.5
+
+    def new_track(self, user: int) -> Track:
+        """A new view of user ``user`` (replacing any it had)."""
+        track = self.tracks[user] = Track(self.id, user, hand_step=self.hand_step)
+        return track
+
+    def set_hand_frames(self, frames: int) -> None:
+        """Its reports count as 1 / ``frames`` of a hand-state reading from now on, its users'
+        tracks' too."""
+        self.hand_frames, self.hand_step = frames, 1.0 / frames
+        for track in self.tracks.values():
+            track.hand_step = self.hand_step
 
 
 class ClientRegistry:
@@ -292,6 +309,7 @@ class ClientRegistry:
             state = ClientState(cid, getattr(msg, "sensor_type", "unknown"), item.source, now,
                                 clock)
             self.clients[cid] = state
+            self._hand_frames(state)
             self.drops.keep(cid)
             if isinstance(msg, RegisterDevice):
                 log.info("sensor %s (%s) registered from %s:%d", cid, msg.sensor_type,
@@ -312,7 +330,9 @@ class ClientRegistry:
                             *state.source)
             state.source = item.source
         if isinstance(msg, RegisterDevice):
-            state.type = msg.sensor_type
+            if msg.sensor_type != state.type:
+                state.type = msg.sensor_type
+                self._hand_frames(state)
             state.frame_source = None  # its next skeleton binds its socket afresh
         state.last_seen = max(state.last_seen, now)
         if isinstance(msg, JointCoordinates):
@@ -351,6 +371,18 @@ class ClientRegistry:
             log.info("sensor %s is the reference: its space is stage space", state.id)
             state.transform = self.rig.stage_frame.copy()
             state.warned_uncalibrated = False
+
+    def _hand_frames(self, state: ClientState) -> None:
+        """How many frames its hand-state readings last, from the rig and its type (the type
+        it registered with; the rig's for it when it did not say)."""
+        config = self.rig.sensors.get(state.id)
+        kind = state.type if state.type != "unknown" or config is None else config.type
+        frames = reading_frames(kind, None if config is None else config.hand_reading_frames,
+                                self.rig.fusion.hand_reading_frames)
+        if frames != state.hand_frames:
+            log.info("sensor %s (%s): a hand-state reading lasts %d frame%s", state.id,
+                     state.type, frames, "" if frames == 1 else "s")
+        state.set_hand_frames(frames)
 
     def set_transform(self, state: ClientState) -> None:
         state.transform = (self.rig.stage_frame.copy() if state.id == self.reference

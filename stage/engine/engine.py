@@ -325,7 +325,7 @@ class Engine:
             old = client.tracks.pop(msg.user, None)
             if old is not None:
                 self._drop_track(old, t)
-            client.tracks[msg.user] = Track(client.id, msg.user)
+            client.new_track(msg.user)
         elif isinstance(msg, LostUser):
             track = client.tracks.pop(msg.user, None)
             if track is not None:
@@ -357,7 +357,7 @@ class Engine:
             return
         track = client.tracks.get(msg.user)
         if track is None:
-            track = client.tracks[msg.user] = Track(client.id, msg.user)
+            track = client.new_track(msg.user)
         self.people.hand(track, msg.hand, msg.state, t)
 
     def set_calibration(self, client: str, matrix: np.ndarray | None) -> None:
@@ -412,7 +412,7 @@ class Engine:
             return False
         track = client.tracks.get(msg.user)
         if track is None:
-            track = client.tracks[msg.user] = Track(client.id, msg.user)
+            track = client.new_track(msg.user)
         # "late" is judged on the client's own clock: the offset estimate only
         # improves (decreases) over time, so engine-clock capture times of two
         # frames can cross even though the client sent them in order
@@ -495,6 +495,7 @@ class Engine:
                               round(-c.offset.offset - self._wall_minus_clock, 4),
                               "calibration": self.sensor_notes.get(cid, {}),
                               "restarts": c.restarts,
+                              "hand_reading_frames": c.hand_frames,
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": fused_persons_stats(self.people),

@@ -85,15 +85,15 @@ def grow(buf: np.ndarray, slots: int) -> np.ndarray:
     return out
 
 
-def add(buf, k, hand, state, weight, t, memory):  # pragma: no cover
-    """``HandVoter.add`` of sensor slot ``k``."""
+def add(buf, k, hand, state, weight, t, memory, step):  # pragma: no cover
+    """``HandVoter.add`` of sensor slot ``k`` (``step``: the part of a reading the report is)."""
     S = slots_of(buf)
     b = _slot(S, hand, k)
     if buf[b + PENDING] == 0.0 or t >= buf[b + P_T]:
         buf[b + PENDING] = 1.0
         buf[b + P_T] = t
         buf[b + P_STATE] = state
-        buf[b + P_W] = weight
+        buf[b + P_W] = weight * step
         buf[b + FRESH] = 1.0
     s = b + SHARES
     if buf[b + HAS] == 0.0:
@@ -134,10 +134,10 @@ def add(buf, k, hand, state, weight, t, memory):  # pragma: no cover
     buf[b + NT] = 1.0 if buf[s + 1] > floor else 0.0
 
 
-def add_frame(buf, k, t, left, left_w, right, right_w, memory):  # pragma: no cover
+def add_frame(buf, k, t, left, left_w, right, right_w, memory, step):  # pragma: no cover
     """Both hands' reports of one frame of sensor slot ``k``."""
-    add(buf, k, 0, left, left_w, t, memory)
-    add(buf, k, 1, right, right_w, t, memory)
+    add(buf, k, 0, left, left_w, t, memory, step)
+    add(buf, k, 1, right, right_w, t, memory, step)
 
 
 def forget(buf, k):  # pragma: no cover
@@ -225,7 +225,7 @@ def _next_fresh(buf, S, hand):  # pragma: no cover
     return first
 
 
-def _evidence(buf, hand, t, hold, frames):  # pragma: no cover
+def _evidence(buf, hand, t, hold):  # pragma: no cover
     """``HandVoter._evidence``: the state the uncounted reports make a clear case for, or
     -1. The reports are taken in order by selection (a few sensors: no sort, nothing
     allocated)."""
@@ -264,8 +264,7 @@ def _evidence(buf, hand, t, hold, frames):  # pragma: no cover
             buf[hb + MARGIN + c] = v if v > 0.0 else 0.0
     best = c2 if buf[hb + LEAD + c2] > buf[hb + LEAD + c1] else c1
     since = buf[hb + SINCE + best]
-    if buf[hb + LEAD + best] >= EVIDENCE_LEAD * frames and \
-            buf[hb + MARGIN + best] >= EVIDENCE_MARGIN * frames \
+    if buf[hb + LEAD + best] >= EVIDENCE_LEAD and buf[hb + MARGIN + best] >= EVIDENCE_MARGIN \
             and since >= 0.0 and t - since >= hold - 1e-9:
         return best
     return -1
@@ -282,8 +281,7 @@ def _report(buf, hb, state):  # pragma: no cover
 
 def update(buf, t, memory, hold, evidence):  # pragma: no cover
     """``HandVoter.update``: bit 0 set if the left hand's reported state changes now, bit 1
-    the right's. ``evidence``: 0 for the hold alone, else the frames a reading lasts
-    (``HandVoter.reading_frames``)."""
+    the right's. ``evidence``: 0 for the hold alone (``HandVoter.evidence`` False), else 1."""
     S = slots_of(buf)
     last = buf[0]
     dt = 0.0 if math.isnan(last) else max(t - last, 0.0)
@@ -291,7 +289,7 @@ def update(buf, t, memory, hold, evidence):  # pragma: no cover
     changed = 0
     for hand in range(2):
         hb = _hand(S, hand)
-        case = _evidence(buf, hand, t, hold, evidence if evidence > 0.0 else 1.0)
+        case = _evidence(buf, hand, t, hold)
         winner, pace = vote(buf, hand, t, memory)
         current = int(buf[hb + REPORTED])
         if winner != current and (current < 0 or current < _OPEN and winner >= _OPEN):
@@ -357,12 +355,11 @@ def use_kernels(kernels: dict | None) -> None:
 class ArrayHandVoter:
     """``hands.HandVoter``'s interface on the array (engine thread only)."""
 
-    __slots__ = ("memory_s", "hold_s", "evidence", "reading_frames", "buf", "slots")
+    __slots__ = ("memory_s", "hold_s", "evidence", "buf", "slots")
 
     def __init__(self, memory_s: float, hold_s: float, evidence: bool = True,
-                 reading_frames: int = 1, slots: int = 4) -> None:
+                 slots: int = 4) -> None:
         self.memory_s, self.hold_s, self.evidence = memory_s, hold_s, evidence
-        self.reading_frames = reading_frames
         self.buf = new(slots)
         self.slots: dict[tuple[str, int], int] = {}
 
@@ -377,16 +374,16 @@ class ArrayHandVoter:
         return k
 
     def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
-            t: float) -> None:
+            t: float, step: float = 1.0) -> None:
         k = self.slot(key)                  # (first: it may grow the array)
-        _K["add"](self.buf, k, hand, int(state), weight, t, self.memory_s)
+        _K["add"](self.buf, k, hand, int(state), weight, t, self.memory_s, step)
 
     def add_frame(self, key: tuple[str, int], left: HandState, left_weight: float,
-                  right: HandState, right_weight: float, t: float) -> None:
+                  right: HandState, right_weight: float, t: float, step: float = 1.0) -> None:
         """Both hands of one frame (``add`` twice, in one call)."""
         k = self.slot(key)
         _K["add_frame"](self.buf, k, t, int(left), left_weight, int(right), right_weight,
-                        self.memory_s)
+                        self.memory_s, step)
 
     def forget(self, key: tuple[str, int]) -> None:
         k = self.slots.pop(key, None)
@@ -398,7 +395,7 @@ class ArrayHandVoter:
 
     def update(self, t: float) -> list[int]:
         mask = _K["update"](self.buf, t, self.memory_s, self.hold_s,
-                            float(self.reading_frames) if self.evidence else 0.0)
+                            1.0 if self.evidence else 0.0)
         return [] if not mask else [0] if mask == 1 else [1] if mask == 2 else [0, 1]
 
     @property

@@ -46,10 +46,13 @@ vote weight,
   below 0, must reach ``EVIDENCE_LEAD`` (4) readings;
 - ``margin``: +1 when it says the state, -1 when it says any other known state, never
   below 0, must reach ``EVIDENCE_MARGIN`` (2.5) readings;
-- a report is 1 / ``reading_frames`` of a reading (``fusion.hand_reading_frames``, 2 by
-  default): a Kinect v2 reads hand states every second frame and repeats them (the NTU
-  RGB+D samples, docs/sources.md), and a misread counted twice made a case twice as fast
-  (until stop 50 the thresholds were 5 and 3 reports, whatever the sensor);
+- a report is 1 / N of a reading, N being the frames its sensor repeats a reading over
+  (``reading_frames``: by the sensor's type, a Kinect v2 2, the webcam client 1; the rig
+  may say otherwise): a Kinect v2 reads hand states every second frame and repeats them
+  (the NTU RGB+D samples, docs/sources.md), and a misread counted twice made a case twice
+  as fast (until stop 50 the thresholds were 5 and 3 reports, whatever the sensor; until
+  stop 51 N was one rig setting for all sensors, so a rig mixing Kinects and webcams was
+  wrong for one of them);
 - and the lead's run must have begun ``hand_hold_s`` or more ago: at the first report for
   the state after the lead last had to be held at 0 (a report against it when it was
   already 0). A lead that falls back to exactly 0 and rises again keeps its beginning:
@@ -84,9 +87,30 @@ _FORGOTTEN = math.exp(-4.0)
 EVIDENCE_LEAD = 4.0
 EVIDENCE_MARGIN = 2.5
 _KNOWN = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
+#: the frames a sensor of each type repeats one hand-state reading over (``reading_frames``):
+#: a Kinect v2 reads hands every second frame (all 36 inner runs of the NTU RGB+D samples are
+#: an even number of frames, docs/sources.md); the project's webcam client classifies them in
+#: every frame (``stage.sensors.clients.webcam``). A type not listed: ``DEFAULT_READING_FRAMES``
+READING_FRAMES = {"kinect2": 2, "webcam-mediapipe": 1}
+#: sensors of a type not in ``READING_FRAMES`` (a client that did not register, a third
+#: party's): taken for a Kinect v2, whose repeats would otherwise count as new evidence
+DEFAULT_READING_FRAMES = 2
 #: per reported known state: the other two, in code order
 _OTHERS = {c: tuple(k for k in _KNOWN if k != c) for c in _KNOWN}
 _NEVER = float("-inf")
+
+
+def reading_frames(sensor_type: str, sensor_setting: int | None = None,
+                   rig_setting: int | None = None) -> int:
+    """The frames one hand-state reading of a sensor lasts: the rig's setting for that
+    sensor (``sensors: <id>: hand_reading_frames``), else the rig's for all sensors
+    (``fusion.hand_reading_frames``), else its type's (``READING_FRAMES``), else
+    ``DEFAULT_READING_FRAMES``."""
+    if sensor_setting is not None:
+        return sensor_setting
+    if rig_setting is not None:
+        return rig_setting
+    return READING_FRAMES.get(sensor_type, DEFAULT_READING_FRAMES)
 
 
 def _pace(share: float, voters: int) -> float:
@@ -108,17 +132,14 @@ class HandVoter:
     sensor however often they report.
     """
 
-    __slots__ = ("memory_s", "hold_s", "evidence", "reading_frames", "reports", "reported",
+    __slots__ = ("memory_s", "hold_s", "evidence", "reports", "reported",
                  "_candidate", "_last_t", "_pending", "_fresh", "_counted", "_lead", "_margin",
                  "_since")
 
-    def __init__(self, memory_s: float, hold_s: float, evidence: bool = True,
-                 reading_frames: int = 1) -> None:
+    def __init__(self, memory_s: float, hold_s: float, evidence: bool = True) -> None:
         self.memory_s, self.hold_s = memory_s, hold_s
         #: False: the hold alone reports changes (issue 10's rule; a benchmark's reference)
         self.evidence = evidence
-        #: how many frames one reading of a sensor's hand state lasts (module docstring)
-        self.reading_frames = reading_frames
         #: per hand: sensor key -> [newest report time, shares per state code (5), weight,
         #: state of the newest report, its part of the vote for open, closed and lasso,
         #: whether it has a notTracked share]
@@ -129,7 +150,7 @@ class HandVoter:
         self._candidate: list[tuple[HandState, float] | None] = [None, None]
         self._last_t: float | None = None
         #: the evidence (module docstring), per hand: each sensor's newest report not yet
-        #: counted (key -> (t, state, weight)), the time of each sensor's last counted one,
+        #: counted (key -> (t, state, its weight as evidence)), the time of each sensor's last counted one,
         #: and per state code the lead, the margin and when the lead's run began (-1: none)
         self._pending: tuple[dict, dict] = ({}, {})
         #: per hand: the sensors whose pending report changed since the last count (only
@@ -141,11 +162,13 @@ class HandVoter:
         self._since = ([-1.0] * 5, [-1.0] * 5)    # -1: no run
 
     def add(self, key: tuple[str, int], hand: int, state: HandState, weight: float,
-            t: float) -> None:
-        """One report; a second report by the same sensor at the same ``t`` replaces the first."""
+            t: float, step: float = 1.0) -> None:
+        """One report; a second report by the same sensor at the same ``t`` replaces the first.
+        ``step``: the part of a reading it is (1 / the sensor's ``reading_frames``), which
+        scales its weight as evidence (module docstring), not its vote."""
         pending = self._pending[hand].get(key)
         if pending is None or t >= pending[0]:
-            self._pending[hand][key] = (t, int(state), weight)
+            self._pending[hand][key] = (t, int(state), weight * step)
             self._fresh[hand].add(key)
         entry = self.reports[hand].get(key)
         if entry is None:
@@ -179,10 +202,10 @@ class HandVoter:
         entry[7] = shares[1] > floor
 
     def add_frame(self, key: tuple[str, int], left: HandState, left_weight: float,
-                  right: HandState, right_weight: float, t: float) -> None:
+                  right: HandState, right_weight: float, t: float, step: float = 1.0) -> None:
         """Both hands' reports of one frame."""
-        self.add(key, 0, left, left_weight, t)
-        self.add(key, 1, right, right_weight, t)
+        self.add(key, 0, left, left_weight, t, step)
+        self.add(key, 1, right, right_weight, t, step)
 
     def forget(self, key: tuple[str, int]) -> None:
         """A sensor view left this person: its reports no longer vote."""
@@ -287,9 +310,7 @@ class HandVoter:
                 margin[c] = v if v > 0.0 else 0.0
         # the first of the two other known states with the largest lead
         best = c2 if lead[c2] > lead[c1] else c1
-        frames = self.reading_frames
-        if lead[best] >= EVIDENCE_LEAD * frames and \
-                margin[best] >= EVIDENCE_MARGIN * frames and \
+        if lead[best] >= EVIDENCE_LEAD and margin[best] >= EVIDENCE_MARGIN and \
                 since[best] >= 0.0 and t - since[best] >= self.hold_s - 1e-9:
             return HandState(best)
         return None

@@ -1452,8 +1452,9 @@ def _scan_sig():
 _SCAN_HELPERS = ("_starts", "_nul", "_find", "_int", "_client", "_skeleton", "_hand")
 #: ``handbank``'s kernels (the hand votes), given to ``handbank.use_kernels``
 _HAND_SIGNATURES = {
-    "add": "void(float64[::1], int64, int64, int64, float64, float64, float64)",
-    "add_frame": "void(float64[::1], int64, float64, int64, float64, int64, float64, float64)",
+    "add": "void(float64[::1], int64, int64, int64, float64, float64, float64, float64)",
+    "add_frame": "void(float64[::1], int64, float64, int64, float64, int64, float64, float64, "
+                 "float64)",
     "forget": "void(float64[::1], int64)",
     "update": "int64(float64[::1], float64, float64, float64, float64)",
     "vote": "Tuple((int64, float64))(float64[::1], int64, float64, float64)",

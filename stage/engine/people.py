@@ -221,7 +221,8 @@ class People:
         self._reports.append((person.voter.add_frame, track.key, track.hands[traded],
                               float(conf[_HAND_JOINT[0]]) if weighted else 1.0,
                               track.hands[1 ^ traded],
-                              float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t))
+                              float(conf[_HAND_JOINT[1]]) if weighted else 1.0, t,
+                              track.hand_step))
         return True
 
     def _offset(self, track: Track, person: Person, transform: np.ndarray, conf: np.ndarray,
@@ -305,7 +306,8 @@ class People:
         hand ^= track.arms_traded                   # the sensor's arms traded back
         weighted = self.rig.fusion.hand_vote == "confidence"
         weight = float(track.conf[_HAND_JOINT[hand]]) if weighted else 1.0
-        self._reports.append((person.voter.add, track.key, hand, state, weight, t))
+        self._reports.append((person.voter.add, track.key, hand, state, weight, t,
+                              track.hand_step))
         self._hands_dirty.add(person.id)
 
     def _give_reports(self) -> None:

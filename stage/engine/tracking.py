@@ -84,6 +84,9 @@ class Track:
     stamp: float = float("-inf")        # the same on the client's clock (timetag or arrival)
     hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
     arms_traded: int = 0                # 1 while its latest frame had the arms swapped back
+    #: the part of a hand-state reading each of its reports is: 1 / the frames its sensor
+    #: repeats a reading over (``hands.reading_frames``; ``ClientState.hand_step``)
+    hand_step: float = 0.5
     person: int | None = None
     far_frames: int = 0                 # consecutive frames beyond release distance
 
@@ -146,8 +149,7 @@ class Person:
     def new(cls, pid: int, t: float, settings: FusionSettings) -> "Person":
         # the hand votes compiled when the engine's kernels are (the same states, cheaper)
         voter = (ArrayHandVoter if handbank.compiled() else HandVoter)(
-            settings.hand_memory_s, settings.hand_hold_s,
-            reading_frames=settings.hand_reading_frames)
+            settings.hand_memory_s, settings.hand_hold_s)
         return cls(pid, BodyFilter(), voter, t)
 
     def remember(self, key: tuple[str, int], t: float, conf: np.ndarray) -> None:
