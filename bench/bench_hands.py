@@ -7,7 +7,10 @@ each reporting a visible hand's state wrong 20 % of the time
 is one of the two other states), reading them every second frame as a real
 Kinect v2 does (``hand_update_frames: 2``, docs/sources.md: a misread lasts two
 frames; ``--hand-update-frames 1`` reads them every frame, as this bench did
-before stop 50); a dancer walking circles inside the ring,
+before stop 50; ``--hand-update-frames 2,2,1``: a mixed rig, two Kinect v2 and the
+project's webcam client, which reads them every frame, each registering its type, the
+rig saying nothing, so each sensor's type says how long its readings last: rule 6 of
+docs/osc-api.md); a dancer walking circles inside the ring,
 both hands changing state every 5 s (open, closed, lasso, ...). The engine
 runs offline on the simulator's stream (its sensors' latencies, clock offsets
 and jitter included), with the default rig settings.
@@ -59,6 +62,8 @@ of the same known state the engine carried the state across (sent no change in t
     python bench/bench_hands.py --quick    # 30 s, seed 1
     python bench/bench_hands.py --json
     python bench/bench_hands.py --ntu bench/data/kinect2/ntu     # real Kinect v2 takes
+    python bench/bench_hands.py --hand-update-frames 2,2,1       # two Kinects, a webcam
+    python bench/bench_hands.py --hand-update-frames 2,2,1 --reading-frames 2   # one setting
 """
 
 from __future__ import annotations
@@ -66,6 +71,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import tempfile
 import time
@@ -101,14 +107,32 @@ CYCLE = ("closed", "lasso", "open")
 FALSE_TARGET_PER_MIN, DELAY_TARGET_MS = 2.0, 150.0
 
 
-def scenario(duration: float, hand_update_frames: int = 2) -> dict:
-    """The bench's scenario as a scenario file would spell it."""
+#: a sensor's type by how many frames its hand readings last, in the mixed rig (a Kinect v2,
+#: the project's webcam client: ``stage.engine.hands.READING_FRAMES``)
+TYPE_OF_CADENCE = {2: "kinect2", 1: "webcam-mediapipe"}
+
+
+def scenario(duration: float, hand_update_frames: int | tuple[int, ...] = 2) -> dict:
+    """The bench's scenario as a scenario file would spell it. ``hand_update_frames``: the
+    frames every sensor's hand readings last, or each sensor's (a mixed rig: the ring's
+    sensors named one by one, each with its cadence and the type of sensor that has it;
+    the same poses, ids and random streams as the ring)."""
     hands = [{CYCLE[k % 3].replace("closed", "close"): "both", "at": CHANGE_EVERY_S * (k + 1)}
              for k in range(int(duration // CHANGE_EVERY_S))]
+    sensors: dict = {"ring": {"count": 3, "radius": 2.5, "height": 0.8}}
+    if isinstance(hand_update_frames, tuple):
+        sensors = {}
+        for k, frames in enumerate(hand_update_frames):
+            a = 0.0 + 2 * math.pi * k / len(hand_update_frames)    # as ring_poses does
+            sensors[f"kinect-{chr(ord('a') + k)}"] = {
+                "position": [-2.5 * math.sin(a), 0.8, -2.5 * math.cos(a)],
+                "look_at": [0.0, 0.8, 0.0], "type": TYPE_OF_CADENCE[frames],
+                "kinect": {"hand_update_frames": frames}}
+        hand_update_frames = 2
     return {
         "name": "bench-hands",
         "duration": duration,
-        "sensors": {"ring": {"count": 3, "radius": 2.5, "height": 0.8}},
+        "sensors": sensors,
         # the sensor model named in full: noise and the hand misreads this bench is about
         "kinect": {"hand_misread_p": 0.2, "hand_range_m": 3.5,
                    "hand_update_frames": hand_update_frames, "pipeline_delay_s": PIPELINE_S,
@@ -212,7 +236,7 @@ def _pcts(values: list[float]) -> dict:
 
 
 def run(seed: int, duration: float, fusion: dict | None = None,
-        hand_update_frames: int = 2) -> dict:
+        hand_update_frames: int | tuple[int, ...] = 2) -> dict:
     with tempfile.TemporaryDirectory() as tmp:   # the scenario as a file, as a user writes one
         path = Path(tmp) / "bench-hands.yaml"
         path.write_text(yaml.safe_dump(scenario(duration, hand_update_frames),
@@ -222,9 +246,11 @@ def run(seed: int, duration: float, fusion: dict | None = None,
     transport = Transport(clock)
     rig = sim.rig()
     rig.views = [VIEW]
-    # the rig says how often its sensors read hand states, as an installer's would
-    rig.fusion = dataclasses.replace(rig.fusion, hand_reading_frames=hand_update_frames,
-                                     **(fusion or {}))
+    # the rig says how often its sensors read hand states, as an installer's would; a mixed
+    # rig says nothing: each sensor's type does (``fusion`` may say otherwise)
+    uniform = None if isinstance(hand_update_frames, tuple) else hand_update_frames
+    rig.fusion = dataclasses.replace(rig.fusion, **{"hand_reading_frames": uniform,
+                                                    **(fusion or {})})
     engine = Engine(rig, clock, transport)
     # every voter's inputs, to replay them through the hold alone (issue 10's rule) as a
     # reference on the very same reports
@@ -237,13 +263,13 @@ def run(seed: int, duration: float, fusion: dict | None = None,
         class Recording(base):
             __slots__ = ()
 
-            def add(self, key, hand, state, weight, t):
-                calls.append((id(self), "add", key, hand, state, weight, t))
-                super().add(key, hand, state, weight, t)
+            def add(self, key, hand, state, weight, t, step=1.0):
+                calls.append((id(self), "add", key, hand, state, weight, t, step))
+                super().add(key, hand, state, weight, t, step)
 
-            def add_frame(self, key, left, left_weight, right, right_weight, t):
-                self.add(key, 0, left, left_weight, t)
-                self.add(key, 1, right, right_weight, t)
+            def add_frame(self, key, left, left_weight, right, right_weight, t, step=1.0):
+                self.add(key, 0, left, left_weight, t, step)
+                self.add(key, 1, right, right_weight, t, step)
 
             def forget(self, key):
                 calls.append((id(self), "forget", key))
@@ -301,8 +327,12 @@ def run(seed: int, duration: float, fusion: dict | None = None,
             single_last[(sensor, hand)] = state
     old = judge(old_changes, truth, first_seen, minutes)
     singles = {sid: judge(ch, truth, first_seen, minutes) for sid, ch in sorted(single.items())}
-    sequential = {str(h): judge(cusum(reports, h, 1.0 / hand_update_frames), truth,
-                                first_seen, minutes)
+    # the reference counts each sensor's reports by its true cadence
+    sim_ids = [spec.id for spec in sim.scenario.sensors]
+    cadence = (dict(zip(sim_ids, hand_update_frames)) if isinstance(hand_update_frames, tuple)
+               else dict.fromkeys(sim_ids, hand_update_frames))
+    steps = {sid: 1.0 / frames for sid, frames in cadence.items()}
+    sequential = {str(h): judge(cusum(reports, h, steps), truth, first_seen, minutes)
                   for h in CUSUM_THRESHOLDS}
     return {"seed": seed, "duration_s": duration, "engine_cpu_s": cpu, "fused": fused,
             "hold_only": hold_only, "old_majority": old, "single_sensor": singles,
@@ -316,8 +346,7 @@ def replay(calls: list[tuple], fusion, evidence: bool) -> list[tuple[float, int,
     for vid, kind, *args in calls:
         voter = voters.get(vid)
         if voter is None:
-            voter = voters[vid] = HandVoter(fusion.hand_memory_s, fusion.hand_hold_s, evidence,
-                                            fusion.hand_reading_frames)
+            voter = voters[vid] = HandVoter(fusion.hand_memory_s, fusion.hand_hold_s, evidence)
         if kind == "add":
             voter.add(*args)
         elif kind == "forget":
@@ -441,18 +470,22 @@ def print_real(rows: list[dict]) -> None:
 CUSUM_THRESHOLDS = (3, 4, 5, 6, 7, 8)
 
 
-def cusum(reports: list[tuple[float, str, int, int]], threshold: float, step: float = 1.0
-          ) -> list[tuple[float, int, int]]:
+def cusum(reports: list[tuple[float, str, int, int]], threshold: float,
+          step: float | dict[str, float] = 1.0) -> list[tuple[float, int, int]]:
     """The CUSUM reference's /handState changes (module docstring) on ``reports``
     (arrival, sensor, hand, state, in arrival order); ``step``: what one report is worth
-    (1 / the frames a reading lasts: a reading repeated over two frames is one reading)."""
+    (1 / the frames a reading lasts: a reading repeated over two frames is one reading),
+    for all sensors or per sensor id."""
+    steps = step if isinstance(step, dict) else None
     known = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
     current: list[int | None] = [None, None]
     score = [dict.fromkeys(known, 0.0), dict.fromkeys(known, 0.0)]
     changes = []
-    for arrival, _, hand, state in reports:
+    for arrival, sensor, hand, state in reports:
         if state not in known:
             continue                            # unknown, notTracked: no evidence
+        if steps is not None:
+            step = steps[sensor]
         now = current[hand]
         if now is None:
             current[hand] = state               # the first known state goes at once
@@ -477,9 +510,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="30 s, seed 1")
     parser.add_argument("--hand-memory", type=float, help="override fusion.hand_memory_s")
     parser.add_argument("--hand-hold", type=float, help="override fusion.hand_hold_s")
-    parser.add_argument("--hand-update-frames", type=int, default=2,
+    parser.add_argument("--hand-update-frames", default="2",
                         help="the sensors read hand states every N frames (default 2, as a "
-                             "Kinect v2 does)")
+                             "Kinect v2 does; the rig says so for all); or N,N,N: each "
+                             "sensor's, a mixed rig (2: a kinect2, 1: a webcam-mediapipe "
+                             "sensor; the rig says nothing, each sensor's type does)")
+    parser.add_argument("--reading-frames", type=int,
+                        help="override the rig's fusion.hand_reading_frames (for all sensors)")
     parser.add_argument("--ntu", metavar="DIR",
                         help="instead: real Kinect v2 takes (NTU .skeleton files), described")
     parser.add_argument("--json", action="store_true")
@@ -495,22 +532,30 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.duration, args.seeds = 30.0, "1"
     fusion = {}
+    if args.reading_frames is not None:
+        fusion["hand_reading_frames"] = args.reading_frames
+    cadence: int | tuple[int, ...] = (
+        tuple(int(v) for v in args.hand_update_frames.split(","))
+        if "," in args.hand_update_frames else int(args.hand_update_frames))
     if args.hand_memory is not None:
         fusion["hand_memory_s"] = args.hand_memory
     if args.hand_hold is not None:
         fusion["hand_hold_s"] = args.hand_hold
     started, busy0 = time.monotonic(), machine_busy_s()
-    rows = [run(int(s), args.duration, fusion, args.hand_update_frames)
+    rows = [run(int(s), args.duration, fusion, cadence)
             for s in args.seeds.split(",")]
     elapsed = time.monotonic() - started
     busy = (machine_busy_s() - busy0) / elapsed
     if args.json:
         json.dump({"rows": rows, "machine_busy_cores": busy,
-                   "hand_update_frames": args.hand_update_frames}, sys.stdout, indent=1)
+                   "hand_update_frames": cadence, "fusion": fusion}, sys.stdout, indent=1)
         print()
         return 0
+    said = ("" if "hand_reading_frames" not in fusion else
+            f", the rig says {fusion['hand_reading_frames']}")
     print(f"hands: 3 sensors misreading 20 % of the time, a dancer changing both hands every "
-          f"{CHANGE_EVERY_S:g} s, hand states read every {args.hand_update_frames} frame(s); "
+          f"{CHANGE_EVERY_S:g} s, hand states read every {args.hand_update_frames} frame(s)"
+          f"{said}; "
           f"{args.duration:g} s per seed; {elapsed:.0f} s, machine busy "
           f"{busy:.2f} cores")
     print(f"{'seed':>4} {'what':<16} {'changes':>8} {'false/min':>10} {'unknown/min':>12} "

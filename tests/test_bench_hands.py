@@ -81,3 +81,13 @@ def test_a_reading_repeated_over_two_frames_counts_once():
     once = bench.cusum(stream([O, C, C, O, C, C]), 3)
     twice = bench.cusum(stream([O, O, C, C, C, C, O, O, C, C, C, C]), 3, step=0.5)
     assert once == [(0.05, 0, C)] and twice == [(0.11, 0, C)]
+
+
+def test_each_sensor_counts_by_its_own_cadence():
+    # a Kinect (half a reading a report) and a webcam (a whole one): closed's sum goes
+    # 0.5, 1 (the Kinect's two reports), 2 (the webcam's first): the case at threshold 2;
+    # with every report taken for half a reading it needs the webcam's second as well
+    reports = [(0.00, "kin", 0, O), (0.01, "cam", 0, O), (0.02, "kin", 0, C),
+               (0.03, "kin", 0, C), (0.04, "cam", 0, C), (0.05, "cam", 0, C)]
+    assert bench.cusum(reports, 2, {"kin": 0.5, "cam": 1.0}) == [(0.04, 0, C)]
+    assert bench.cusum(reports, 2, 0.5) == [(0.05, 0, C)]
