@@ -428,6 +428,8 @@ def real_ntu(folder: str) -> list[dict]:
             rig.views = [VIEW]
             engine = Engine(rig, clock, transport)
             replay_offline(recording, engine, clock, until=end + 1.0)
+            # the engine's own watch of the camera's hand-state runs (hands.CadenceWatch)
+            watched = [c["hand_runs"] for c in engine.stats()["clients"].values()]
         # the engine numbers people in the order it first sees them: the bodies' order
         persons = sorted({pid for _, pid, _, _ in transport.messages})
         totals: dict[str, int] = {}
@@ -439,7 +441,9 @@ def real_ntu(folder: str) -> list[dict]:
                 for key, v in figures.items():
                     totals[key] = totals.get(key, 0) + v
         rows.append({"file": path.name, "frames": len(frames), "bodies": len(bodies),
-                     "persons": len(persons), **totals})
+                     "persons": len(persons), **totals,
+                     "short_runs": sum(w["short_runs"] for w in watched if w),
+                     "short_runs_even": sum(w["even"] for w in watched if w)})
     return rows
 
 
@@ -448,10 +452,10 @@ def print_real(rows: list[dict]) -> None:
           "described, not judged)")
     print(f"{'file':<30} {'frames':>6} {'bodies':>6} {'changes sensor/engine':>22} "
           f"{'blips < 100 ms sensor/engine':>29} {'unknown gaps carried':>21} "
-          f"{'inner runs even':>16}")
+          f"{'inner runs even':>16} {'engine: short runs even':>24}")
     total = {k: 0 for k in ("frames", "raw_changes", "fused_changes", "raw_blips",
                             "fused_blips", "gaps", "gaps_bridged", "inner_runs",
-                            "inner_runs_even")}
+                            "inner_runs_even", "short_runs", "short_runs_even")}
     for r in rows:
         for k in total:
             total[k] += r.get(k, 0)
@@ -459,11 +463,13 @@ def print_real(rows: list[dict]) -> None:
               f"{r.get('raw_changes', 0):>11}/{r.get('fused_changes', 0):<10} "
               f"{r.get('raw_blips', 0):>14}/{r.get('fused_blips', 0):<14} "
               f"{r.get('gaps_bridged', 0):>10}/{r.get('gaps', 0):<10} "
-              f"{r.get('inner_runs_even', 0):>8}/{r.get('inner_runs', 0):<7}")
+              f"{r.get('inner_runs_even', 0):>8}/{r.get('inner_runs', 0):<7} "
+              f"{r.get('short_runs_even', 0):>12}/{r.get('short_runs', 0):<11}")
     print(f"{'all':<30} {total['frames']:>6} {'':>6} {total['raw_changes']:>11}/"
           f"{total['fused_changes']:<10} {total['raw_blips']:>14}/{total['fused_blips']:<14} "
           f"{total['gaps_bridged']:>10}/{total['gaps']:<10} "
-          f"{total['inner_runs_even']:>8}/{total['inner_runs']:<7}")
+          f"{total['inner_runs_even']:>8}/{total['inner_runs']:<7} "
+          f"{total['short_runs_even']:>12}/{total['short_runs']:<11}")
 
 
 #: the CUSUM reference's thresholds, in units of log 8 (module docstring)

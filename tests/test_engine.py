@@ -768,3 +768,31 @@ def test_a_sensor_registering_again_as_another_type_counts_its_readings_anew():
     assert track.hand_step == 0.5
     send(engine, encode_message("/registerDevice", "s0", "webcam-mediapipe"))
     assert track.hand_step == 1.0 and engine.stats()["clients"]["s0"]["hand_reading_frames"] == 1
+
+
+def test_a_sensor_whose_hand_states_contradict_its_cadence_is_named_once(caplog):
+    # a client that registers as the webcam client (a reading every frame) but changes its
+    # hand states only every second frame, as a Kinect v2 does: its misreads would count
+    # twice, so the engine says so, once, with the rig line that mends it
+    def run(kind: str) -> Engine:
+        engine, clock, out = make_engine(ring_poses(1))
+        send(engine, encode_message("/registerDevice", "s0", kind))
+        pose = standing_pose((0.0, 2.5), 0.0)
+        for f in range(120):
+            state = ("open", "closed")[(f // 2) % 2]
+            send(engine, frame("s0", 0, pose, hands=(state, state)))
+            clock.advance(1 / FPS)
+        return engine
+
+    with caplog.at_level(logging.INFO, logger="stage.engine"):
+        engine = run("webcam-mediapipe")
+    said = [r for r in caplog.records if "hand-state reading over two frames" in r.message]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING
+    assert "'sensors: s0: hand_reading_frames: 2'" in said[0].message
+    assert engine.stats()["clients"]["s0"]["hand_runs"] == {"short_runs": 40, "even": 40,
+                                                            "looks_like": 2}
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="stage.engine"):
+        engine = run("kinect2")          # what a Kinect does: nothing to say
+    assert not [r for r in caplog.records if "seems to" in r.message]
+    assert engine.stats()["clients"]["s0"]["hand_runs"]["looks_like"] == 2

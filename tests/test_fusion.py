@@ -8,7 +8,7 @@ import pytest
 from stage.engine import jit
 from stage.engine.fusion import apply_transform, consistent_views, torso_centre
 from stage.engine.handbank import ArrayHandVoter
-from stage.engine.hands import HandVoter
+from stage.engine.hands import CadenceWatch, HandVoter
 from stage.joints import HandState
 
 O, C, L = HandState.OPEN, HandState.CLOSED, HandState.LASSO
@@ -231,3 +231,38 @@ def test_apply_transform_matches_homogeneous_product():
     pts = rng.normal(size=(25, 3))
     expect = (m @ np.c_[pts, np.ones(25)].T).T[:, :3]
     np.testing.assert_allclose(apply_transform(m, pts), expect)
+
+
+def _watch(states: list[tuple], watch: CadenceWatch | None = None):
+    """Feed a track's (left, right) states frame by frame; (watch, the frame it decided)."""
+    watch = watch or CadenceWatch()
+    run = [None, None, -1, -1]
+    decided = None
+    for k, hands in enumerate(states):
+        if watch.frame(run, list(hands)) and decided is None:
+            decided = k
+    return watch, decided
+
+
+def test_a_sensor_repeating_readings_over_two_frames_is_told_from_one_reading_every_frame():
+    U = HandState.UNKNOWN
+    # the first run (begun with the track) and runs longer than 8 frames are not counted
+    watch, _ = _watch([(U, O)] * 3 + [(O, O)] * 9 + [(C, O)] * 2 + [(O, O)])
+    assert (watch.runs, watch.even) == (1, 1)      # only closed's 2 frames: left's 9 too long
+    # runs of 2 frames (a reading repeated, as a Kinect v2 does): 40 of them decide 2
+    pairs = [(O, O), (O, O), (C, C), (C, C)] * 11
+    watch, at = _watch(pairs)
+    assert watch.verdict == 2 and watch.stats() == {"short_runs": 40, "even": 40,
+                                                    "looks_like": 2}
+    assert at == 42    # changes every 2nd frame; the first (frame 2) ends the uncounted run
+    # one reading a frame, misread now and then: runs of 1 and 3 frames
+    frames = [(O, O), (C, C), (O, O), (O, O), (O, O), (L, L)] * 14
+    watch, _ = _watch(frames)
+    assert watch.verdict == 1 and watch.even == 0
+    # half and half: nothing said
+    frames = [(C, C), (C, C), (O, O)] * 30          # runs of 1 and 2 frames, alternately
+    watch, _ = _watch(frames)
+    assert watch.verdict == 0 and watch.runs == 40 and watch.even == 20
+    # once decided, the watch counts no more
+    watch, _ = _watch(pairs * 2)
+    assert watch.runs == 40

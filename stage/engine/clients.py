@@ -39,7 +39,7 @@ from ..joints import TORSO
 from ..rig import Rig
 from ..sensors.protocol import Inbound, JointCoordinates, Message, RegisterDevice
 from ..stats import DropCounter
-from .hands import reading_frames
+from .hands import CadenceWatch, reading_frames
 from .tracking import OffsetEstimator, Track
 
 log = logging.getLogger("stage.engine")
@@ -139,6 +139,9 @@ class ClientState:
         #: (``hands.reading_frames``; set by the registry from the rig and its type)
         self.hand_frames = 2
         self.hand_step = 0.5
+        #: whether its hand states change as that cadence says (None once decided)
+        self.hand_watch: CadenceWatch | None = CadenceWatch()
+        self.hand_verdict: dict | None = None     # the watch's figures once it decided
 
     def new_track(self, user: int) -> Track:
         """A new view of user ``user`` (replacing any it had)."""
@@ -333,6 +336,7 @@ class ClientRegistry:
             if msg.sensor_type != state.type:
                 state.type = msg.sensor_type
                 self._hand_frames(state)
+                state.hand_watch, state.hand_verdict = CadenceWatch(), None  # watch it anew
             state.frame_source = None  # its next skeleton binds its socket afresh
         state.last_seen = max(state.last_seen, now)
         if isinstance(msg, JointCoordinates):

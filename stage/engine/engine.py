@@ -43,6 +43,7 @@ from .output import Transport, ViewOutput, encode_stats
 from .people import People, fused_persons_stats
 from .rigstore import RigStore
 from .clients import ClientRegistry, ClientState
+from .hands import CadenceWatch
 from .tracking import Person, Track, Tracker
 
 log = logging.getLogger("stage.engine")
@@ -426,8 +427,31 @@ class Engine:
             # (older) one, on their own
             self.people.frame(track, client.transform, msg.joints, msg.conf, track.t, arrival)
             return False
-        return self.people.frame(track, client.transform, msg.joints, msg.conf, t, arrival,
-                                 hands)
+        fused = self.people.frame(track, client.transform, msg.joints, msg.conf, t, arrival,
+                                  hands)
+        watch = client.hand_watch
+        if fused and watch is not None and watch.frame(track.hand_run, track.hands):
+            self._hand_cadence(client, watch)
+        return fused
+
+    def _hand_cadence(self, client: ClientState, watch: CadenceWatch) -> None:
+        """The sensor's hand states said how it reads them: kept for the stats, and logged
+        when that contradicts the cadence its reports are counted by (hands.CadenceWatch)."""
+        client.hand_watch, client.hand_verdict = None, watch.stats()
+        seen = (f"{watch.even} of its first {watch.runs} short hand-state runs were an even "
+                f"number of frames")
+        if watch.verdict == 2 and client.hand_frames == 1:
+            log.warning("sensor %s (%s) seems to repeat each hand-state reading over two frames "
+                        "(%s) but its reports count as whole readings: its misreads count "
+                        "twice and hands may flicker; set 'sensors: %s: hand_reading_frames: 2' "
+                        "in the rig", client.id, client.type, seen, client.id)
+        elif watch.verdict == 1 and client.hand_frames >= 2:
+            log.info("sensor %s (%s) seems to read hand states every frame (%s) but its "
+                     "reports count as 1/%d of a reading: its hand changes go out later than "
+                     "they could; 'sensors: %s: hand_reading_frames: 1' in the rig counts them "
+                     "whole", client.id, client.type, seen, client.hand_frames, client.id)
+        else:
+            log.debug("sensor %s: %s (verdict %d)", client.id, seen, watch.verdict)
 
     def _drop_track(self, track: Track, t: float) -> None:
         self.people.drop_track(track, t)
@@ -496,6 +520,8 @@ class Engine:
                               "calibration": self.sensor_notes.get(cid, {}),
                               "restarts": c.restarts,
                               "hand_reading_frames": c.hand_frames,
+                              "hand_runs": c.hand_verdict or (
+                                  c.hand_watch.stats() if c.hand_watch else None),
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": fused_persons_stats(self.people),

@@ -328,3 +328,66 @@ class HandVoter:
         self._margin[hand][:] = [0.0] * 5
         self._since[hand][:] = [-1.0] * 5
         changed.append(hand)
+
+
+class CadenceWatch:
+    """Whether a sensor's hand states change the way its reading cadence says (one client).
+
+    A sensor that repeats each reading over two frames (a Kinect v2) changes its reported
+    state only every second frame, so its short runs of a state (a misread, mostly) last an
+    even number of frames; one that reads every frame has runs of any length, most misreads
+    one frame long. Over a sensor's first ``DECIDE_RUNS`` short runs (up to ``SHORT_RUN``
+    frames, begun and ended by a change, counted in frames that reached a person) the share
+    of even ones says which it is: at least ``EVEN_REPEATS`` a sensor that repeats
+    readings, at most ``EVEN_EVERY_FRAME`` one that reads every frame, else nothing is said.
+    ``verdict`` is then 2, 1 or 0, and the watch stops (it costs the engine nothing after);
+    the engine logs a verdict that contradicts the cadence in use (``Engine._hand_cadence``).
+    A frame lost on the way ends a run one frame short, so the shares are not 100 % and 0 %.
+    """
+
+    #: the longest run counted (frames): longer ones are the hand's true states, where a
+    #: lost frame would make the parity a coin toss
+    SHORT_RUN = 8
+    DECIDE_RUNS = 40
+    #: the even share at or over which the sensor repeats readings (a Kinect-like sensor
+    #: with 0.5 % of frames lost: 98-100 % in bench_hands' sensors), and at or under which
+    #: it reads every frame (independent misreads: about a fifth of short runs are even)
+    EVEN_REPEATS, EVEN_EVERY_FRAME = 0.8, 0.35
+
+    __slots__ = ("runs", "even", "verdict")
+
+    def __init__(self) -> None:
+        self.runs = self.even = 0
+        #: None while watching; then 2 (repeats readings over two frames), 1 (reads every
+        #: frame) or 0 (neither clearly)
+        self.verdict: int | None = None
+
+    def frame(self, run: list, hands: list) -> bool:
+        """A frame of a track whose hand states are now ``hands`` (left, right); ``run``:
+        the track's [state, state, run length, run length] (length -1: its run began with
+        the track, not with a change). True when this frame decides the verdict; once it
+        is decided, frames change nothing."""
+        if self.verdict is not None:
+            return False
+        decided = False
+        for h in (0, 1):
+            state = hands[h]
+            if state == run[h]:
+                if run[2 + h] >= 0:
+                    run[2 + h] += 1
+                continue
+            n = run[2 + h]
+            if 0 < n <= self.SHORT_RUN:
+                self.runs += 1
+                self.even += n % 2 == 0
+                if self.runs >= self.DECIDE_RUNS and self.verdict is None:
+                    share = self.even / self.runs
+                    self.verdict = (2 if share >= self.EVEN_REPEATS else
+                                    1 if share <= self.EVEN_EVERY_FRAME else 0)
+                    decided = True
+            run[2 + h] = -1 if run[h] is None else 1
+            run[h] = state
+        return decided
+
+    def stats(self) -> dict:
+        return {"short_runs": self.runs, "even": self.even, "looks_like": self.verdict}

@@ -87,6 +87,9 @@ class Track:
     #: the part of a hand-state reading each of its reports is: 1 / the frames its sensor
     #: repeats a reading over (``hands.reading_frames``; ``ClientState.hand_step``)
     hand_step: float = 0.5
+    #: its hand states' current runs, for the sensor's ``hands.CadenceWatch``: [left state,
+    #: right state, left run's frames, right's] (None, -1: none yet / begun with the track)
+    hand_run: list = field(default_factory=lambda: [None, None, -1, -1])
     person: int | None = None
     far_frames: int = 0                 # consecutive frames beyond release distance
 
