@@ -236,6 +236,27 @@ def test_broken_yaml_and_bad_top_level_keys(tmp_path):
         load_scenario("nope")
 
 
+def test_a_webcam_client_sensor_reads_hands_every_frame_unless_the_scenario_says(tmp_path):
+    # the engine counts a webcam-mediapipe sensor's hand reports as whole readings (rule 6 of
+    # docs/osc-api.md): the simulated one reads them every frame, as the client does
+    def frames_of(text: str) -> dict:
+        path = tmp_path / "s.yaml"
+        path.write_text(textwrap.dedent(text))
+        return {s.id: (s.type, s.model.hand_update_frames) for s in load_scenario(str(path)).sensors}
+
+    cams = """\
+        sensors:
+          kin: {position: [0, 1, -3], look_at: [0, 1, 0]}
+          cam: {position: [3, 1, 0], look_at: [0, 1, 0], type: webcam-mediapipe}
+        """
+    assert frames_of(cams) == {"kin": ("kinect2", 2), "cam": ("webcam-mediapipe", 1)}
+    assert frames_of(cams + "kinect: {hand_update_frames: 3}\n") == \
+        {"kin": ("kinect2", 3), "cam": ("webcam-mediapipe", 3)}
+    assert frames_of(cams.replace("type: webcam-mediapipe",
+                                  "type: webcam-mediapipe, kinect: {hand_update_frames: 2}")) == \
+        {"kin": ("kinect2", 2), "cam": ("webcam-mediapipe", 2)}
+
+
 def test_builtin_scenarios_load_and_the_default_matches_the_spec():
     assert "default" in builtin_names()
     for name in builtin_names():

@@ -249,6 +249,12 @@ def _point(where: Where, mapping: dict, key: str, sizes: tuple[int, ...] = (2,))
     return np.array(_numbers(where, mapping, key, mapping[key], sizes))
 
 
+#: sensor types whose clients read hand states in every frame (the simulator's sensors of
+#: any other type repeat each reading over ``hand_update_frames``, 2 by default, as a Kinect
+#: v2 does)
+EVERY_FRAME_HANDS = ("webcam-mediapipe",)
+
+
 def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
     section = data.get("sensors")
     if section is None:
@@ -276,9 +282,16 @@ def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
         else:
             pose = VirtualPose(position, math.radians(where.number(entry, "yaw", 0.0)),
                                math.radians(where.number(entry, "pitch", 0.0)), roll)
+        kind = str(entry.get("type", "kinect2"))
+        model = _model(where, entry.get("kinect"), base, f"kinect of '{sid}'")
+        if kind in EVERY_FRAME_HANDS and not any(
+                isinstance(given, dict) and "hand_update_frames" in given
+                for given in (data.get("kinect"), entry.get("kinect"))):
+            # a client of that type reads hand states every frame (the engine counts its
+            # readings so: stage.engine.hands.READING_FRAMES), unless the scenario says
+            model = replace(model, hand_update_frames=1)
         out.append(SensorSpec(
-            str(sid), pose, _model(where, entry.get("kinect"), base, f"kinect of '{sid}'"),
-            str(entry.get("type", "kinect2")),
+            str(sid), pose, model, kind,
             _optional(where, entry, "clock_offset"),
             _optional(where, entry, "clock_drift_ppm"),
             _optional(where, entry, "latency", minimum=0.0),
