@@ -7,7 +7,8 @@ A rig never mentions music. Every key, each optional (defaults shown)::
     stage_frame: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]
     sensors:
       kinect-a: {type: kinect2}
-      laptop-cam: {type: webcam-mediapipe, hand_reading_frames: 1}   # see fusion's key
+      phone: {type: pose-app, hand_reading_frames: 1}   # a type the engine does not know,
+                                   # whose client reads hand states every frame (fusion's key)
       kinect-b:
         type: kinect2
         calibration: {matrix: [[...4x4...]], method: rigid, fitness: 0.97, rms_m: 0.021,
