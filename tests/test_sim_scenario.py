@@ -242,7 +242,8 @@ def test_a_webcam_client_sensor_reads_hands_every_frame_unless_the_scenario_says
     def frames_of(text: str) -> dict:
         path = tmp_path / "s.yaml"
         path.write_text(textwrap.dedent(text))
-        return {s.id: (s.type, s.model.hand_update_frames) for s in load_scenario(str(path)).sensors}
+        sensors = load_scenario(str(path)).sensors
+        return {s.id: (s.type, s.model.hand_update_frames) for s in sensors}
 
     cams = """\
         sensors:

@@ -150,8 +150,9 @@ class HandVoter:
         self._candidate: list[tuple[HandState, float] | None] = [None, None]
         self._last_t: float | None = None
         #: the evidence (module docstring), per hand: each sensor's newest report not yet
-        #: counted (key -> (t, state, its weight as evidence)), the time of each sensor's last counted one,
-        #: and per state code the lead, the margin and when the lead's run began (-1: none)
+        #: counted (key -> (t, state, its weight as evidence)), the time of each sensor's
+        #: last counted one, and per state code the lead, the margin and when the lead's run
+        #: began (-1: none)
         self._pending: tuple[dict, dict] = ({}, {})
         #: per hand: the sensors whose pending report changed since the last count (only
         #: they can have a report not counted yet)
