@@ -71,7 +71,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import tempfile
 import time
@@ -94,7 +93,7 @@ from stage.joints import HandState, parse_hand_state  # noqa: E402
 from stage.rig import Rig  # noqa: E402
 from stage.sensors.importers.ntu import import_ntu, read_skeleton_file  # noqa: E402
 from stage.sensors.protocol import HandStateMsg, decode_datagram  # noqa: E402
-from stage.sensors.sim import Simulator  # noqa: E402
+from stage.sensors.sim import Simulator, ring_poses  # noqa: E402
 from stage.sensors.sim.scenario import load_scenario  # noqa: E402
 
 VIEW = ("127.0.0.1", 9)
@@ -108,7 +107,7 @@ FALSE_TARGET_PER_MIN, DELAY_TARGET_MS = 2.0, 150.0
 
 
 #: a sensor's type by how many frames its hand readings last, in the mixed rig (a Kinect v2,
-#: the project's webcam client: ``stage.engine.hands.READING_FRAMES``)
+#: the project's webcam client: ``stage.sensors.kinds.HAND_READING_FRAMES``)
 TYPE_OF_CADENCE = {2: "kinect2", 1: "webcam-mediapipe"}
 
 
@@ -122,10 +121,10 @@ def scenario(duration: float, hand_update_frames: int | tuple[int, ...] = 2) -> 
     sensors: dict = {"ring": {"count": 3, "radius": 2.5, "height": 0.8}}
     if isinstance(hand_update_frames, tuple):
         sensors = {}
-        for k, frames in enumerate(hand_update_frames):
-            a = 0.0 + 2 * math.pi * k / len(hand_update_frames)    # as ring_poses does
+        poses = ring_poses(len(hand_update_frames), 2.5, 0.8)      # where the ring puts them
+        for k, (frames, pose) in enumerate(zip(hand_update_frames, poses)):
             sensors[f"kinect-{chr(ord('a') + k)}"] = {
-                "position": [-2.5 * math.sin(a), 0.8, -2.5 * math.cos(a)],
+                "position": [float(v) for v in pose.position],
                 "look_at": [0.0, 0.8, 0.0], "type": TYPE_OF_CADENCE[frames],
                 "kinect": {"hand_update_frames": frames}}
         hand_update_frames = 2

@@ -102,7 +102,7 @@ class FusionSettings:
                                  # frames and repeats them in between, so the vote's evidence
                                  # counts a reading once (docs/osc-api.md, rule 6); None: by
                                  # each sensor's type (Kinect v2 2, docs/sources.md; the
-                                 # webcam client 1; others 2: ``hands.READING_FRAMES``), or
+                                 # webcam client 1; others 2: ``sensors.kinds``), or
                                  # the sensor's own ``hand_reading_frames`` in the rig
     rejoin_s: float = 3.0        # a person lost this recently...
     rejoin_m: float = 0.75       # ...who reappears this close to where they were lost...

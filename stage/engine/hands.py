@@ -77,6 +77,7 @@ from __future__ import annotations
 import math
 
 from ..joints import HandState
+from ..sensors.kinds import DEFAULT_HAND_READING_FRAMES, HAND_READING_FRAMES
 
 
 #: a state's decayed weight below this (one report four memories old) no longer counts
@@ -87,14 +88,6 @@ _FORGOTTEN = math.exp(-4.0)
 EVIDENCE_LEAD = 4.0
 EVIDENCE_MARGIN = 2.5
 _KNOWN = (int(HandState.OPEN), int(HandState.CLOSED), int(HandState.LASSO))
-#: the frames a sensor of each type repeats one hand-state reading over (``reading_frames``):
-#: a Kinect v2 reads hands every second frame (all 36 inner runs of the NTU RGB+D samples are
-#: an even number of frames, docs/sources.md); the project's webcam client classifies them in
-#: every frame (``stage.sensors.clients.webcam``). A type not listed: ``DEFAULT_READING_FRAMES``
-READING_FRAMES = {"kinect2": 2, "webcam-mediapipe": 1}
-#: sensors of a type not in ``READING_FRAMES`` (a client that did not register, a third
-#: party's): taken for a Kinect v2, whose repeats would otherwise count as new evidence
-DEFAULT_READING_FRAMES = 2
 #: per reported known state: the other two, in code order
 _OTHERS = {c: tuple(k for k in _KNOWN if k != c) for c in _KNOWN}
 _NEVER = float("-inf")
@@ -104,13 +97,12 @@ def reading_frames(sensor_type: str, sensor_setting: int | None = None,
                    rig_setting: int | None = None) -> int:
     """The frames one hand-state reading of a sensor lasts: the rig's setting for that
     sensor (``sensors: <id>: hand_reading_frames``), else the rig's for all sensors
-    (``fusion.hand_reading_frames``), else its type's (``READING_FRAMES``), else
-    ``DEFAULT_READING_FRAMES``."""
+    (``fusion.hand_reading_frames``), else its type's (``sensors.kinds``)."""
     if sensor_setting is not None:
         return sensor_setting
     if rig_setting is not None:
         return rig_setting
-    return READING_FRAMES.get(sensor_type, DEFAULT_READING_FRAMES)
+    return HAND_READING_FRAMES.get(sensor_type, DEFAULT_HAND_READING_FRAMES)
 
 
 def _pace(share: float, voters: int) -> float:

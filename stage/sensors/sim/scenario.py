@@ -19,6 +19,7 @@ import numpy as np
 from ...errors import ConfigError
 from ...joints import HandState, parse_hand_state
 from ...yamlio import MarkedDict, Where, load_marked
+from ..kinds import HAND_READING_FRAMES
 from .kinect import PRESETS, KinectModel, VirtualPose, ring_poses
 from .performer import Clip, Performer, Step, describe_step
 
@@ -249,12 +250,6 @@ def _point(where: Where, mapping: dict, key: str, sizes: tuple[int, ...] = (2,))
     return np.array(_numbers(where, mapping, key, mapping[key], sizes))
 
 
-#: sensor types whose clients read hand states in every frame (the simulator's sensors of
-#: any other type repeat each reading over ``hand_update_frames``, 2 by default, as a Kinect
-#: v2 does)
-EVERY_FRAME_HANDS = ("webcam-mediapipe",)
-
-
 def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
     section = data.get("sensors")
     if section is None:
@@ -284,11 +279,12 @@ def _sensors(where: Where, data: dict, base: KinectModel) -> list[SensorSpec]:
                                math.radians(where.number(entry, "pitch", 0.0)), roll)
         kind = str(entry.get("type", "kinect2"))
         model = _model(where, entry.get("kinect"), base, f"kinect of '{sid}'")
-        if kind in EVERY_FRAME_HANDS and not any(
+        if HAND_READING_FRAMES.get(kind) == 1 and not any(
                 isinstance(given, dict) and "hand_update_frames" in given
                 for given in (data.get("kinect"), entry.get("kinect"))):
             # a client of that type reads hand states every frame (the engine counts its
-            # readings so: stage.engine.hands.READING_FRAMES), unless the scenario says
+            # readings so), unless the scenario says otherwise; others repeat each reading
+            # over ``hand_update_frames``, 2 by default, as a Kinect v2 does
             model = replace(model, hand_update_frames=1)
         out.append(SensorSpec(
             str(sid), pose, model, kind,
