@@ -796,3 +796,29 @@ def test_a_sensor_whose_hand_states_contradict_its_cadence_is_named_once(caplog)
         engine = run("kinect2")          # what a Kinect does: nothing to say
     assert not [r for r in caplog.records if "seems to" in r.message]
     assert engine.stats()["clients"]["s0"]["hand_runs"]["looks_like"] == 2
+
+
+def test_a_sensor_of_unknown_cadence_takes_the_one_its_hand_states_show():
+    # a type nobody knows is taken for a Kinect (2 frames a reading) until its own hand
+    # states say otherwise; a known type or a rig key is never second-guessed
+    def run(kind: str, rig_frames=None) -> Engine:
+        engine, clock, out = make_engine(ring_poses(1))
+        engine.rig.sensors["s0"].hand_reading_frames = rig_frames
+        send(engine, encode_message("/registerDevice", "s0", kind))
+        pose = standing_pose((0.0, 2.5), 0.0)
+        # one reading a frame, a misread now and then: runs of 1 and 3 frames
+        states = ["open", "closed", "open", "open", "open", "lasso"] * 30
+        for state in states:
+            send(engine, frame("s0", 0, pose, hands=(state, state)))
+            clock.advance(1 / FPS)
+        return engine
+
+    engine = run("pose-app")
+    client = engine.clients["s0"]
+    assert engine.stats()["clients"]["s0"]["hand_reading_frames"] == 1
+    assert engine.stats()["clients"]["s0"]["hand_runs"]["looks_like"] == 1
+    assert {t.hand_step for t in client.tracks.values()} == {1.0}
+    for kind, rig_frames in (("kinect2", None), ("pose-app", 2)):
+        engine = run(kind, rig_frames)
+        assert engine.stats()["clients"]["s0"]["hand_reading_frames"] == 2
+        assert engine.stats()["clients"]["s0"]["hand_runs"]["looks_like"] == 1

@@ -37,6 +37,7 @@ import numpy as np
 
 from ..joints import TORSO
 from ..rig import Rig
+from ..sensors.kinds import HAND_READING_FRAMES
 from ..sensors.protocol import Inbound, JointCoordinates, Message, RegisterDevice
 from ..stats import DropCounter
 from .hands import CadenceWatch, reading_frames
@@ -139,6 +140,9 @@ class ClientState:
         #: (``hands.reading_frames``; set by the registry from the rig and its type)
         self.hand_frames = 2
         self.hand_step = 0.5
+        #: no rig key and a type of unknown cadence: ``hand_frames`` is a guess its own hand
+        #: states may correct (``Engine._hand_cadence``)
+        self.hand_frames_guessed = False
         #: whether its hand states change as that cadence says (None once decided)
         self.hand_watch: CadenceWatch | None = CadenceWatch()
         self.hand_verdict: dict | None = None     # the watch's figures once it decided
@@ -381,8 +385,10 @@ class ClientRegistry:
         it registered with; the rig's for it when it did not say)."""
         config = self.rig.sensors.get(state.id)
         kind = state.type if state.type != "unknown" or config is None else config.type
-        frames = reading_frames(kind, None if config is None else config.hand_reading_frames,
-                                self.rig.fusion.hand_reading_frames)
+        setting = None if config is None else config.hand_reading_frames
+        frames = reading_frames(kind, setting, self.rig.fusion.hand_reading_frames)
+        state.hand_frames_guessed = (setting is None and self.rig.fusion.hand_reading_frames
+                                     is None and kind not in HAND_READING_FRAMES)
         if frames != state.hand_frames:
             log.info("sensor %s (%s): a hand-state reading lasts %d frame%s", state.id,
                      state.type, frames, "" if frames == 1 else "s")

@@ -440,7 +440,15 @@ class Engine:
         client.hand_watch, client.hand_verdict = None, watch.stats()
         seen = (f"{watch.even} of its first {watch.runs} short hand-state runs were an even "
                 f"number of frames")
-        if watch.verdict == 2 and client.hand_frames == 1:
+        if watch.verdict in (1, 2) and watch.verdict != client.hand_frames \
+                and client.hand_frames_guessed:
+            # a type whose cadence nobody gave: its own runs tell, better than the guess
+            log.info("sensor %s (%s): %s, so its hand-state readings are taken to last %d "
+                     "frame%s from now on ('sensors: %s: hand_reading_frames' in the rig "
+                     "fixes it)", client.id, client.type, seen, watch.verdict,
+                     "" if watch.verdict == 1 else "s", client.id)
+            client.set_hand_frames(watch.verdict)
+        elif watch.verdict == 2 and client.hand_frames == 1:
             log.warning("sensor %s (%s) seems to repeat each hand-state reading over two frames "
                         "(%s) but its reports count as whole readings: its misreads count "
                         "twice and hands may flicker; set 'sensors: %s: hand_reading_frames: 2' "
