@@ -136,28 +136,26 @@ class ClientState:
         self.streamed = 0                 # /jointCoordinates accepted from it
         self.frame_source: tuple[str, int] | None = None  # the socket its skeletons come from
         self.restarts = 0
-        #: the frames its hand-state readings last and the part of one each report is
-        #: (``hands.reading_frames``; set by the registry from the rig and its type)
+        #: the frames its hand-state readings last (``hands.reading_frames``; set by the
+        #: registry from the rig and its type): each report is 1 / this of a reading
         self.hand_frames = 2
-        self.hand_step = 0.5
         #: no rig key and a type of unknown cadence: ``hand_frames`` is a guess its own hand
         #: states may correct (``Engine._hand_cadence``)
         self.hand_frames_guessed = False
-        #: whether its hand states change as that cadence says (None once decided)
-        self.hand_watch: CadenceWatch | None = CadenceWatch()
-        self.hand_verdict: dict | None = None     # the watch's figures once it decided
+        #: whether its hand states change as that cadence says (it stops once decided)
+        self.hand_watch = CadenceWatch()
 
     def new_track(self, user: int) -> Track:
         """A new view of user ``user`` (replacing any it had)."""
-        track = self.tracks[user] = Track(self.id, user, hand_step=self.hand_step)
+        track = self.tracks[user] = Track(self.id, user, hand_step=1.0 / self.hand_frames)
         return track
 
     def set_hand_frames(self, frames: int) -> None:
         """Its reports count as 1 / ``frames`` of a hand-state reading from now on, its users'
         tracks' too."""
-        self.hand_frames, self.hand_step = frames, 1.0 / frames
+        self.hand_frames = frames
         for track in self.tracks.values():
-            track.hand_step = self.hand_step
+            track.hand_step = 1.0 / frames
 
 
 class ClientRegistry:
@@ -340,7 +338,7 @@ class ClientRegistry:
             if msg.sensor_type != state.type:
                 state.type = msg.sensor_type
                 self._hand_frames(state)
-                state.hand_watch, state.hand_verdict = CadenceWatch(), None  # watch it anew
+                state.hand_watch = CadenceWatch()     # watch it anew
             state.frame_source = None  # its next skeleton binds its socket afresh
         state.last_seen = max(state.last_seen, now)
         if isinstance(msg, JointCoordinates):

@@ -430,14 +430,14 @@ class Engine:
         fused = self.people.frame(track, client.transform, msg.joints, msg.conf, t, arrival,
                                   hands)
         watch = client.hand_watch
-        if fused and watch is not None and watch.frame(track.hand_run, track.hands):
+        if fused and watch.verdict is None and watch.frame(track.hand_run, track.hands):
             self._hand_cadence(client, watch)
         return fused
 
     def _hand_cadence(self, client: ClientState, watch: CadenceWatch) -> None:
-        """The sensor's hand states said how it reads them: kept for the stats, and logged
-        when that contradicts the cadence its reports are counted by (hands.CadenceWatch)."""
-        client.hand_watch, client.hand_verdict = None, watch.stats()
+        """The sensor's hand states said how it reads them (hands.CadenceWatch, whose figures
+        the stats show): taken when its cadence was a guess, else logged when they contradict
+        the cadence its reports are counted by."""
         seen = (f"{watch.even} of its first {watch.runs} short hand-state runs were an even "
                 f"number of frames")
         if watch.verdict in (1, 2) and watch.verdict != client.hand_frames \
@@ -528,8 +528,7 @@ class Engine:
                               "calibration": self.sensor_notes.get(cid, {}),
                               "restarts": c.restarts,
                               "hand_reading_frames": c.hand_frames,
-                              "hand_runs": c.hand_verdict or (
-                                  c.hand_watch.stats() if c.hand_watch else None),
+                              "hand_runs": c.hand_watch.stats(),
                               "drops": drops.get(cid, {})}
                         for cid, c in self.clients.items()},
             "persons": fused_persons_stats(self.people),

@@ -334,7 +334,8 @@ class CadenceWatch:
     of even ones says which it is: at least ``EVEN_REPEATS`` a sensor that repeats
     readings, at most ``EVEN_EVERY_FRAME`` one that reads every frame, else nothing is said.
     ``verdict`` is then 2, 1 or 0, and the watch stops (it costs the engine nothing after);
-    the engine logs a verdict that contradicts the cadence in use (``Engine._hand_cadence``).
+    the engine logs a verdict that contradicts the cadence in use, or takes it for a sensor
+    whose cadence was a guess (``Engine._hand_cadence``).
     A frame lost on the way ends a run one frame short, so the shares are not 100 % and 0 %.
     """
 

@@ -85,7 +85,7 @@ class Track:
     hands: list[HandState] = field(default_factory=lambda: [HandState.UNKNOWN] * 2)
     arms_traded: int = 0                # 1 while its latest frame had the arms swapped back
     #: the part of a hand-state reading each of its reports is: 1 / the frames its sensor
-    #: repeats a reading over (``hands.reading_frames``; ``ClientState.hand_step``)
+    #: repeats a reading over (``hands.reading_frames``; ``ClientState.hand_frames``)
     hand_step: float = 0.5
     #: its hand states' current runs, for the sensor's ``hands.CadenceWatch``: [left state,
     #: right state, left run's frames, right's] (None, -1: none yet / begun with the track)
