@@ -238,6 +238,42 @@ def _play(engine, recorder, data, extra: dict | None = None) -> list[list[bytes]
     return sent
 
 
+def test_an_instant_chosen_again_steps_again_only_the_rows_its_choice_changes(monkeypatch):
+    """When a view joining an instant changes which joints the instant's earlier views give,
+    the core steps again only the rows whose masks changed (a row is independent of the
+    others in a step, so the rest are the same floats as before) and the new view in full;
+    what it keeps is still the engine's to the bit. (The kernel run uncompiled here, so
+    that its helpers can be watched.)"""
+    poses, data = three_dancers(seconds=3.0, aligned=True)
+    shadow = replay(shadow_engine(poses), data[:150])
+    rows_again: list[int] = []          # rows each partial step stepped again
+    inside = [False]
+    step_rows = jit._step_rows
+
+    def watched_step(S, *args):
+        if inside[0]:
+            rows_again.append(S.shape[2])
+        return step_rows(S, *args)
+
+    def watched_again(*args):
+        inside[0] = True
+        try:
+            return jit._PYTHON_HELPERS["_native_rows_again"](*args)
+        finally:
+            inside[0] = False
+
+    monkeypatch.setitem(jit._compiled, "_native_fold", jit._PYTHON_NATIVE["_native_fold"])
+    for name in ("_native_span", "_native_span_step"):
+        monkeypatch.setattr(jit, name, jit._PYTHON_HELPERS[name])
+    monkeypatch.setattr(jit, "_native_rows_again", watched_again)
+    monkeypatch.setattr(jit, "_step_rows", watched_step)
+    replayed = shadow.core.replayed
+    replay(shadow, data[150:210])
+    assert shadow.core.replayed > replayed
+    assert rows_again and max(rows_again) < 25
+    assert shadow.mismatches == []
+
+
 #: simulated Kinects whose views of an instant agree (a few mm of noise, no bias, no swaps)
 _AGREEING = dict(noise_m=0.002, noise_per_m=0.0, fit_bias_m=0.0, surface_bias_m=0.0,
                  occlusion_bias_m=0.0, swap_per_s=0.0, inferred_off_m=(0.0, 0.0))

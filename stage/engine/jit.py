@@ -987,9 +987,9 @@ def _native_start(S, st, held_z, held_t, t, z, r, init, outcome, used, pos,
 
 
 def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, ring_ht, ring_z,
-                 ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates, gate2,
-                 reject2, group_s, bias_var, inferred, tg, init, outcome, counts, pos,
-                 vel):  # pragma: no cover (compiled)
+                 ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, q, q_scale, rates,
+                 gate2, reject2, group_s, bias_var, inferred, tg, init, outcome, counts, pos,
+                 vel, given, given_n, first):  # pragma: no cover (compiled)
     """``fuser.Fuser._replay`` in the native core's ring: the M views of a span (sz (M, N, 3),
     sr, sconf (M, N), smeta (M, 6): t, recent row, arrival, size, -, the joints its
     instant's choice left out before) folded in again in capture order from the state in
@@ -997,9 +997,17 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
     into instants afresh (a view within ``group_s`` of its instant's first), each
     instant's joints chosen (``_native_choose``) and its views stepped in turn
     (``_step_rows``, rows to start or restart started: ``_native_start``). Each entry keeps
-    its view, mask, instant and the joints left out. Adds the steps' rows restarted, joints
-    downweighted and rejected to counts[0], counts[2], counts[3], and the change in joints
-    left out to counts[5]; pos and vel are the last step's."""
+    its view, mask, instant, the joints left out and its rows' outcomes (``ring_out``).
+    Adds the steps' rows restarted, joints downweighted and rejected to counts[0],
+    counts[2], counts[3], and the change in joints left out to counts[5]; pos and vel are
+    the last step's.
+
+    ``given_n`` > 0: the span is one instant whose views but the last are ring entries
+    ``first`` ... (their steps the core's own, outcomes kept), and ``given`` (M, N) its
+    joints chosen again. A row is independent of the others in a step, so a row whose mask
+    is the same in every view but the last has the same states as before: those entries
+    are copied, and only the rows whose masks changed are stepped again (the same floats
+    as stepping every row); the last view is stepped in full."""
     M = sz.shape[0]
     n = sz.shape[1]
     R = ring.shape[1]
@@ -1008,6 +1016,20 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
     mean = np.empty((n, 3))
     var = np.empty(n)
     prev = before
+    if given_n > 0:
+        prev = _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz,
+                                  ring_ht, ring_used, ring_mask, ring_view, ring_out, ring_z,
+                                  ring_r, ring_conf, q, q_scale, rates, gate2, reject2, init,
+                                  counts, given, first)
+        v = M - 1
+        e = out0 + v
+        if e >= R:
+            e -= R
+        _native_span_step(s, prev, e, v, smeta[0, 0], given[v], sz, sr, sconf, smeta, ring,
+                          ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf, ring_used,
+                          ring_mask, ring_view, ring_out, q, q_scale, rates, gate2, reject2,
+                          tg, init, outcome, counts, pos, vel, rr, cs)
+        return
     k = 0
     while k < M:
         at = smeta[k, 0]
@@ -1032,35 +1054,156 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
             e = out0 + v
             if e >= R:
                 e -= R
-            left = _native_masked(sr[v], masks[m], rr)
-            for j in range(n):
-                tg[j] = smeta[v, 0]
-            _step_rows(ring[s, prev], ring_t[s, prev], ring_hz[s, prev], ring_ht[s, prev], tg,
-                       sz[v], rr, q, q_scale, rates, gate2, reject2, ring[s, e], ring_t[s, e],
-                       ring_hz[s, e], ring_ht[s, e], outcome, ring_used[s, e], cs, pos, vel)
-            if cs[0] or cs[1]:
-                _native_start(ring[s, e], ring_t[s, e], ring_hz[s, e], ring_ht[s, e], tg, sz[v],
-                              rr, init, outcome, ring_used[s, e], pos, vel)
-            counts[0] += cs[0]
-            counts[2] += cs[2]
-            counts[3] += cs[3]
-            counts[5] += left - int(smeta[v, 5])
-            for j in range(n):
-                ring_r[s, e, j] = sr[v, j]
-                ring_conf[s, e, j] = sconf[v, j]
-                ring_mask[s, e, j] = masks[m, j]
-                for c in range(3):
-                    ring_z[s, e, j, c] = sz[v, j, c]
-            for c in range(4):
-                ring_view[s, e, c] = smeta[v, c]
-            ring_view[s, e, 4] = at
-            ring_view[s, e, 5] = left
+            _native_span_step(s, prev, e, v, at, masks[m], sz, sr, sconf, smeta, ring, ring_t,
+                              ring_hz, ring_ht, ring_z, ring_r, ring_conf, ring_used, ring_mask,
+                              ring_view, ring_out, q, q_scale, rates, gate2, reject2, tg, init,
+                              outcome, counts, pos, vel, rr, cs)
             prev = e
         k = g
 
 
+def _native_span_step(s, prev, e, v, at, mask, sz, sr, sconf, smeta, ring, ring_t, ring_hz,
+                      ring_ht, ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view,
+                      ring_out, q, q_scale, rates, gate2, reject2, tg, init, outcome, counts,
+                      pos, vel, rr, cs):  # pragma: no cover (compiled)
+    """A span's view ``v`` stepped in full from ring entry ``prev`` into entry ``e``, with
+    the joints ``mask`` lets through, its instant beginning at ``at`` (``_native_span``)."""
+    n = sz.shape[1]
+    left = _native_masked(sr[v], mask, rr)
+    for j in range(n):
+        tg[j] = smeta[v, 0]
+    _step_rows(ring[s, prev], ring_t[s, prev], ring_hz[s, prev], ring_ht[s, prev], tg,
+               sz[v], rr, q, q_scale, rates, gate2, reject2, ring[s, e], ring_t[s, e],
+               ring_hz[s, e], ring_ht[s, e], outcome, ring_used[s, e], cs, pos, vel)
+    if cs[0] or cs[1]:
+        _native_start(ring[s, e], ring_t[s, e], ring_hz[s, e], ring_ht[s, e], tg, sz[v],
+                      rr, init, outcome, ring_used[s, e], pos, vel)
+    counts[0] += cs[0]
+    counts[2] += cs[2]
+    counts[3] += cs[3]
+    counts[5] += left - int(smeta[v, 5])
+    for j in range(n):
+        ring_r[s, e, j] = sr[v, j]
+        ring_conf[s, e, j] = sconf[v, j]
+        ring_mask[s, e, j] = mask[j]
+        ring_out[s, e, j] = outcome[j]
+        for c in range(3):
+            ring_z[s, e, j, c] = sz[v, j, c]
+    for c in range(4):
+        ring_view[s, e, c] = smeta[v, c]
+    ring_view[s, e, 4] = at
+    ring_view[s, e, 5] = left
+
+
+def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ring_ht, ring_used,
+                       ring_mask, ring_view, ring_out, ring_z, ring_r, ring_conf, q, q_scale,
+                       rates, gate2, reject2, init, counts, given,
+                       first):  # pragma: no cover (compiled)
+    """``_native_span``'s instant chosen again, its views but the last (M - 1 ring entries from
+    ``first``, the state before them in entry ``before``): each entry copied to out0 + m,
+    the rows whose mask ``given`` changes in any of them stepped again there from the
+    entry before, as ``_native_span_step`` steps them (``_step_rows`` on those rows alone,
+    then ``_native_start``). Adds the entries' rows restarted, downweighted and rejected
+    (their outcomes, kept and new) and the change in joints left out to ``counts``;
+    returns the entry of the last of them."""
+    M = sz.shape[0]
+    n = sz.shape[1]
+    R = ring.shape[1]
+    dirty = np.zeros(n, dtype=np.bool_)
+    f = first
+    for m in range(M - 1):
+        for j in range(n):
+            if given[m, j] != ring_mask[s, f, j]:
+                dirty[j] = True
+        f = f + 1 if f + 1 < R else 0
+    C = 0
+    for j in range(n):
+        if dirty[j]:
+            C += 1
+    idx = np.empty(C, dtype=np.int64)
+    C = 0
+    for j in range(n):
+        if dirty[j]:
+            idx[C] = j
+            C += 1
+    S = np.empty((6, 2, C, 3))
+    st = np.empty(C)
+    hz = np.empty((C, 3))
+    ht = np.empty(C)
+    O = np.empty((6, 2, C, 3))
+    ot = np.empty(C)
+    ohz = np.empty((C, 3))
+    oht = np.empty(C)
+    tg = np.empty(C)
+    zc = np.empty((C, 3))
+    rc = np.empty(C)
+    oc = np.empty(C, dtype=np.int8)
+    uc = np.empty(C, dtype=np.bool_)
+    pc = np.empty((C, 3))
+    vc = np.empty((C, 3))
+    qc = np.empty(C if q_scale.shape[0] > 0 else 0)
+    for c in range(qc.shape[0]):
+        qc[c] = q_scale[idx[c]]
+    cs = np.empty(4, dtype=np.int64)
+    prev = before
+    f = first
+    for m in range(M - 1):
+        e = out0 + m
+        if e >= R:
+            e -= R
+        _native_move(s, f, e, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
+                     ring_used, ring_mask, ring_view, ring_out)
+        if C:
+            for c in range(C):
+                j = idx[c]
+                for a in range(6):
+                    for b in range(2):
+                        for x in range(3):
+                            S[a, b, c, x] = ring[s, prev, a, b, j, x]
+                st[c] = ring_t[s, prev, j]
+                ht[c] = ring_ht[s, prev, j]
+                tg[c] = smeta[m, 0]
+                rc[c] = sr[m, j] if given[m, j] else np.nan
+                for x in range(3):
+                    hz[c, x] = ring_hz[s, prev, j, x]
+                    zc[c, x] = sz[m, j, x]
+            _step_rows(S, st, hz, ht, tg, zc, rc, q, qc, rates, gate2, reject2, O, ot, ohz, oht,
+                       oc, uc, cs, pc, vc)
+            if cs[0] or cs[1]:
+                _native_start(O, ot, ohz, oht, tg, zc, rc, init, oc, uc, pc, vc)
+            for c in range(C):
+                j = idx[c]
+                for a in range(6):
+                    for b in range(2):
+                        for x in range(3):
+                            ring[s, e, a, b, j, x] = O[a, b, c, x]
+                ring_t[s, e, j] = ot[c]
+                ring_ht[s, e, j] = oht[c]
+                for x in range(3):
+                    ring_hz[s, e, j, x] = ohz[c, x]
+                ring_used[s, e, j] = uc[c]
+                ring_out[s, e, j] = oc[c]
+        left = 0
+        for j in range(n):
+            ring_mask[s, e, j] = given[m, j]
+            if not given[m, j] and math.isfinite(sr[m, j]):
+                left += 1
+            o = ring_out[s, e, j]
+            if o == 5:
+                counts[0] += 1
+            elif o == 3:
+                counts[2] += 1
+            elif o == 4:
+                counts[3] += 1
+        counts[5] += left - int(smeta[m, 5])
+        ring_view[s, e, 5] = left
+        prev = e
+        f = f + 1 if f + 1 < R else 0
+    return prev
+
+
 def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
-                 ring_used, ring_mask, ring_view):  # pragma: no cover (compiled)
+                 ring_used, ring_mask, ring_view, ring_out):  # pragma: no cover (compiled)
     """Ring entry ``src`` of slot ``s`` copied to entry ``dst``."""
     ring[s, dst] = ring[s, src]
     ring_t[s, dst] = ring_t[s, src]
@@ -1072,6 +1215,7 @@ def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ri
     ring_used[s, dst] = ring_used[s, src]
     ring_mask[s, dst] = ring_mask[s, src]
     ring_view[s, dst] = ring_view[s, src]
+    ring_out[s, dst] = ring_out[s, src]
 
 
 def _native_offsets(ints, times, z, conf, recent_t, joints, velocity, known, offsets, offset_s,
@@ -1097,7 +1241,8 @@ def _native_offsets(ints, times, z, conf, recent_t, joints, velocity, known, off
 
 
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
-                 ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, head, steps, valid,
+                 ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, head,
+                 steps, valid,
                  newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
                  replay_s, inferred, tg, init, outcome, counts, pos, vel, plan, stale, recent_conf,
                  recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre,
@@ -1146,6 +1291,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     cs = np.empty(4, dtype=np.int64)
     mean = np.empty((n, 3))
     var = np.empty(n)
+    given = np.empty((R, n), dtype=np.bool_)   # an instant's joints chosen again
     for i in range(K):
         s = slots[i]
         for j in range(i):
@@ -1162,6 +1308,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         plan[i, 1] = 0
         plan_ins = 0
         masked = False
+        given_n = 0
         # the oldest step kept began an instant when none was lost since the person was
         # taken (the Python path's history begins with one; ``take`` put it all in)
         whole = valid[s] == steps[s]
@@ -1220,6 +1367,17 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                 else:
                     plan[i, 0] = first
                     plan[i, 1] = back + 1
+                    # only the rows whose masks change are stepped again, where the
+                    # instant's steps are the core's own (their outcomes kept)
+                    given_n = G
+                    f = first
+                    for m in range(back):
+                        if ring_out[s, f, 0] < 0:
+                            given_n = 0
+                        f = f + 1 if f + 1 < R else 0
+                    for m in range(G):
+                        for k in range(n):
+                            given[m, k] = masks[m, k]
         else:
             # before the newest: after the last step captured no later than it
             e = a
@@ -1284,9 +1442,9 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
             before = first - 1 if first > 0 else R - 1
             counts[i, 4] = 1
             _native_span(s, before, b, sz, sr, sc, sm, ring, ring_t, ring_hz, ring_ht, ring_z,
-                         ring_r, ring_conf, ring_used, ring_mask, ring_view, q, q_scale, rates,
-                         gate2, reject2, group_s, bias_var, inferred, tg, init, outcome[i],
-                         counts[i], pos[i], vel[i])
+                         ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, q, q_scale,
+                         rates, gate2, reject2, group_s, bias_var, inferred, tg, init,
+                         outcome[i], counts[i], pos[i], vel[i], given, given_n, first)
             continue
         for k in range(n):
             tg[k] = ti
@@ -1303,6 +1461,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         for k in range(n):
             ring_r[s, b, k] = r[i, k]
             ring_conf[s, b, k] = conf[i, k]
+            ring_out[s, b, k] = outcome[i, k]
             if not masked:
                 ring_mask[s, b, k] = math.isfinite(r[i, k])
             for c in range(3):
@@ -1332,7 +1491,7 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                 if dst >= R:
                     dst -= R
                 _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r,
-                             ring_conf, ring_used, ring_mask, ring_view)
+                             ring_conf, ring_used, ring_mask, ring_view, ring_out)
             b = first + M - 1
             if b >= R:
                 b -= R
@@ -1429,7 +1588,8 @@ _NATIVE_SIGNATURES = {
                     "float64[:, :, :, :, :, ::1], float64[:, :, ::1], float64[:, :, :, ::1], "
                     "float64[:, :, ::1], float64[:, :, :, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], boolean[:, :, ::1], boolean[:, :, ::1], "
-                    "float64[:, :, ::1], int64[::1], int64[::1], int64[::1], float64[::1], "
+                    "float64[:, :, ::1], int8[:, :, ::1], int64[::1], int64[::1], int64[::1], "
+                    "float64[::1], "
                     "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
                     "float64, float64, float64, float64, float64, float64, "
                     "float64[::1], float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
@@ -1471,7 +1631,7 @@ _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
 _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_start",
-                   "_native_span", "_native_move")
+                   "_native_move", "_native_rows_again", "_native_span_step", "_native_span")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted

@@ -129,6 +129,10 @@ class NativeCore:
         self.ring_mask = np.zeros((n, d, N_JOINTS), dtype=bool)
         # t, recent row, arrival, size, anchor, joints its instant's choice left out
         self.ring_view = np.full((n, d, 6), np.nan)
+        # each row's outcome in the step that made the entry (``jit._step_rows``), -1 where
+        # not known (steps put in by ``take``): a changed choice steps only the rows it
+        # changes and counts the others' outcomes from here (``jit._native_rows_again``)
+        self.ring_out = np.full((n, d, N_JOINTS), -1, dtype=np.int8)
         self.head = np.zeros(n, dtype=np.int64)
         self.steps = np.zeros(n, dtype=np.int64)
         self.valid = np.zeros(n, dtype=np.int64)       # steps whose state before is kept
@@ -184,8 +188,8 @@ class NativeCore:
     @staticmethod
     def _arrays() -> tuple[str, ...]:
         return ("ring", "ring_t", "ring_hz", "ring_ht", "ring_z", "ring_r", "ring_conf",
-                "ring_used", "ring_mask", "ring_view", "head", "steps", "valid", "seeded",
-                "newest", "anchor",
+                "ring_used", "ring_mask", "ring_view", "ring_out", "head", "steps", "valid",
+                "seeded", "newest", "anchor",
                 "person_t",
                 *(f[0] for f in _FIELDS), "centre", "recent_conf", "recent_t", "offsets")
 
@@ -224,6 +228,7 @@ class NativeCore:
                 k -= 1
             members = hist[k:] if len(hist) - k <= self.depth - 3 else []
         self.seeded[s] = len(members)
+        self.ring_out[s] = -1
         states = [m.before for m in members[1:]] + [st]
         self._put(s, 0, members[0].before if members else st)
         for j, (m, after) in enumerate(zip(members, states), start=1):
@@ -433,8 +438,8 @@ class NativeCore:
         after the arrays grow)."""
         s, f = self.s, self.f
         return ((self.ring, self.ring_t, self.ring_hz, self.ring_ht, self.ring_z, self.ring_r,
-                 self.ring_conf, self.ring_used, self.ring_mask, self.ring_view, self.head,
-                 self.steps, self.valid, self.newest, self.anchor, self.person_t, self.q,
+                 self.ring_conf, self.ring_used, self.ring_mask, self.ring_view, self.ring_out,
+                 self.head, self.steps, self.valid, self.newest, self.anchor, self.person_t, self.q,
                  self.q_scale, self.rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
                  float(f.group_s), float(2.0 * f.view_bias_m ** 2), float(f.replay_s),
                  float(INFERRED), self._tg, self._init),
