@@ -133,6 +133,7 @@ def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
     return {"config": f"{n_sensors}x{n_people}", "datagrams": len(us_a),
             "a_p50": float(np.percentile(us_a, 50)), "a_p90": float(np.percentile(us_a, 90)),
             "b_p50": float(np.percentile(us_b, 50)), "b_p90": float(np.percentile(us_b, 90)),
+            "a_mean": float(us_a.mean()), "b_mean": float(us_b.mean()),
             "ratio": float(np.median(us_b / us_a)), "identical": same,
             "sent_same": (ea.output.transport.digest.digest() == eb.output.transport.digest.digest()
                           and ea.output.transport.count == eb.output.transport.count)}
@@ -166,13 +167,15 @@ def main() -> int:
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
               f"{'aligned' if args.aligned else 'spread'}{'; paced' if args.paced else ''}; load {open('/proc/loadavg').read().split()[0]}")
-        print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'B p50':>7} {'B p90':>7} "
-              f"{'median B/A':>10}  final joints identical, every datagram sent identical")
+        print(f"{'config':>7} {'datagrams':>9} {'A p50':>7} {'A p90':>7} {'A mean':>7} "
+              f"{'B p50':>7} {'B p90':>7} {'B mean':>7} {'median B/A':>10} {'mean B/A':>8}  "
+              f"final joints identical, every datagram sent identical")
         for config in args.configs.split(","):
             r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
                     args.paced, args.native_b, args.native)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
-                  f"{r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['ratio']:>10.2f}  {r['identical']}, "
+                  f"{r['a_mean']:>7.0f} {r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['b_mean']:>7.0f} "
+                  f"{r['ratio']:>10.2f} {r['b_mean'] / r['a_mean']:>8.2f}  {r['identical']}, "
                   f"{r['sent_same']}", flush=True)
     return 0
 
