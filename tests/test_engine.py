@@ -822,3 +822,63 @@ def test_a_sensor_of_unknown_cadence_takes_the_one_its_hand_states_show():
         engine = run(kind, rig_frames)
         assert engine.stats()["clients"]["s0"]["hand_reading_frames"] == 2
         assert engine.stats()["clients"]["s0"]["hand_runs"]["looks_like"] == 1
+
+
+def test_a_burst_sends_each_skeleton_at_once_and_its_hands_and_frame_after_the_last():
+    """Sensors in step: the engine thread takes a frame's datagrams together and sends each
+    one's skeleton as soon as it is folded in; the hand votes and the listeners' frame wait
+    for the burst's last datagram, so that the later datagrams do not wait for them. What
+    the views get is what datagram-by-datagram processing gives: the same skeletons and the
+    same hand states."""
+    poses = ring_poses(3, radius=3.0)
+    rng = np.random.default_rng(5)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
+    bursts = []
+    for f in range(40):
+        truth = standing_pose((0.0, 0.0), 0.1, 0.5)
+        hands = ("open", "open") if f < 10 else ("closed", "lasso")
+        bursts.append([frame(f"s{k}", 0, *kin.observe(truth, user=0), hands=hands)
+                       for k, kin in enumerate(kinects)])
+    runs = []
+    for together in (True, False):
+        engine, clock, out = make_engine(poses)
+        frames = []
+        engine.listeners.append(frames.append)
+        sent_at = []                      # (burst, messages sent so far) after each datagram
+        for b, burst in enumerate(bursts):
+            clock.set(100.0 + b / FPS)
+            items = []
+            for k, data in enumerate(burst):
+                decoded = decode_datagram(data, f"10.0.0.{k + 1}:5000")
+                items += [Inbound(m, clock.now(), (f"10.0.0.{k + 1}", 5000), tt)
+                          for m, tt in decoded.messages]
+            if together:
+                engine.process_taken(items)
+            else:
+                for k in range(len(burst)):
+                    engine.process([i for i in items if i.source[0] == f"10.0.0.{k + 1}"])
+            sent_at.append(len(out.sent))
+        runs.append((engine, out, frames, sent_at))
+    (a, out_a, frames_a, _), (b, out_b, frames_b, _) = runs
+    assert out_a.of("/jointCoordinates") == out_b.of("/jointCoordinates")
+    assert len(out_a.of("/jointCoordinates")) == 3 * len(bursts)
+    hands_a, hands_b = out_a.of("/handState"), out_b.of("/handState")
+    assert hands_a == hands_b
+    assert {tuple(h[1:]) for h in hands_a} >= {("left", "closed"), ("right", "lasso")}
+    # each burst's hand states after all its skeletons; one listeners' frame a burst
+    _, _, _, sent_at = runs[0]
+    names = [m.address for _, m in out_a.sent]
+    changes = 0
+    for begin, end in zip([0, *sent_at], sent_at):
+        burst = names[begin:end]
+        if "/handState" in burst:
+            changes += 1
+            last_joints = max(k for k, n in enumerate(burst) if n == "/jointCoordinates")
+            assert last_joints < burst.index("/handState")
+    assert changes >= 2
+    assert len(frames_a) == len(bursts) and len(frames_b) == 3 * len(bursts)
+    assert all(len(f.updated) == 1 for f in frames_a)
+    assert frames_a[-1].bodies.keys() == frames_b[-1].bodies.keys()
+    for pid, body in frames_a[-1].bodies.items():
+        assert body.hands == frames_b[-1].bodies[pid].hands
+        np.testing.assert_array_equal(body.joints, frames_b[-1].bodies[pid].joints)

@@ -211,8 +211,9 @@ class Engine:
             self.drops.add(client, reason)
         self.process([Inbound(m, arrival, source, tt) for m, tt in decoded.messages])
 
-    def process(self, batch: list[Inbound]) -> None:
-        """Apply a batch of inbound items in capture-time order, then emit once."""
+    def process(self, batch: list[Inbound], votes: bool = True) -> None:
+        """Apply a batch of inbound items in capture-time order, then emit once (``votes``
+        False: the skeletons alone, the rest with the next batch: ``People.flush``)."""
         started = time.perf_counter()
         # None: a timetag far from the real time (counted: bad_time)
         timed = [(t, k, item) for k, (t, item) in
@@ -239,7 +240,7 @@ class Engine:
                 for _ in range(1 + len(hands)):
                     self.drops.add(_client_key(item), "internal_error")
         try:
-            self.people.flush()
+            self.people.flush(votes)
         except Exception:  # a bug must not end the show: log it, lose this batch's frames
             log.exception("error while fusing a batch; its frames are dropped")
         if self._stats_replies:
@@ -501,17 +502,26 @@ class Engine:
                                    limit=512)
             except queue.Empty:
                 batch = []
-            # one datagram at a time, so that its frames go out as soon as they are folded in
-            # and not after everything else that came at the same instant (sensors in step);
-            # a backlog is taken in one go, sending each person once, to catch up
-            chunks = list(_by_datagram(batch))
-            for chunk in (chunks if len(chunks) <= BACKLOG_DATAGRAMS else [batch]):
-                self.process(chunk)
+            self.process_taken(batch)
             now = self.clock.now()
             if now - self._last_tick >= tick_s:
                 self.tick(now)
             elif due is not None:
                 self.people.serve_fixed_rate(now)
+
+    def process_taken(self, batch: list[Inbound]) -> None:
+        """What the engine thread took from the queue at once (``run``): one datagram at a
+        time, so that its frames go out as soon as they are folded in and not after
+        everything else that came at the same instant (sensors in step); the hand votes and
+        the listeners' frame (a piece) once, after the last, so that the later datagrams do
+        not wait for them. A backlog is taken in one go, sending each person once, to catch
+        up."""
+        chunks = list(_by_datagram(batch))
+        if len(chunks) > BACKLOG_DATAGRAMS:
+            chunks = [batch]
+        last = len(chunks) - 1
+        for k, chunk in enumerate(chunks):
+            self.process(chunk, votes=k == last)
 
     def stats(self) -> dict:
         now = self.clock.now()

@@ -138,6 +138,11 @@ class People:
         #: after the batch's skeletons are sent (``_emit``)
         self._reports: list[tuple] = []
         self._lost: list[int] = []
+        #: persons whose skeletons went out in a burst's earlier datagrams, their hand votes
+        #: and listeners' frame held for its last (``flush(votes=False)``), and of those
+        #: the ones first announced then
+        self._held: dict[int, None] = {}
+        self._held_new: list[int] = []
         #: this batch's frames computed together (``prepare_frames``): id of the frame's
         #: joints array -> (joints, conf, transform, then what ``jit.frame_r`` gives for it:
         #: stage-space joints, conf, traded bits, variances, trunk length, joints seen)
@@ -328,15 +333,25 @@ class People:
             self._hands_dirty.add(pid)  # one voter fewer
 
     # ------------------------------------------------------------ fusion
-    def flush(self) -> None:
-        """Fold the batch's frames into their persons, then send what changed."""
+    def flush(self, votes: bool = True) -> None:
+        """Fold the batch's frames into their persons, then send what changed.
+
+        ``votes`` False (a datagram of a burst with more of it waiting, ``Engine.run``): the
+        skeletons alone; the hand votes, lost persons and the listeners' frame wait for the
+        next flush with ``votes``, so that the burst's later datagrams do not wait for them."""
         if self._views:
             self._fold()
         if self._framed:
             # (after the fold: the core takes the batch's arrays as they are, ``_fold_core``)
             self._framed.clear()
             self._batch = None
-        self._emit()
+        if votes:
+            self._emit()
+        elif self._dirty:
+            self._send_joints(self._held_new)
+            self._held.update(dict.fromkeys(self._dirty))
+            self._dirty = {}
+            self._forecasts.clear()
 
     def _offsets_held(self) -> None:
         """The view offsets of the batch's frames of persons the native core holds, in one
@@ -657,11 +672,46 @@ class People:
         votes (the batch's hand reports are given to the voters only now), so that no
         skeleton waits for hand work. A frame's latency ends when its person's skeleton is
         sent: the first datagram out that includes it."""
-        if not self._dirty and not self._lost and not self._hands_dirty:
+        if not self._dirty and not self._lost and not self._hands_dirty and not self._held:
             self._give_reports()     # (a late frame's: its vote comes with the next change)
             return
         now = self.clock.now()
-        new: list[int] = []
+        new, self._held_new = self._held_new, []
+        sent_joints = self._send_joints(new)
+        if self._held:               # (a burst's earlier datagrams' persons, in their order)
+            held = [self.persons.get(pid) for pid in self._held if pid not in self._dirty]
+            sent_joints = [p for p in held if p is not None] + sent_joints
+            sent_ids = self._dirty.keys() | self._held.keys()
+            self._held = {}
+        else:
+            sent_ids = self._dirty.keys()
+        self._give_reports()
+        updated: list[int] = []
+        for pid in sorted(self._hands_dirty - sent_ids):
+            # a hand message alone re-sends no joints: only a changed vote goes out
+            person = self.persons.get(pid)
+            if person is None or not person.announced:
+                continue
+            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
+                updated.append(pid)
+        for person in sent_joints:
+            self._send_hands(person, person.voter.update(person.t))
+            updated.append(person.id)
+        lost = self._lost
+        for pid in lost:
+            self.output.lost_user(pid)
+        self._dirty, self._lost = {}, []
+        self._hands_dirty.clear()
+        if self.listeners and (updated or lost):
+            forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
+            self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
+                                           tuple(lost), forecasts))
+        self._forecasts.clear()
+
+    def _send_joints(self, new: list[int]) -> list[Person]:
+        """Every updated person's skeleton (and forecasts) to the views, a person found
+        announced first (its id added to ``new``); each frame's latency ends here. Returns
+        the persons sent."""
         sent_joints: list[Person] = []
         for pid, arrivals in self._dirty.items():
             person = self.persons.get(pid)
@@ -682,30 +732,9 @@ class People:
             for arrival in arrivals:
                 self.latency.add(sent - arrival)
             sent_joints.append(person)
-        self._give_reports()
-        updated: list[int] = []
-        for pid in sorted(self._hands_dirty - self._dirty.keys()):
-            # a hand message alone re-sends no joints: only a changed vote goes out
-            person = self.persons.get(pid)
-            if person is None or not person.announced:
-                continue
-            if self._send_hands(person, person.voter.update(max(person.t, person.voter.newest))):
-                updated.append(pid)
-        for person in sent_joints:
-            self._send_hands(person, person.voter.update(person.t))
-            updated.append(person.id)
-        lost = self._lost
-        for pid in lost:
-            self.output.lost_user(pid)
-        self._dirty, self._lost = {}, []
-        self._hands_dirty.clear()
         if self._encoded:
             self._encoded.clear()
-        if self.listeners and (updated or lost):
-            forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
-            self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
-                                           tuple(lost), forecasts))
-        self._forecasts.clear()
+        return sent_joints
 
     def _send_hands(self, person: Person, changed: list[int]) -> bool:
         for hand in changed:
