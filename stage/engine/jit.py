@@ -1100,12 +1100,14 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
                        rates, gate2, reject2, init, counts, given,
                        first):  # pragma: no cover (compiled)
     """``_native_span``'s instant chosen again, its views but the last (M - 1 ring entries from
-    ``first``, the state before them in entry ``before``): each entry copied to out0 + m,
-    the rows whose mask ``given`` changes in any of them stepped again there from the
-    entry before, as ``_native_span_step`` steps them (``_step_rows`` on those rows alone,
-    then ``_native_start``). Adds the entries' rows restarted, downweighted and rejected
-    (their outcomes, kept and new) and the change in joints left out to ``counts``;
-    returns the entry of the last of them."""
+    ``first``, the state before them in entry ``before``): the rows whose mask ``given``
+    changes in any of them stepped again from the entry before, as ``_native_span_step``
+    steps them (``_step_rows`` on those rows alone, then ``_native_start``), into entry
+    out0 + m; there only those rows, the mask, the outcomes of those rows and the joints
+    left out are written (the commit writes back only those, ``_native_rows_back``), but
+    for the last of them, copied whole first: the last view's step reads it. Adds the
+    entries' rows restarted, downweighted and rejected (their outcomes, kept and new) and
+    the change in joints left out to ``counts``; returns the entry of the last of them."""
     M = sz.shape[0]
     n = sz.shape[1]
     R = ring.shape[1]
@@ -1151,8 +1153,9 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
         e = out0 + m
         if e >= R:
             e -= R
-        _native_move(s, f, e, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
-                     ring_used, ring_mask, ring_view, ring_out)
+        if m == M - 2:
+            _native_move(s, f, e, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
+                         ring_used, ring_mask, ring_view, ring_out)
         if C:
             for c in range(C):
                 j = idx[c]
@@ -1188,7 +1191,7 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
             ring_mask[s, e, j] = given[m, j]
             if not given[m, j] and math.isfinite(sr[m, j]):
                 left += 1
-            o = ring_out[s, e, j]
+            o = ring_out[s, e, j] if dirty[j] else ring_out[s, f, j]
             if o == 5:
                 counts[0] += 1
             elif o == 3:
@@ -1197,9 +1200,45 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
                 counts[3] += 1
         counts[5] += left - int(smeta[m, 5])
         ring_view[s, e, 5] = left
+        ring_view[s, e, 4] = ring_view[s, f, 4]
         prev = e
         f = f + 1 if f + 1 < R else 0
     return prev
+
+
+def _native_rows_back(s, b, first, G, ring, ring_t, ring_hz, ring_ht, ring_used, ring_mask,
+                      ring_view, ring_out):  # pragma: no cover (compiled)
+    """An instant chosen again committed (``_native_rows_again``): of the G entries after the
+    head from ``b``, the rows whose mask differs from entry ``first`` + m's in any of them,
+    their outcomes, the masks and the joints left out, written back into entries
+    ``first`` ... (those rows are the ones stepped again; the others are the same floats)."""
+    R = ring.shape[1]
+    n = ring_mask.shape[2]
+    dirty = np.zeros(n, dtype=np.bool_)
+    for m in range(G):
+        src = b + m if b + m < R else b + m - R
+        dst = first + m if first + m < R else first + m - R
+        for j in range(n):
+            if ring_mask[s, src, j] != ring_mask[s, dst, j]:
+                dirty[j] = True
+    for m in range(G):
+        src = b + m if b + m < R else b + m - R
+        dst = first + m if first + m < R else first + m - R
+        for j in range(n):
+            ring_mask[s, dst, j] = ring_mask[s, src, j]
+            if not dirty[j]:
+                continue
+            for a in range(6):
+                for c in range(2):
+                    for x in range(3):
+                        ring[s, dst, a, c, j, x] = ring[s, src, a, c, j, x]
+            ring_t[s, dst, j] = ring_t[s, src, j]
+            ring_ht[s, dst, j] = ring_ht[s, src, j]
+            for x in range(3):
+                ring_hz[s, dst, j, x] = ring_hz[s, src, j, x]
+            ring_used[s, dst, j] = ring_used[s, src, j]
+            ring_out[s, dst, j] = ring_out[s, src, j]
+        ring_view[s, dst, 5] = ring_view[s, src, 5]
 
 
 def _native_move(s, src, dst, ring, ring_t, ring_hz, ring_ht, ring_z, ring_r, ring_conf,
@@ -1445,6 +1484,8 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
                          ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, q, q_scale,
                          rates, gate2, reject2, group_s, bias_var, inferred, tg, init,
                          outcome[i], counts[i], pos[i], vel[i], given, given_n, first)
+            if given_n > 0:
+                plan[i, 1] = -M           # (the commit writes back the changed rows alone)
             continue
         for k in range(n):
             tg[k] = ti
@@ -1480,10 +1521,17 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
         if b == R:
             b = 0
         M = plan[i, 1]
+        rows_only = M < 0                 # (an instant chosen again: ``_native_rows_again``)
+        if rows_only:
+            M = -M
+            plan[i, 1] = M
         if M:
             # the replayed span moved from the entries after the head into place
             first = plan[i, 0]
-            for m in range(M):
+            if rows_only:
+                _native_rows_back(s, b, first, M - 1, ring, ring_t, ring_hz, ring_ht,
+                                  ring_used, ring_mask, ring_view, ring_out)
+            for m in range(M - 1 if rows_only else 0, M):
                 src = b + m
                 if src >= R:
                     src -= R
@@ -1631,7 +1679,8 @@ _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
 _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_start",
-                   "_native_move", "_native_rows_again", "_native_span_step", "_native_span")
+                   "_native_move", "_native_rows_back", "_native_rows_again", "_native_span_step",
+                   "_native_span")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted
