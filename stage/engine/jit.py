@@ -1005,9 +1005,10 @@ def _native_span(s, before, out0, sz, sr, sconf, smeta, ring, ring_t, ring_hz, r
     ``given_n`` > 0: the span is one instant whose views but the last are ring entries
     ``first`` ... (their steps the core's own, outcomes kept), and ``given`` (M, N) its
     joints chosen again. A row is independent of the others in a step, so a row whose mask
-    is the same in every view but the last has the same states as before: those entries
-    are copied, and only the rows whose masks changed are stepped again (the same floats
-    as stepping every row); the last view is stepped in full."""
+    is the same in every view but the last has the same states as before: only the rows
+    whose masks changed are stepped again (the same floats as stepping every row), and the
+    commit writes back only those (``_native_rows_again``, ``_native_rows_back``); the last
+    view is stepped in full."""
     M = sz.shape[0]
     n = sz.shape[1]
     R = ring.shape[1]
@@ -1200,7 +1201,6 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
                 counts[3] += 1
         counts[5] += left - int(smeta[m, 5])
         ring_view[s, e, 5] = left
-        ring_view[s, e, 4] = ring_view[s, f, 4]
         prev = e
         f = f + 1 if f + 1 < R else 0
     return prev
@@ -1280,12 +1280,11 @@ def _native_offsets(ints, times, z, conf, recent_t, joints, velocity, known, off
 
 
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
-                 ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, head,
-                 steps, valid,
-                 newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
+                 ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, head, steps,
+                 valid, newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
                  replay_s, inferred, tg, init, outcome, counts, pos, vel, plan, stale, recent_conf,
-                 recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre,
-                 carry_on, hold_back, parents, children, torso, names, name_end, buf, offsets,
+                 recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre, carry_on,
+                 hold_back, parents, children, torso, names, name_end, buf, offsets,
                  centred):  # pragma: no cover (compiled)
     """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons
     folded as ``fuser.Fuser.fold`` folds them, settled and encoded, in one call.
@@ -1321,7 +1320,8 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     caller finds the centre). Returns K. ``counts`` (K, 6) per view: rows restarted, rows
     started (of a plain step; a replay's are not counted), joints downweighted, rejected
     and held, 1 if replayed, the change in joints left out by instants' choices. ``init``
-    (3,): ``_native_start``'s. ``plan`` (K, 2): scratch."""
+    (3,): ``_native_start``'s. ``plan`` (K, 2): scratch (a view's span: first entry, and
+    its length, negative where only changed rows are written back)."""
     K = slots.shape[0]
     R = ring.shape[1]
     n = z.shape[1]
