@@ -336,9 +336,10 @@ class People:
     def flush(self, votes: bool = True) -> None:
         """Fold the batch's frames into their persons, then send what changed.
 
-        ``votes`` False (a datagram of a burst with more of it waiting, ``Engine.run``): the
-        skeletons alone; the hand votes, lost persons and the listeners' frame wait for the
-        next flush with ``votes``, so that the burst's later datagrams do not wait for them."""
+        ``votes`` False (a datagram of a burst with more of it waiting,
+        ``Engine.process_taken``): the skeletons alone; the hand votes, lost persons and the
+        listeners' frame wait for the next flush with ``votes``, so that the burst's later
+        datagrams do not wait for them."""
         if self._views:
             self._fold()
         if self._framed:
