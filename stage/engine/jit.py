@@ -1160,16 +1160,11 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
         if C:
             for c in range(C):
                 j = idx[c]
-                for a in range(6):
-                    for b in range(2):
-                        for x in range(3):
-                            S[a, b, c, x] = ring[s, prev, a, b, j, x]
-                st[c] = ring_t[s, prev, j]
-                ht[c] = ring_ht[s, prev, j]
+                _native_row(ring[s, prev], ring_t[s, prev], ring_hz[s, prev], ring_ht[s, prev], j,
+                            S, st, hz, ht, c)
                 tg[c] = smeta[m, 0]
                 rc[c] = sr[m, j] if given[m, j] else np.nan
                 for x in range(3):
-                    hz[c, x] = ring_hz[s, prev, j, x]
                     zc[c, x] = sz[m, j, x]
             _step_rows(S, st, hz, ht, tg, zc, rc, q, qc, rates, gate2, reject2, O, ot, ohz, oht,
                        oc, uc, cs, pc, vc)
@@ -1177,14 +1172,8 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
                 _native_start(O, ot, ohz, oht, tg, zc, rc, init, oc, uc, pc, vc)
             for c in range(C):
                 j = idx[c]
-                for a in range(6):
-                    for b in range(2):
-                        for x in range(3):
-                            ring[s, e, a, b, j, x] = O[a, b, c, x]
-                ring_t[s, e, j] = ot[c]
-                ring_ht[s, e, j] = oht[c]
-                for x in range(3):
-                    ring_hz[s, e, j, x] = ohz[c, x]
+                _native_row(O, ot, ohz, oht, c, ring[s, e], ring_t[s, e], ring_hz[s, e],
+                            ring_ht[s, e], j)
                 ring_used[s, e, j] = uc[c]
                 ring_out[s, e, j] = oc[c]
         left = 0
@@ -1204,6 +1193,19 @@ def _native_rows_again(s, before, out0, sz, sr, smeta, ring, ring_t, ring_hz, ri
         prev = e
         f = f + 1 if f + 1 < R else 0
     return prev
+
+
+def _native_row(S, st, hz, ht, i, T, tt, hzt, htt, k):  # pragma: no cover (compiled)
+    """Row ``i`` of the filter state S (6, 2, N, 3), st, hz, ht copied to row ``k`` of T, tt,
+    hzt, htt (a ring entry's, or a few rows' gathered apart)."""
+    for a in range(6):
+        for b in range(2):
+            for x in range(3):
+                T[a, b, k, x] = S[a, b, i, x]
+    tt[k] = st[i]
+    htt[k] = ht[i]
+    for x in range(3):
+        hzt[k, x] = hz[i, x]
 
 
 def _native_rows_back(s, b, first, G, ring, ring_t, ring_hz, ring_ht, ring_used, ring_mask,
@@ -1228,14 +1230,8 @@ def _native_rows_back(s, b, first, G, ring, ring_t, ring_hz, ring_ht, ring_used,
             ring_mask[s, dst, j] = ring_mask[s, src, j]
             if not dirty[j]:
                 continue
-            for a in range(6):
-                for c in range(2):
-                    for x in range(3):
-                        ring[s, dst, a, c, j, x] = ring[s, src, a, c, j, x]
-            ring_t[s, dst, j] = ring_t[s, src, j]
-            ring_ht[s, dst, j] = ring_ht[s, src, j]
-            for x in range(3):
-                ring_hz[s, dst, j, x] = ring_hz[s, src, j, x]
+            _native_row(ring[s, src], ring_t[s, src], ring_hz[s, src], ring_ht[s, src], j,
+                        ring[s, dst], ring_t[s, dst], ring_hz[s, dst], ring_ht[s, dst], j)
             ring_used[s, dst, j] = ring_used[s, src, j]
             ring_out[s, dst, j] = ring_out[s, src, j]
         ring_view[s, dst, 5] = ring_view[s, src, 5]
@@ -1282,10 +1278,10 @@ def _native_offsets(ints, times, z, conf, recent_t, joints, velocity, known, off
 def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, ring_hz, ring_ht,
                  ring_z, ring_r, ring_conf, ring_used, ring_mask, ring_view, ring_out, head, steps,
                  valid, newest, anchor, person_t, q, q_scale, rates, gate2, reject2, group_s, bias2,
-                 replay_s, inferred, tg, init, outcome, counts, pos, vel, plan, stale, recent_conf,
-                 recent_t, joints, velocity, pconf, known, carried, tracked, hold, centre, carry_on,
-                 hold_back, parents, children, torso, names, name_end, buf, offsets,
-                 centred):  # pragma: no cover (compiled)
+                 replay_s, inferred, tg, init, given, outcome, counts, pos, vel, plan, stale,
+                 recent_conf, recent_t, joints, velocity, pconf, known, carried, tracked, hold,
+                 centre, carry_on, hold_back, parents, children, torso, names, name_end, buf,
+                 offsets, centred):  # pragma: no cover (compiled)
     """The native core's datagram (``native.NativeCore.fold``): K views of K distinct persons
     folded as ``fuser.Fuser.fold`` folds them, settled and encoded, in one call.
 
@@ -1321,7 +1317,8 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     started (of a plain step; a replay's are not counted), joints downweighted, rejected
     and held, 1 if replayed, the change in joints left out by instants' choices. ``init``
     (3,): ``_native_start``'s. ``plan`` (K, 2): scratch (a view's span: first entry, and
-    its length, negative where only changed rows are written back)."""
+    its length, negative where only changed rows are written back); ``given`` (R, N):
+    scratch (an instant's joints chosen again)."""
     K = slots.shape[0]
     R = ring.shape[1]
     n = z.shape[1]
@@ -1330,7 +1327,6 @@ def _native_fold(slots, t, z, r, conf, rows, pid, arrival, size, ring, ring_t, r
     cs = np.empty(4, dtype=np.int64)
     mean = np.empty((n, 3))
     var = np.empty(n)
-    given = np.empty((R, n), dtype=np.bool_)   # an instant's joints chosen again
     for i in range(K):
         s = slots[i]
         for j in range(i):
@@ -1640,7 +1636,8 @@ _NATIVE_SIGNATURES = {
                     "float64[::1], "
                     "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
                     "float64, float64, float64, float64, float64, float64, "
-                    "float64[::1], float64[::1], int8[:, ::1], int64[:, ::1], float64[:, :, ::1], "
+                    "float64[::1], float64[::1], boolean[:, ::1], int8[:, ::1], int64[:, ::1], "
+                    "float64[:, :, ::1], "
                     "float64[:, :, ::1], int64[:, ::1], float64, float64[:, :, ::1], "
                     "float64[:, ::1], float64[:, :, ::1], "
                     "float64[:, :, ::1], float64[:, ::1], boolean[:, ::1], boolean[:, ::1], "
@@ -1679,8 +1676,8 @@ _PYTHON = {name: globals()[name] for name in _SIGNATURES}
 _PYTHON_NATIVE = {name: globals()[name] for name in _NATIVE_SIGNATURES}
 #: what the native core's kernel calls besides the kernels above
 _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_native_start",
-                   "_native_move", "_native_rows_back", "_native_rows_again", "_native_span_step",
-                   "_native_span")
+                   "_native_move", "_native_row", "_native_rows_back", "_native_rows_again",
+                   "_native_span_step", "_native_span")
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted

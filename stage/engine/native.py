@@ -113,6 +113,8 @@ class NativeCore:
         #: what a row started afresh begins with (``jit._native_start``)
         self._init = np.array([smoothing.initial_velocity_var, *initial_mu(smoothing)],
                               dtype=float)
+        #: an instant's joints chosen again (``jit._native_fold``'s scratch)
+        self._given = np.empty((self.depth, N_JOINTS), dtype=bool)
 
     # ------------------------------------------------------------ slots
     def _alloc(self, n: int) -> None:
@@ -442,7 +444,7 @@ class NativeCore:
                  self.head, self.steps, self.valid, self.newest, self.anchor, self.person_t, self.q,
                  self.q_scale, self.rates, float(s.gate_sigma ** 2), float(s.reject_sigma ** 2),
                  float(f.group_s), float(2.0 * f.view_bias_m ** 2), float(f.replay_s),
-                 float(INFERRED), self._tg, self._init),
+                 float(INFERRED), self._tg, self._init, self._given),
                 (float(f.stale_s), self.recent_conf, self.recent_t, self.joints, self.velocity,
                  self.conf, self.known, self.carried, self.tracked, self.hold, self.centre,
                  bool(f.carry_untracked), bool(f.hold_back_inferred), _PARENTS,
