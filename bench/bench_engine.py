@@ -40,7 +40,8 @@ sends every skeleton on, re-encoded one datagram each as the engine sends a
 fused one, but fuses nothing (``relay_serve``) -- the least any Python server
 that keeps stage's wire API costs here. ``--profile DIR`` runs
 the server with one cProfile per thread; ``--server-cmd`` benchmarks another
-server command (A/B runs); ``--wait-idle S`` waits for a quiet machine before
+server command (A/B runs); ``--piece YAML`` runs ``stage play YAML`` as the server (the
+piece listening on the engine thread, its MIDI written to a file: the performer's case); ``--wait-idle S`` waits for a quiet machine before
 each configuration. The servers run from a snapshot of stage/ taken at the
 start, so one run measures one version of the code even while it is being
 edited (``--live`` to use the working tree). PASS/FAIL is printed against the
@@ -489,6 +490,8 @@ class Options:
     kinect_errors: bool = False          # the whole Kinect model (ERROR_KINECT)
     native: bool | None = None           # fusion.native forced on (rows "native") or off
                                          # (rows "python"); None: the rig's default
+    piece: str | None = None             # run `stage play PIECE` (the piece listening, MIDI to
+                                         # a file) instead of `stage serve`
 
 
 def save_lean(rig: Rig, path: str) -> None:
@@ -525,11 +528,16 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
     if opt.trace and not opt.relay:
         trace_prefix = os.path.join(opt.trace, f"{'aligned' if opt.aligned else 'spread'}-"
                                     f"{sensors}x{people}")
+    midi_path = os.path.join(tmp.name, "out.mid")
+    play = ["--play", opt.piece, "--midi-file", midi_path] if opt.piece else []
     if opt.server_cmd:
         cmd = opt.server_cmd + ["--port", str(port), "--rig", rig_path]
     elif trace_prefix:
         cmd = [sys.executable, str(Path(__file__).with_name("stalltrace.py")), "_serve",
-               trace_prefix, "--port", str(port), "--rig", rig_path]
+               trace_prefix, "--port", str(port), "--rig", rig_path] + play
+    elif opt.piece:
+        cmd = [sys.executable, "-m", "stage.cli", "--quiet", "play", opt.piece, "--midi-file",
+               midi_path, "--port", str(port), "--rig", rig_path]
     elif opt.relay:
         cmd = [sys.executable, os.path.abspath(__file__), "_relay-serve", "--port", str(port),
                "--rig", rig_path] + (["--decode"] if opt.floor else [])
@@ -622,6 +630,7 @@ def run_config(sensors: int, people: int, opt: Options) -> dict:
         "mode": "aligned" if opt.aligned else "spread",
         "config": f"{sensors}x{people}",
         "sensors": sensors, "people": people, "stage_source": fingerprint,
+        "piece": None if opt.relay else opt.piece,
         "machine_busy_before": idle_before,
         "window_s": round(span, 3),
         "in_bundles_per_s": in_window.sum() / span,
@@ -893,7 +902,8 @@ def fmt(v: float | None, spec: str = ".2f") -> str:
 def print_table(results: list[dict], offline: list[dict], opt: Options) -> None:
     print(f"stage engine bench: {FPS:.0f} Hz per sensor, warm-up {opt.warmup:g} s, window "
           f"{opt.duration:g} s, {os.cpu_count()} cores, python {sys.version.split()[0]}"
-          f"{'; the whole Kinect model (--kinect-errors)' if opt.kinect_errors else ''}")
+          f"{'; the whole Kinect model (--kinect-errors)' if opt.kinect_errors else ''}"
+          f"{f'; server: stage play {os.path.basename(opt.piece)}' if opt.piece else ''}")
     print(f"targets: per input datagram, engine minus relay p50 < {DIFF_P50_TARGET_MS:g} ms and "
           f"p99 < {DIFF_P99_TARGET_MS:g} ms (every config); server CPU < {100 * CPU_TARGET:.0f} % "
           f"of a core at {CPU_TARGET_CONFIG[0]}x{CPU_TARGET_CONFIG[1]}")
@@ -1018,6 +1028,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="benchmark this command instead of stage serve (e.g. an instrumented "
                              "or patched copy, for A/B runs); '--port P --rig R' is appended, and "
                              "it must stop on SIGTERM")
+    parser.add_argument("--piece", metavar="YAML",
+                        help="run `stage play YAML` as the server (the piece listening on the "
+                             "engine thread, its MIDI written to a file) instead of `stage serve`: "
+                             "the performer's case; works with --trace")
     parser.add_argument("--wait-idle", type=float, default=0.0, metavar="S",
                         help="before each config wait up to S s for the machine to be idle "
                              "(other processes under 5 %% of a core over 2 s)")
@@ -1080,11 +1094,17 @@ def main(argv: list[str] | None = None) -> int:
 
     results, offline = [], []
     server_cmd = shlex.split(args.server_cmd) if args.server_cmd else None
+    piece = os.path.abspath(args.piece) if args.piece else None
+    if piece and not os.path.isfile(piece):
+        parser.error(f"--piece {args.piece}: no such file")
+    if piece and server_cmd:
+        parser.error("--piece runs stage play; --server-cmd another server: give one")
     for mode in modes:
         aligned = mode == "aligned"
         engine_opt = Options(args.warmup, args.duration, aligned, args.profile,
                              server_cmd=server_cmd, src=src, wait_idle=args.wait_idle,
-                             trace=args.trace, kinect_errors=args.kinect_errors)
+                             trace=args.trace, kinect_errors=args.kinect_errors,
+                             piece=piece)
         relay_opt = Options(args.warmup, args.duration, aligned, None, relay=True, src=src,
                             wait_idle=args.wait_idle, kinect_errors=args.kinect_errors)
         floor_opt = dataclasses.replace(relay_opt, floor=True)
@@ -1115,7 +1135,8 @@ def main(argv: list[str] | None = None) -> int:
                           "results": results, "offline": offline}, indent=2, default=_json_default))
     else:
         print_table(results, offline, Options(args.warmup, args.duration, False, None, src=src,
-                                              tree=args.tree, kinect_errors=args.kinect_errors))
+                                              tree=args.tree, kinect_errors=args.kinect_errors,
+                                              piece=piece))
     if args.profile:
         for sensors, people in args.configs:
             print_profile(os.path.join(args.profile, f"{sensors}x{people}"))

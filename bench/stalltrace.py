@@ -48,6 +48,8 @@ def traced_serve(argv: list[str]) -> int:
     parser.add_argument("prefix")
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--rig", required=True)
+    parser.add_argument("--play", metavar="YAML", help="run `stage play YAML` instead of serve")
+    parser.add_argument("--midi-file", help="with --play: where its MIDI goes")
     args = parser.parse_args(argv)
     mono = time.monotonic
     # array.array: not tracked by the collector, so tracing adds nothing to what it walks
@@ -95,9 +97,15 @@ def traced_serve(argv: list[str]) -> int:
                 rec.extend((t0, mono() - t0, time.thread_time() - c0))
         return wrapper
 
-    engine_module.Engine.process = timed(engine_module.Engine.process, eng_rec)
+    # a burst taken from the queue (older trees: each batch)
+    batch = "process_taken" if hasattr(engine_module.Engine, "process_taken") else "process"
+    setattr(engine_module.Engine, batch, timed(getattr(engine_module.Engine, batch), eng_rec))
     from stage.calibration import healing
     healing.LiveCalibrator._poll = timed(healing.LiveCalibrator._poll, cal_rec)
+    # with --play: each call of the piece on the engine thread (one a burst)
+    piece_rec = array.array("d")
+    from stage.piece import runtime as runtime_module
+    runtime_module.PieceRuntime.on_frame = timed(runtime_module.PieceRuntime.on_frame, piece_rec)
     meta: dict = {"pid": os.getpid(), "census": None, "threads": {}}
 
     def census() -> None:
@@ -118,7 +126,11 @@ def traced_serve(argv: list[str]) -> int:
     sampler = _start_sampler(args.prefix, [os.getpid(), os.getppid()])
     from stage.cli.main import main as stage_main
     try:
-        return stage_main(["--quiet", "serve", "--port", str(args.port), "--rig", args.rig])
+        where = ["--port", str(args.port), "--rig", args.rig]
+        if args.play:
+            return stage_main(["--quiet", "play", args.play, *where]
+                              + (["--midi-file", args.midi_file] if args.midi_file else []))
+        return stage_main(["--quiet", "serve", *where])
     finally:
         meta["threads"].update(_thread_names())
         meta["end"] = mono()
@@ -127,7 +139,7 @@ def traced_serve(argv: list[str]) -> int:
         np.savez(f"{args.prefix}.trace.npz", gc_t=np.array(gc_t), gc_d=np.array(gc_d),
                  gc_g=np.array(gc_g), gc_n=np.array(gc_n), lat_t=np.array(lat_t),
                  lat_v=np.array(lat_v), eng=np.array(eng_rec).reshape(-1, 3),
-                 cal=np.array(cal_rec).reshape(-1, 3))
+                 cal=np.array(cal_rec).reshape(-1, 3), piece=np.array(piece_rec).reshape(-1, 3))
         Path(f"{args.prefix}.trace.json").write_text(json.dumps(meta, default=str))
 
 
@@ -242,7 +254,8 @@ def analyze(prefix: str, worst: int = 8, tail_ms: float = 20.0) -> None:
           f"{tail.sum()} ({100 * tail.mean():.2f} %), of them {overlap[tail].sum()} waited "
           f"through a collection; samples <= {tail_ms:g} ms that did: "
           f"{100 * overlap[~tail].mean():.2f} %")
-    for key, what in (("eng", "engine batches"), ("cal", "calibrator polls")):
+    for key, what in (("eng", "engine batches"), ("cal", "calibrator polls"),
+                      ("piece", "piece calls")):
         rec = z[key] if key in z else np.zeros((0, 3))
         if len(rec):
             wall, cpu = rec[:, 1] * 1e3, rec[:, 2] * 1e3
