@@ -16,6 +16,11 @@ shows here if it does not. Both rigs run the Python path (``fusion.native`` off)
 trees' cores; ``--native-b`` turns it on in B's rig only: with the same tree as A and B, it
 measures the core against the Python path.
 
+``--forecast H`` asks both engines for every body predicted H s ahead (as ``stage play``
+does for a piece that anticipates: Liminal Space asks for 0.05) and gives them a listener
+that digests each frame's forecasts (``forecasts identical``); ``--forecast-b H`` asks B's
+only: with the same tree as A and B, it measures what the forecasts cost.
+
 ``--paced`` sleeps the datagrams' real spacing (spread: 1 / (30 x sensors)) before each
 engine's datagram, so each finds its caches cold as the live engine thread does after waiting
 (issue 10, stop 37: that doubles a datagram's CPU here); a change that saves calls at the cost
@@ -29,7 +34,9 @@ of a frame form one instant that the fold checks for agreement (``fuser``), as l
 sensors do; the simulated Kinects' errors make those views disagree, and replays follow.
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
-     [--quick] [--timetags] [--aligned] [--paced] [--native | --native-b]   (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
+     [--quick] [--timetags] [--aligned] [--paced] [--native | --native-b]
+     [--forecast H | --forecast-b H]
+     (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
 from __future__ import annotations
@@ -45,6 +52,26 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+
+class ForecastDigest:
+    """An engine listener: a digest of every frame's forecast bodies (joints, velocity, s.d.),
+    in order; with no forecast asked for, of nothing (it still makes the engine build its
+    frames, as a piece listening does)."""
+
+    def __init__(self) -> None:
+        self.digest = hashlib.blake2b(digest_size=16)
+        self.count = 0
+        self.joints: list[np.ndarray] = []     # every forecast's joints, in order
+
+    def __call__(self, frame) -> None:
+        for horizon in sorted(frame.forecasts):
+            for pid, body in sorted(frame.forecasts[horizon].items()):
+                self.joints.append(body.joints.copy())
+                self.digest.update(np.ascontiguousarray(body.joints).tobytes())
+                self.digest.update(np.ascontiguousarray(body.velocity).tobytes())
+                self.digest.update(np.ascontiguousarray(body.sd).tobytes())
+                self.count += 1
 
 
 class HashTransport:
@@ -94,7 +121,7 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
     return poses, out
 
 
-def engine(mods: dict, poses, native: bool = False):
+def engine(mods: dict, poses, native: bool = False, forecast: float = 0.0):
     rig_mod = mods["rig"]
     rig = rig_mod.Rig(reference="s0", views=[("127.0.0.1", 9)])
     if hasattr(rig.fusion, "native"):     # (trees before the core have none)
@@ -104,14 +131,21 @@ def engine(mods: dict, poses, native: bool = False):
     for k, p in enumerate(poses):
         rig_mod.set_calibration(rig, f"s{k}", inverse @ p.to_stage, "bench")
     clock = mods["clock"].ManualClock(0.0)
-    return mods["engine.engine"].Engine(rig, clock, HashTransport()), clock
+    e = mods["engine.engine"].Engine(rig, clock, HashTransport())
+    if forecast > 0:
+        e.people.want_forecast(forecast)
+    e.forecast_digest = ForecastDigest()
+    if forecast >= 0:        # (-1: no listener at all, the engine builds no frames)
+        e.listeners.append(e.forecast_digest)
+    return e, clock
 
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
         timetags: bool = False, aligned: bool = False, paced: bool = False,
-        native_b: bool = False, native_a: bool = False) -> dict:
+        native_b: bool = False, native_a: bool = False, forecast: tuple = (-1.0, -1.0)) -> dict:
     poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
-    (ea, ca), (eb, cb) = engine(a, poses, native_a), engine(b, poses, native_b or native_a)
+    (ea, ca) = engine(a, poses, native_a, forecast[0])
+    (eb, cb) = engine(b, poses, native_b or native_a, forecast[1])
     ta: list[float] = []
     tb: list[float] = []
     gap = 1.0 / (30 * n_sensors)       # --paced: the datagrams' real spacing, spread
@@ -135,8 +169,27 @@ def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
             "b_p50": float(np.percentile(us_b, 50)), "b_p90": float(np.percentile(us_b, 90)),
             "a_mean": float(us_a.mean()), "b_mean": float(us_b.mean()),
             "ratio": float(np.median(us_b / us_a)), "identical": same,
+            "forecasts": eb.forecast_digest.count,
+            "forecast_max_diff_m": _max_diff(ea.forecast_digest.joints, eb.forecast_digest.joints),
+            "forecasts_same": (ea.forecast_digest.digest.digest()
+                               == eb.forecast_digest.digest.digest()
+                               and ea.forecast_digest.count == eb.forecast_digest.count),
             "sent_same": (ea.output.transport.digest.digest() == eb.output.transport.digest.digest()
                           and ea.output.transport.count == eb.output.transport.count)}
+
+
+def _max_diff(a: list[np.ndarray], b: list[np.ndarray]) -> float:
+    """The largest difference between two runs' forecast joints (m; NaN where one has a
+    joint the other has not, inf if their numbers differ)."""
+    if len(a) != len(b):
+        return float("inf")
+    if not a:
+        return 0.0
+    x, y = np.array(a), np.array(b)
+    if not np.array_equal(np.isnan(x), np.isnan(y)):
+        return float("nan")
+    d = np.abs(x - y)
+    return float(np.nanmax(d)) if np.isfinite(d).any() else 0.0
 
 
 def main() -> int:
@@ -157,13 +210,23 @@ def main() -> int:
                         help="B's rig with fusion.native on (A and B may be the same tree)")
     parser.add_argument("--native", action="store_true",
                         help="both rigs with fusion.native on: two trees' native cores")
+    parser.add_argument("--forecast", type=float, default=0.0, metavar="H",
+                        help="both engines asked for bodies H s ahead, with a listener")
+    parser.add_argument("--forecast-b", type=float, default=0.0, metavar="H",
+                        help="B's engine only asked for bodies H s ahead (both with a listener)")
     args = parser.parse_args()
+    if args.forecast and args.forecast_b:
+        parser.error("--forecast (both) or --forecast-b (B only)")
+    forecast = ((args.forecast, args.forecast) if args.forecast else
+                (0.0, args.forecast_b) if args.forecast_b else (-1.0, -1.0))
     seconds = 1.0 if args.quick else args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
         a = load(args.tree_a, "stage_a", Path(tmp))
         b = load(args.tree_b, "stage_b", Path(tmp))
-        print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}{'; both with fusion.native' if args.native else ''}; CPU per datagram (thread_time), us; "
+        asked = (f"; forecast {args.forecast:g} s, both" if args.forecast else
+                 f"; forecast {args.forecast_b:g} s, B only" if args.forecast_b else "")
+        print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}{'; both with fusion.native' if args.native else ''}{asked}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
               f"{'aligned' if args.aligned else 'spread'}{'; paced' if args.paced else ''}; load {open('/proc/loadavg').read().split()[0]}")
@@ -172,11 +235,14 @@ def main() -> int:
               f"final joints identical, every datagram sent identical")
         for config in args.configs.split(","):
             r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
-                    args.paced, args.native_b, args.native)
+                    args.paced, args.native_b, args.native, forecast)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['a_mean']:>7.0f} {r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['b_mean']:>7.0f} "
                   f"{r['ratio']:>10.2f} {r['b_mean'] / r['a_mean']:>8.2f}  {r['identical']}, "
-                  f"{r['sent_same']}", flush=True)
+                  f"{r['sent_same']}"
+                  + (f"; {r['forecasts']} forecasts, identical {r['forecasts_same']} (max "
+                     f"difference {r['forecast_max_diff_m']:.1e} m)"
+                     if forecast[1] > 0 else ""), flush=True)
     return 0
 
 
