@@ -833,6 +833,54 @@ def test_prior_kernel_gives_the_numpy_floats():
         np.testing.assert_array_equal(var, want_var)
 
 
+@needs_jit
+def test_forecast_kernel_gives_the_numpy_floats():
+    """``Forecaster.predict`` compiled against its numpy code, bit for bit: joints, velocity,
+    s.d. and counts; bodies whose rows were updated at different times (some never: NaN),
+    moving fast enough to be capped and to stretch bones (both walks of the bone mending),
+    feet and hands with a velocity memory, unseen joints, a strided state (a block's rows);
+    and the same stream of forecasts leaves the same statistics."""
+    from stage.engine.forecast import BONES, Forecaster
+    from stage.engine.kalman import FilterState
+    from stage.settings import ForecastSettings
+    from stage.testing.script import standing
+    rng = np.random.default_rng(53)
+    s, body = KalmanSettings(), standing()
+    compiled = Forecaster(s, ForecastSettings(bone_tolerance=0.1))
+    reference = Forecaster(s, ForecastSettings(bone_tolerance=0.1))
+    moved = 0
+    for k in range(300):
+        block = _stack(rng, 75)
+        rows = slice(25, 50)
+        block[0, :, rows] = body[None] + rng.normal(0, 0.01 if k % 3 else 0.2, (2, 25, 3))
+        block[1, :, rows] *= rng.choice([0.5, 3.0, 30.0])      # slow, fast, a glitch
+        t = rng.uniform(0.9, 1.0, 75)
+        t[rng.random(75) < 0.1] = np.nan
+        block[:, :, rng.random(75) < 0.05] = np.nan             # rows never measured
+        state = FilterState.of_block(block, t, np.full((75, 3), np.nan),
+                                     np.full(75, np.nan)).view_rows(25, 50)
+        now = body + rng.normal(0, 0.01, (25, 3))
+        seen = rng.random(25) > 0.1
+        horizon = float(rng.choice([0.0, 0.03, 0.05, 0.2]))
+        at = float(rng.uniform(0.95, 1.05))
+        got = compiled.predict(state, at, now, seen, horizon)
+        with jit.disabled(), c_library_math():
+            want = reference.predict(state, at, now, seen, horizon)
+        for name in ("joints", "velocity", "sd"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        assert (got.speed_capped, got.bones_fixed, got.t, got.horizon) == \
+            (want.speed_capped, want.bones_fixed, want.t, want.horizon)
+        moved += got.bones_fixed > 0 and got.speed_capped > 0
+    assert moved > 30                   # the caps and the bones were exercised
+    assert compiled.stats()["made"] == reference.stats()["made"] == 300
+    for key in ("speed_capped", "bones_fixed"):
+        assert compiled.stats()[key] == reference.stats()[key]
+    assert compiled.last_sd.keys() == reference.last_sd.keys()
+    for h in compiled.last_sd:          # (a mean summed in another order: to the last bits)
+        assert compiled.last_sd[h] == pytest.approx(reference.last_sd[h], rel=1e-12)
+    assert len(BONES) == 24
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
     """``kalman.step_views`` (a replay's views of one person, in one compiled call) against

@@ -11,6 +11,8 @@ replaces, which stays as reference and fallback:
   a replay's views of one person in turn (``kalman.step_views``);
 - ``_prior`` and ``_consistent``: an instant's IMM prediction (``fuser.prior_of``) and
   which of its views agree (``fusion.consistent_views``), for sensors in step;
+- ``_forecast``: a body predicted ahead for a piece or a view that asked
+  (``forecast.Forecaster.predict``: the IMM prediction, the speed limits, the bones);
 - ``_settle``: each updated person's output skeleton (``people.People._update``), with
   ``_carry`` (``fusion.carry_untracked``); ``_settle_many`` runs it for a batch of persons
   in one call, on the arrays of ``bank.PersonBank``;
@@ -634,6 +636,194 @@ def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
                     mean[i, j] = xp0 + c1 * dx
                     pp[j] = (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx)
         var[i] = ((pp[0] + pp[1]) + pp[2]) / 3.0
+
+
+def _forecast(S, st, target, horizon, q, rates, memory, limits, joints, seen, tol, bones,
+              out, vel, sd, counts):  # pragma: no cover (compiled)
+    """``forecast.Forecaster.predict`` of one body: its state S (6, 2, N, 3) with row times
+    st (N,) predicted to ``target`` (``kalman.mix`` over dt, ``predict``, ``combine``; the
+    vertical axis of rows with a velocity memory predicted over their effective horizon),
+    each row's move from ``joints`` (N, 3) capped at its speed limit times ``horizon``, then
+    the bones mended (``forecast._keep_bones``). Writes out (N, 3), vel (N, 3), sd (N,) as
+    the Forecast's; counts (4,) float: joints capped, joints moved by the bones, the sum and
+    the number of the predicted joints' s.d. The same operations in the same order as the
+    numpy code."""
+    n = S.shape[2]
+    pos = np.empty((n, 3))
+    raw = np.empty(n)                  # the s.d. of every row (the bones compare them)
+    ok = np.empty(n, np.bool_)
+    capped = 0
+    for i in range(n):
+        dt = target - st[i]
+        if dt != dt:
+            dt = 0.0
+        elif dt < 0.0:
+            dt = 0.0
+        e0 = math.expm1(rates[0] * dt)
+        e1 = math.expm1(rates[1] * dt)
+        stay0 = e0 + 1.0
+        stay1 = e1 + 1.0
+        sw0 = -e0
+        sw1 = -e1
+        k = dt
+        if memory[i] > 0.0:            # forecast.effective_horizon
+            k = memory[i] * _SQRT_HALF_PI * math.erf(dt / (memory[i] * _SQRT2))
+        finite = True
+        p0 = 0.0
+        p1 = 0.0
+        for j in range(3):
+            h = k if j == _UP else dt
+            tt = h * h
+            mu0 = S[5, 0, i, j]
+            mu1 = S[5, 1, i, j]
+            c0 = stay0 * mu0 + sw1 * mu1
+            c1 = stay1 * mu1 + sw0 * mu0
+            d0 = S[0, 1, i, j] - S[0, 0, i, j]
+            d1 = S[1, 1, i, j] - S[1, 0, i, j]
+            d2 = S[2, 1, i, j] - S[2, 0, i, j]
+            d3 = S[3, 1, i, j] - S[3, 0, i, j]
+            d4 = S[4, 1, i, j] - S[4, 0, i, j]
+            s0 = d0 * d0
+            s1 = d0 * d1
+            s2 = d1 * d1
+            xp0 = 0.0
+            vp0 = 0.0
+            pp0 = 0.0
+            for m in range(2):
+                if m == 0:
+                    w1 = _div(sw1 * mu1, c0)
+                else:
+                    w1 = _div(stay1 * mu1, c1)
+                qd = q[m] * tt
+                x0 = S[0, 0, i, j] + w1 * d0
+                x1 = S[1, 0, i, j] + w1 * d1
+                ww = w1 * (1.0 - w1)
+                a = (S[2, 0, i, j] + w1 * d2) + ww * s0
+                b = (S[3, 0, i, j] + w1 * d3) + ww * s1
+                cc = (S[4, 0, i, j] + w1 * d4) + ww * s2
+                px = x1 * h + x0
+                pv = (cc + 0.5 * qd) * h + b
+                ppm = ((b + pv) * h + a) - (0.25 * qd) * tt
+                if m == 0:
+                    xp0 = px
+                    vp0 = x1
+                    pp0 = ppm
+                else:
+                    dx = px - xp0
+                    p = xp0 + c1 * dx
+                    pos[i, j] = p
+                    vel[i, j] = vp0 + c1 * (x1 - vp0)
+                    var = (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx)
+                    if j == 0:
+                        p0 = var
+                    elif j == 1:
+                        p1 = var
+                    else:
+                        raw[i] = math.sqrt(((p0 + p1) + var) / 3.0)
+                    if not (p - p == 0.0):
+                        finite = False
+        ok[i] = seen[i] and finite
+        if ok[i]:                      # the speed limit
+            m0 = pos[i, 0] - joints[i, 0]
+            m1 = pos[i, 1] - joints[i, 1]
+            m2 = pos[i, 2] - joints[i, 2]
+            dist = math.sqrt((m0 * m0 + m1 * m1) + m2 * m2)
+            cap = limits[i] * horizon
+            if dist > cap:
+                f = cap / dist
+                m0 *= f
+                m1 *= f
+                m2 *= f
+                capped += 1
+            out[i, 0] = joints[i, 0] + m0
+            out[i, 1] = joints[i, 1] + m1
+            out[i, 2] = joints[i, 2] + m2
+        else:
+            for j in range(3):
+                out[i, j] = joints[i, j] + 0.0
+    fixed = 0                          # the bones: inwards, the less certain parent moves
+    for b in range(bones.shape[0] - 1, -1, -1):
+        parent, child = bones[b, 0], bones[b, 1]
+        if ok[parent] and ok[child] and raw[parent] > raw[child]:
+            fixed += _mend_bone(out, joints, parent, child, tol, False)
+    for b in range(bones.shape[0]):    # then outwards, every child still out of range
+        parent, child = bones[b, 0], bones[b, 1]
+        if ok[parent] and ok[child]:
+            fixed += _mend_bone(out, joints, parent, child, tol, True)
+    total = 0.0
+    count = 0
+    for i in range(n):
+        if ok[i]:
+            if not (vel[i, 0] - vel[i, 0] == 0.0):
+                vel[i, 0] = 0.0
+            if not (vel[i, 1] - vel[i, 1] == 0.0):
+                vel[i, 1] = 0.0
+            if not (vel[i, 2] - vel[i, 2] == 0.0):
+                vel[i, 2] = 0.0
+            sd[i] = raw[i]
+            if raw[i] == raw[i]:
+                total += raw[i]
+                count += 1
+        else:
+            vel[i, 0] = 0.0
+            vel[i, 1] = 0.0
+            vel[i, 2] = 0.0
+            sd[i] = np.nan
+    counts[0] = capped
+    counts[1] = fixed
+    counts[2] = total
+    counts[3] = count
+
+
+def _div(a, b):  # pragma: no cover (compiled)
+    """a / b as numpy divides (a zero divisor gives inf or NaN, no exception)."""
+    if b == 0.0:
+        if a == 0.0 or a != a:
+            return np.nan
+        return math.copysign(np.inf, a) * math.copysign(1.0, b)
+    return a / b
+
+
+def _mend_bone(pred, now, parent, child, tol, move_child):  # pragma: no cover (compiled)
+    """``forecast._mend``: the bone parent-child of ``pred`` brought within ``tol`` of its
+    length in ``now`` by moving one end along it; 1 if it moved, else 0."""
+    r0 = now[child, 0] - now[parent, 0]
+    r1 = now[child, 1] - now[parent, 1]
+    r2 = now[child, 2] - now[parent, 2]
+    length = math.sqrt((r0 * r0 + r1 * r1) + r2 * r2)
+    if length <= 0.0:
+        return 0
+    b0 = pred[child, 0] - pred[parent, 0]
+    b1 = pred[child, 1] - pred[parent, 1]
+    b2 = pred[child, 2] - pred[parent, 2]
+    got = math.sqrt((b0 * b0 + b1 * b1) + b2 * b2)
+    lo = length * (1.0 - tol)
+    hi = length * (1.0 + tol)
+    if lo <= got and got <= hi:
+        return 0
+    if got > 1e-9:
+        u0 = b0 / got
+        u1 = b1 / got
+        u2 = b2 / got
+    else:
+        u0 = r0 / length
+        u1 = r1 / length
+        u2 = r2 / length
+    span = min(max(got, lo), hi)
+    if move_child:
+        pred[child, 0] = pred[parent, 0] + u0 * span
+        pred[child, 1] = pred[parent, 1] + u1 * span
+        pred[child, 2] = pred[parent, 2] + u2 * span
+    else:
+        pred[parent, 0] = pred[child, 0] - u0 * span
+        pred[parent, 1] = pred[child, 1] - u1 * span
+        pred[parent, 2] = pred[child, 2] - u2 * span
+    return 1
+
+
+_SQRT2 = math.sqrt(2.0)
+_SQRT_HALF_PI = math.sqrt(math.pi / 2.0)
+_UP = 1
 
 
 def _consistent(z, r, prior, prior_var, bias_var, chi2, tracked, with_tracked,
@@ -1600,6 +1790,9 @@ _SIGNATURES = {
                      "float64[:, ::1], float64[:, ::1], float64[:, ::1], int64[::1])",
     "_prior": "void(float64[:, :, :, :], float64[:], float64, float64[::1], float64[::1], "
               "float64[:, ::1], float64[::1])",
+    "_forecast": "void(float64[:, :, :, :], float64[:], float64, float64, float64[::1], "
+                 "float64[::1], float64[::1], float64[::1], float64[:, :], boolean[:], float64, "
+                 "int64[:, ::1], float64[:, ::1], float64[:, ::1], float64[::1], float64[::1])",
     "_consistent": "void(float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[::1], "
                    "float64, float64, boolean[:, ::1], boolean, boolean[:, ::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
@@ -1681,6 +1874,8 @@ _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_nativ
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted
+#: what ``_forecast`` calls, as Python
+_FORECAST_HELPERS = {"_div": _div, "_mend_bone": _mend_bone}
 
 
 def warm() -> bool:
@@ -1695,8 +1890,10 @@ def warm() -> bool:
         return False
     try:
         cache = [True]
-        # (compiled into the kernels that call it)
+        # (compiled into the kernels that call them)
         globals()["_row_predicted"] = numba.njit()(_ROW_PREDICTED)
+        for name, fn in _FORECAST_HELPERS.items():
+            globals()[name] = numba.njit()(fn)
         for name, sig in _SIGNATURES.items():
             # in order: a kernel that calls another finds it compiled under its own name
             _compiled[name] = globals()[name] = _njit(_PYTHON[name], sig, cache,
@@ -1959,6 +2156,19 @@ def prior(S: np.ndarray, st: np.ndarray, t: float, s: KalmanSettings
     mean, var = np.empty((n, 3)), np.empty(n)
     _compiled["_prior"](S, st, float(t), q, rates, mean, var)
     return mean, var
+
+
+def forecast(S: np.ndarray, st: np.ndarray, target: float, horizon: float, q: np.ndarray,
+             rates: np.ndarray, memory: np.ndarray, limits: np.ndarray, joints: np.ndarray,
+             seen: np.ndarray, tol: float, bones: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled ``_forecast``: (joints (N, 3), velocity (N, 3), s.d. (N,), counts (4,))
+    of one body predicted to ``target``, as ``forecast.Forecaster.predict``."""
+    n = st.shape[0]
+    out, vel, sd, counts = np.empty((n, 3)), np.empty((n, 3)), np.empty(n), np.empty(4)
+    _compiled["_forecast"](S, st, float(target), float(horizon), q, rates, memory, limits,
+                           joints, seen, float(tol), bones, out, vel, sd, counts)
+    return out, vel, sd, counts
 
 
 def consistent(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
