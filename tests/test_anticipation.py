@@ -233,13 +233,21 @@ def test_a_stretched_bone_is_mended_by_moving_its_less_certain_end():
         assert after == pytest.approx(before, rel=0.1 + 1e-9), (parent, child)
 
 
-def test_the_engine_sends_listeners_bodies_forecast_from_their_filter_on_a_manual_clock():
+@pytest.mark.parametrize("native", [True, False])
+def test_the_engine_sends_listeners_bodies_forecast_from_their_filter_on_a_manual_clock(native):
+    """(The forecast reads the filter where it is: the native core's ring, or the Python
+    path's state.)"""
+    import dataclasses
+
     from stage.app.offline import feed
     from stage.clock import ManualClock
     from stage.engine import Engine
     sim = walker_sim()
     clock = ManualClock(0.0)
-    engine = Engine(sim.rig(), clock)
+    rig = sim.rig()
+    rig.fusion = dataclasses.replace(rig.fusion, native=native)
+    engine = Engine(rig, clock)
+    assert (engine.people.core is not None) == native
     engine.people.want_forecast(0.05)
     got: list[tuple[FusedFrame, dict]] = []
     engine.listeners.append(lambda f: got.append(
@@ -264,6 +272,8 @@ def test_the_engine_sends_listeners_bodies_forecast_from_their_filter_on_a_manua
             assert (mem[[J["FootLeft"], J["AnkleRight"]]] > 0).all() and mem[J["Head"]] == 0
             seen = body.conf > 0
             np.testing.assert_allclose(ahead.joints[seen], want[seen], atol=1e-9)
+            if native:
+                assert engine.persons[pid].filter.native is not None   # held by the core
             assert np.isfinite(ahead.sd[seen]).all() and (ahead.sd[seen] > 0).all()
     stats = engine.stats()["forecast"]
     assert stats["horizons_s"] == [0.05] and stats["made"] >= len(frames)

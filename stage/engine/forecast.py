@@ -138,7 +138,7 @@ class Forecaster:
         body's forecast cost some 0.5 ms, ten times the rest of its datagram (issue 10,
         stop 53)."""
         if jit.ready():
-            return self._predict_compiled(state, t, joints, seen, horizon)
+            return self._predict_compiled(state.stacked(), state.t, t, joints, seen, horizon)
         target = t + horizon
         dt = np.maximum(target - state.t, 0.0)
         dt = np.where(np.isnan(dt), 0.0, dt)
@@ -177,10 +177,20 @@ class Forecaster:
         vel = np.where(ok[:, None] & np.isfinite(vel), vel, 0.0)
         return Forecast(t, horizon, out, vel, np.where(ok, sd, np.nan), n_over, fixed)
 
-    def _predict_compiled(self, state: FilterState, t: float, joints: np.ndarray,
-                          seen: np.ndarray, horizon: float) -> Forecast:
+    def predict_block(self, block: np.ndarray, row_t: np.ndarray, t: float, joints: np.ndarray,
+                      seen: np.ndarray, horizon: float) -> Forecast:
+        """``predict`` of the state given as its (6, 2, N, 3) block [x; P; mu] and row times
+        (``fuser.BodyFilter.peek``: read at once, no copy made)."""
+        if jit.ready():
+            return self._predict_compiled(block, row_t, t, joints, seen, horizon)
+        n = len(row_t)
+        return self.predict(FilterState.of_block(block, row_t, np.full((n, 3), np.nan),
+                                                 np.full(n, np.nan)), t, joints, seen, horizon)
+
+    def _predict_compiled(self, block: np.ndarray, row_t: np.ndarray, t: float,
+                          joints: np.ndarray, seen: np.ndarray, horizon: float) -> Forecast:
         out, vel, sd, counts = jit.forecast(
-            state.stacked(), state.t, t + horizon, horizon, self._q, self._rates, self.memory,
+            block, row_t, t + horizon, horizon, self._q, self._rates, self.memory,
             self.limits, np.asarray(joints, dtype=float), np.asarray(seen, dtype=np.bool_),
             self.settings.bone_tolerance, self._bones)
         n_over, fixed = int(counts[0]), int(counts[1])

@@ -154,6 +154,17 @@ class BodyFilter:
             self._rows = None
         return self._state
 
+    def peek(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state now as ((6, 2, N, 3) block [x; P; mu], (N,) row times), views to be read
+        at once and not kept (the native core's ring is written over in turn; ``state`` is
+        the copy to keep)."""
+        native = self.native
+        if native is not None:
+            block, t, _, _ = native[0].state_of(native[1])
+            return block, t
+        state = self.state
+        return state.stacked(), state.t
+
     @state.setter
     def state(self, value: FilterState) -> None:
         self._state, self._rows = value, None

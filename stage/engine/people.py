@@ -649,8 +649,9 @@ class People:
         key = (person.id, horizon)
         fc = self._forecasts.get(key)
         if fc is None:
-            fc = self._forecasts[key] = self.forecaster.predict(
-                person.filter.state, person.t, person.joints, person.conf > 0, horizon)
+            block, row_t = person.filter.peek()
+            fc = self._forecasts[key] = self.forecaster.predict_block(
+                block, row_t, person.t, person.joints, person.conf > 0, horizon)
         return fc
 
     def _forecast_bodies(self, horizon: float) -> dict[int, Body]:
@@ -784,8 +785,10 @@ class People:
                 continue
             for horizon, views in ahead.items():
                 if horizon > 0:
-                    fc = self.forecaster.predict(person.filter.state, person.t, person.joints,
-                                                 person.conf > 0, max(now - person.t, 0) + horizon)
+                    block, row_t = person.filter.peek()
+                    fc = self.forecaster.predict_block(block, row_t, person.t, person.joints,
+                                                       person.conf > 0,
+                                                       max(now - person.t, 0) + horizon)
                     self.output.joints(pid, fc.joints, person.conf, views)
                     continue
                 pos, _ = person.filter.estimate(now)
