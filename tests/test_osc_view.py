@@ -172,6 +172,36 @@ def test_the_skeleton_stream_goes_where_the_piece_asks_or_to_a_plain_view(peers)
     assert not asked.drain() and not plain.drain() and not carrier.drain()
 
 
+def test_an_osc_view_with_no_target_taking_skeletons_is_given_no_frames(peers):
+    """Piece events only (or registered views only, as `stage play` without --osc): the host
+    queues it no frame and its thread is not woken for one; its events still go out."""
+    carrier = peers()
+    clock = ManualClock(10.0)
+    host = ViewHost.for_play([OutputDecl("lights", "osc", f"{LOCALHOST}:{carrier.port}")],
+                             clock=clock, plugins=False, threaded=False).start()
+    (slot,) = [s for s in host.slots if s.name == "osc"]
+    assert not slot.wants_frames
+    host.emit([OscOut(10.0, "lights", "/lights/on", (1,))])
+    for k in range(5):
+        host._on_frame(make_frame(10.0, make_body(1), new=(1,) if k == 0 else ()))
+    host.pump()
+    assert [m.address for m in wait_count(carrier, 1)] == ["/lights/on"]
+    assert slot.frames_in == 0
+    host.stop()
+    assert not carrier.drain()
+    # one target that takes skeletons: frames again
+    asked = peers()
+    host = ViewHost.for_play([OutputDecl("space", "osc", f"{LOCALHOST}:{asked.port}",
+                                         skeletons=True)],
+                             clock=clock, plugins=False, threaded=False).start()
+    (slot,) = [s for s in host.slots if s.name == "osc"]
+    host._on_frame(make_frame(10.0, make_body(1), new=(1,)))
+    host.pump()
+    assert slot.wants_frames and slot.frames_in == 1
+    assert wait_count(asked, 4)[0].address == "/newUser"
+    host.stop()
+
+
 def test_bundles_carry_the_engine_time_as_wall_time(peers):
     target = peers()
     clock = ManualClock(100.0)

@@ -82,6 +82,9 @@ class OscView(View):
             address = _address(t, "--osc") if isinstance(t, str) else (str(t[0]), int(t[1]))
             self._target(address, "command line", unaddressed | {"*"}, cli_bodies)
         self.unrouted = sorted(n for n in unaddressed if not targets)
+        # no target takes the skeleton stream (piece events only, or registered views only):
+        # no frame is worth encoding, nor waking this view's thread for
+        self.wants_frames = any(t.bodies for t in self.targets.values())
         self._frames = FrameEncoder()
         self._timed: list[tuple[float, int, bytes, tuple]] = []   # (t, seq, message, routing)
         self._seq = 0

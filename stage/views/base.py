@@ -139,6 +139,10 @@ class View:
     #: (``Body.horizon``, ``Body.sd``; docs/anticipation.md) instead of as measured. Set it
     #: before the host is attached to the engine (a class attribute or in ``__init__``).
     forecast_s: float = 0.0
+    #: False: the host never calls ``on_frame``, though the class defines it (a view that
+    #: knows in ``__init__`` it has nowhere to send bodies: no frame is queued for it and
+    #: its thread is not woken for one). Read when the host is built.
+    wants_frames: bool = True
 
     name: str = ""   # set by the host before start()
 

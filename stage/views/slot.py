@@ -33,7 +33,8 @@ class Slot:
     def __init__(self, view: View, name: str, origin: str, clock: Clock) -> None:
         self.view, self.name, self.origin, self.clock = view, name, origin, clock
         self.cond = threading.Condition()
-        self.wants_frames = overrides(view, "on_frame")
+        self.wants_frames = overrides(view, "on_frame") and bool(getattr(view, "wants_frames",
+                                                                         True))
         self.wants_events = overrides(view, "on_events")
         self.wants_status = overrides(view, "on_status")
         self.wants_scene = overrides(view, "on_scene")
