@@ -553,3 +553,23 @@ sections:
     stage.run(3.0, 4.0, lambda t: {1: standing(0, 0, left_arm=math.pi * (t > 3.2))})
     hurry = fired(sink)[-1]
     assert hurry.trigger == "hurry" and sink.of(SectionChange)[-1].t == hurry.t  # at once
+
+
+def test_a_persons_joints_read_as_floats_whatever_the_order_they_are_asked_in():
+    """The runtime's view of a body makes a joint's floats when first asked for: every
+    joint reads as the body has it, a low-confidence joint is None through ``xyz`` and still
+    readable through ``joint`` (a phrase's $x of the joint that fired)."""
+    from stage.frames import Body
+    from stage.piece.model import BODY
+    from stage.piece.triggers import Person
+    rng = np.random.default_rng(3)
+    joints, conf = rng.normal(0.0, 1.0, (25, 3)), np.ones(25)
+    conf[[4, 11]] = 0.2
+    body = Body(1, joints, conf, np.zeros((25, 3)), (HandState.OPEN, HandState.OPEN),
+                joints[:3].mean(axis=0), ("s0",))
+    p = Person(body, 0.5, 0.0)
+    for j in rng.permutation(25):
+        assert p.joint(j) == joints[j].tolist()
+        assert p.joint(j) is p.joint(j)            # made once
+        assert p.xyz(j) == (None if j in (4, 11) else joints[j].tolist())
+    assert p.xyz(BODY) == body.position.tolist()

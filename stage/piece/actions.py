@@ -41,7 +41,7 @@ class FireContext:
             if self.person is None:
                 return 0.0
             pos = self.person.xyz(self.joint if self.joint is not None else BODY) \
-                or self.person.joints[self.joint]
+                or self.person.joint(self.joint)
             return float(pos["xyz".index(name)])
         if name == "speed":
             return float(self.speed)
@@ -65,7 +65,7 @@ class FireContext:
             return 0.0
         if axis == "speed":
             return float(self.person.speed(j))
-        return float(self.person.joints[j]["xyz".index(axis)])
+        return float(self.person.joint(j)["xyz".index(axis)])
 
 
 def holds(cond: Condition, person: Person | None, joint: int | None) -> bool:
