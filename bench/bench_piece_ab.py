@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import importlib
-import shutil
 import sys
 import tempfile
 import time
@@ -54,10 +53,11 @@ class DigestSink:
 
 
 def load(tree: str, name: str, root: Path) -> dict:
-    shutil.copytree(Path(tree) / "stage", root / name)
-    return {m: importlib.import_module(f"{name}.{m}")
-            for m in ("engine.engine", "clock", "rig", "sensors.protocol", "sensors.sim",
-                      "piece.loader", "piece.runtime")}
+    """``bench_engine_ab.load``'s modules of ``tree`` imported as ``name``, and its piece's."""
+    mods = ab.load(tree, name, root)
+    mods.update({m: importlib.import_module(f"{name}.{m}")
+                 for m in ("piece.loader", "piece.runtime")})
+    return mods
 
 
 def run(mods: list[dict], names: list[str], piece_path: str, sensors: int, people: int,

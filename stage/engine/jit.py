@@ -593,49 +593,59 @@ def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
             dt = 0.0
         e0 = math.expm1(rates[0] * dt)
         e1 = math.expm1(rates[1] * dt)
-        stay0 = e0 + 1.0
-        stay1 = e1 + 1.0
-        sw0 = -e0
-        sw1 = -e1
-        tt = dt * dt
         for j in range(3):
-            mu0 = S[5, 0, i, j]
-            mu1 = S[5, 1, i, j]
-            c0 = stay0 * mu0 + sw1 * mu1
-            c1 = stay1 * mu1 + sw0 * mu0
-            d0 = S[0, 1, i, j] - S[0, 0, i, j]
-            d1 = S[1, 1, i, j] - S[1, 0, i, j]
-            d2 = S[2, 1, i, j] - S[2, 0, i, j]
-            d3 = S[3, 1, i, j] - S[3, 0, i, j]
-            d4 = S[4, 1, i, j] - S[4, 0, i, j]
-            s0 = d0 * d0
-            s1 = d0 * d1
-            s2 = d1 * d1
-            xp0 = 0.0
-            pp0 = 0.0
-            for m in range(2):
-                if m == 0:
-                    w1 = (sw1 * mu1) / c0
-                else:
-                    w1 = (stay1 * mu1) / c1
-                qd = q[m] * tt
-                x0 = S[0, 0, i, j] + w1 * d0
-                x1 = S[1, 0, i, j] + w1 * d1
-                ww = w1 * (1.0 - w1)
-                a = (S[2, 0, i, j] + w1 * d2) + ww * s0
-                b = (S[3, 0, i, j] + w1 * d3) + ww * s1
-                cc = (S[4, 0, i, j] + w1 * d4) + ww * s2
-                px = x1 * dt + x0
-                pv = (cc + 0.5 * qd) * dt + b
-                ppm = ((b + pv) * dt + a) - (0.25 * qd) * tt
-                if m == 0:
-                    xp0 = px
-                    pp0 = ppm
-                else:
-                    dx = px - xp0
-                    mean[i, j] = xp0 + c1 * dx
-                    pp[j] = (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx)
+            mean[i, j], _, pp[j] = _imm_axis(S, i, j, e0, e1, dt, q)
         var[i] = ((pp[0] + pp[1]) + pp[2]) / 3.0
+
+
+def _imm_axis(S, i, j, e0, e1, h, q):  # pragma: no cover (compiled)
+    """Row ``i``, axis ``j`` of the state S (6, 2, N, 3): the IMM prediction ``h`` s ahead
+    (``kalman.mix`` with the switching chances -e0 and -e1, ``predict``, ``combine``) as
+    (position, velocity, position variance); the operations of the numpy code, in order."""
+    stay0 = e0 + 1.0
+    stay1 = e1 + 1.0
+    sw0 = -e0
+    sw1 = -e1
+    tt = h * h
+    mu0 = S[5, 0, i, j]
+    mu1 = S[5, 1, i, j]
+    c0 = stay0 * mu0 + sw1 * mu1
+    c1 = stay1 * mu1 + sw0 * mu0
+    d0 = S[0, 1, i, j] - S[0, 0, i, j]
+    d1 = S[1, 1, i, j] - S[1, 0, i, j]
+    d2 = S[2, 1, i, j] - S[2, 0, i, j]
+    d3 = S[3, 1, i, j] - S[3, 0, i, j]
+    d4 = S[4, 1, i, j] - S[4, 0, i, j]
+    s0 = d0 * d0
+    s1 = d0 * d1
+    s2 = d1 * d1
+    xp0 = 0.0
+    vp0 = 0.0
+    pp0 = 0.0
+    for m in range(2):
+        if m == 0:
+            w1 = _div(sw1 * mu1, c0)
+        else:
+            w1 = _div(stay1 * mu1, c1)
+        qd = q[m] * tt
+        x0 = S[0, 0, i, j] + w1 * d0
+        x1 = S[1, 0, i, j] + w1 * d1
+        ww = w1 * (1.0 - w1)
+        a = (S[2, 0, i, j] + w1 * d2) + ww * s0
+        b = (S[3, 0, i, j] + w1 * d3) + ww * s1
+        cc = (S[4, 0, i, j] + w1 * d4) + ww * s2
+        px = x1 * h + x0
+        pv = (cc + 0.5 * qd) * h + b
+        ppm = ((b + pv) * h + a) - (0.25 * qd) * tt
+        if m == 0:
+            xp0 = px
+            vp0 = x1
+            pp0 = ppm
+        else:
+            dx = px - xp0
+            return (xp0 + c1 * dx, vp0 + c1 * (x1 - vp0),
+                    (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx))
+    return xp0, vp0, pp0     # (not reached: two modes)
 
 
 def _forecast(S, st, target, horizon, q, rates, memory, limits, joints, seen, tol, bones,
@@ -661,68 +671,17 @@ def _forecast(S, st, target, horizon, q, rates, memory, limits, joints, seen, to
             dt = 0.0
         e0 = math.expm1(rates[0] * dt)
         e1 = math.expm1(rates[1] * dt)
-        stay0 = e0 + 1.0
-        stay1 = e1 + 1.0
-        sw0 = -e0
-        sw1 = -e1
         k = dt
         if memory[i] > 0.0:            # forecast.effective_horizon
             k = memory[i] * _SQRT_HALF_PI * math.erf(dt / (memory[i] * _SQRT2))
-        finite = True
-        p0 = 0.0
-        p1 = 0.0
-        for j in range(3):
-            h = k if j == _UP else dt
-            tt = h * h
-            mu0 = S[5, 0, i, j]
-            mu1 = S[5, 1, i, j]
-            c0 = stay0 * mu0 + sw1 * mu1
-            c1 = stay1 * mu1 + sw0 * mu0
-            d0 = S[0, 1, i, j] - S[0, 0, i, j]
-            d1 = S[1, 1, i, j] - S[1, 0, i, j]
-            d2 = S[2, 1, i, j] - S[2, 0, i, j]
-            d3 = S[3, 1, i, j] - S[3, 0, i, j]
-            d4 = S[4, 1, i, j] - S[4, 0, i, j]
-            s0 = d0 * d0
-            s1 = d0 * d1
-            s2 = d1 * d1
-            xp0 = 0.0
-            vp0 = 0.0
-            pp0 = 0.0
-            for m in range(2):
-                if m == 0:
-                    w1 = _div(sw1 * mu1, c0)
-                else:
-                    w1 = _div(stay1 * mu1, c1)
-                qd = q[m] * tt
-                x0 = S[0, 0, i, j] + w1 * d0
-                x1 = S[1, 0, i, j] + w1 * d1
-                ww = w1 * (1.0 - w1)
-                a = (S[2, 0, i, j] + w1 * d2) + ww * s0
-                b = (S[3, 0, i, j] + w1 * d3) + ww * s1
-                cc = (S[4, 0, i, j] + w1 * d4) + ww * s2
-                px = x1 * h + x0
-                pv = (cc + 0.5 * qd) * h + b
-                ppm = ((b + pv) * h + a) - (0.25 * qd) * tt
-                if m == 0:
-                    xp0 = px
-                    vp0 = x1
-                    pp0 = ppm
-                else:
-                    dx = px - xp0
-                    p = xp0 + c1 * dx
-                    pos[i, j] = p
-                    vel[i, j] = vp0 + c1 * (x1 - vp0)
-                    var = (pp0 + c1 * (ppm - pp0)) + (c1 * (1.0 - c1)) * (dx * dx)
-                    if j == 0:
-                        p0 = var
-                    elif j == 1:
-                        p1 = var
-                    else:
-                        raw[i] = math.sqrt(((p0 + p1) + var) / 3.0)
-                    if not (p - p == 0.0):
-                        finite = False
-        ok[i] = seen[i] and finite
+        p0, vel[i, 0], v0 = _imm_axis(S, i, 0, e0, e1, dt, q)
+        p1, vel[i, 1], v1 = _imm_axis(S, i, 1, e0, e1, k, q)     # (vertical: forecast.UP)
+        p2, vel[i, 2], v2 = _imm_axis(S, i, 2, e0, e1, dt, q)
+        pos[i, 0] = p0
+        pos[i, 1] = p1
+        pos[i, 2] = p2
+        raw[i] = math.sqrt(((v0 + v1) + v2) / 3.0)
+        ok[i] = seen[i] and p0 - p0 == 0.0 and p1 - p1 == 0.0 and p2 - p2 == 0.0
         if ok[i]:                      # the speed limit
             m0 = pos[i, 0] - joints[i, 0]
             m1 = pos[i, 1] - joints[i, 1]
@@ -823,7 +782,6 @@ def _mend_bone(pred, now, parent, child, tol, move_child):  # pragma: no cover (
 
 _SQRT2 = math.sqrt(2.0)
 _SQRT_HALF_PI = math.sqrt(math.pi / 2.0)
-_UP = 1
 
 
 def _consistent(z, r, prior, prior_var, bias_var, chi2, tracked, with_tracked,
@@ -1874,8 +1832,8 @@ _NATIVE_HELPERS = ("_native_masked", "_native_choose", "_native_gather", "_nativ
 _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted
-#: what ``_forecast`` calls, as Python
-_FORECAST_HELPERS = {"_div": _div, "_mend_bone": _mend_bone}
+#: what ``_prior`` and ``_forecast`` call, as Python (in order: each after what it calls)
+_FORECAST_HELPERS = {"_div": _div, "_imm_axis": _imm_axis, "_mend_bone": _mend_bone}
 
 
 def warm() -> bool:
