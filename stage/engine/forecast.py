@@ -135,8 +135,8 @@ class Forecaster:
         ``joints`` (25, 3), predicted ``horizon`` s past ``t``; ``seen`` (25,) bool: the
         joints that are predicted (others stay where ``joints`` has them, s.d. NaN).
         Compiled (``jit._forecast``, the same floats) when the kernels are used: in numpy a
-        body's forecast cost some 0.5 ms, ten times the rest of its datagram (issue 10,
-        stop 53)."""
+        body's forecast cost some 0.5 ms (a 6x6 datagram's CPU, 597 us without forecasts,
+        was 4129 us with them; issue 10, stop 53)."""
         if jit.ready():
             return self._predict_compiled(state.stacked(), state.t, t, joints, seen, horizon)
         target = t + horizon

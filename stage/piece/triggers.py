@@ -46,7 +46,7 @@ class Person:
     ``joint(j)``: the same whatever the confidence. A joint becomes a list of floats
     when first asked for: a piece reads a few joints of each body a frame, and making
     all 25 (25 lists, 75 floats, a dozen bodies a frame with forecasts) and freeing them
-    a frame later was a tenth of the runtime's time (issue 10, stop 53).
+    a frame later was about a quarter of the runtime's time (issue 10, stop 53).
     """
 
     __slots__ = ("id", "body", "_joints", "_rows", "conf", "min_conf", "_vel", "position",
