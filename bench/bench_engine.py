@@ -41,10 +41,10 @@ fused one, but fuses nothing (``relay_serve``) -- the least any Python server
 that keeps stage's wire API costs here. ``--profile DIR`` runs
 the server with one cProfile per thread; ``--server-cmd`` benchmarks another
 server command (A/B runs); ``--piece YAML`` runs ``stage play YAML`` as the server (the
-piece listening on the engine thread, its MIDI written to a file: the performer's case); ``--wait-idle S`` waits for a quiet machine before
-each configuration. The servers run from a snapshot of stage/ taken at the
-start, so one run measures one version of the code even while it is being
-edited (``--live`` to use the working tree). PASS/FAIL is printed against the
+piece listening on the engine thread, its MIDI written to a file: the performer's case);
+``--wait-idle S`` waits for a quiet machine before each configuration. The servers run
+from a snapshot of stage/ taken at the start, so one run measures one version of the code
+even while it is being edited (``--live`` to use the working tree). PASS/FAIL is printed against the
 targets; the exit status does not depend on it.
 """
 

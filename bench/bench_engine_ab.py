@@ -241,8 +241,9 @@ def main() -> int:
                   f"{r['ratio']:>10.2f} {r['b_mean'] / r['a_mean']:>8.2f}  {r['identical']}, "
                   f"{r['sent_same']}"
                   + (f"; {r['forecasts']} forecasts, identical {r['forecasts_same']} (max "
-                     f"difference {r['forecast_max_diff_m']:.1e} m)"
-                     if forecast[1] > 0 else ""), flush=True)
+                     f"difference {r['forecast_max_diff_m']:.1e} m)" if forecast[0] > 0 else
+                     f"; {r['forecasts']} forecasts, B's only" if forecast[1] > 0 else ""),
+                  flush=True)
     return 0
 
 

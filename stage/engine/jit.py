@@ -586,16 +586,21 @@ def _prior(S, st, t, q, rates, mean, var):  # pragma: no cover (compiled)
     n = S.shape[2]
     pp = np.empty(3)
     for i in range(n):
-        dt = t - st[i]
-        if dt != dt:
-            dt = 0.0
-        elif dt < 0.0:
-            dt = 0.0
+        dt = _since(t, st[i])
         e0 = math.expm1(rates[0] * dt)
         e1 = math.expm1(rates[1] * dt)
         for j in range(3):
             mean[i, j], _, pp[j] = _imm_axis(S, i, j, e0, e1, dt, q)
         var[i] = ((pp[0] + pp[1]) + pp[2]) / 3.0
+
+
+def _since(t, row_t):  # pragma: no cover (compiled)
+    """``t - row_t`` s, 0 where that is negative or NaN (a row never measured): the dt of the
+    numpy code (``np.maximum(t - st, 0)``, NaN made 0)."""
+    dt = t - row_t
+    if dt != dt or dt < 0.0:
+        return 0.0
+    return dt
 
 
 def _imm_axis(S, i, j, e0, e1, h, q):  # pragma: no cover (compiled)
@@ -664,11 +669,7 @@ def _forecast(S, st, target, horizon, q, rates, memory, limits, joints, seen, to
     ok = np.empty(n, np.bool_)
     capped = 0
     for i in range(n):
-        dt = target - st[i]
-        if dt != dt:
-            dt = 0.0
-        elif dt < 0.0:
-            dt = 0.0
+        dt = _since(target, st[i])
         e0 = math.expm1(rates[0] * dt)
         e1 = math.expm1(rates[1] * dt)
         k = dt
@@ -1833,7 +1834,8 @@ _PYTHON_HELPERS = {name: globals()[name] for name in _NATIVE_HELPERS}
 #: what ``_step_rows`` and ``_native_start`` call, as Python
 _ROW_PREDICTED = _row_predicted
 #: what ``_prior`` and ``_forecast`` call, as Python (in order: each after what it calls)
-_FORECAST_HELPERS = {"_div": _div, "_imm_axis": _imm_axis, "_mend_bone": _mend_bone}
+_FORECAST_HELPERS = {"_since": _since, "_div": _div, "_imm_axis": _imm_axis,
+                     "_mend_bone": _mend_bone}
 
 
 def warm() -> bool:
