@@ -881,6 +881,73 @@ def test_forecast_kernel_gives_the_numpy_floats():
     assert len(BONES) == 24
 
 
+@needs_jit
+@pytest.mark.parametrize("native", [True, False])
+def test_a_frames_forecasts_in_one_call_are_each_bodys_own(native):
+    """With the kernels the engine predicts a frame's bodies in one compiled call
+    (``Forecaster.predict_many``); one body at a time (``People._forecast_each``, through
+    ``_forecast``) gives the same floats, bit for bit: joints, velocity, s.d., confidences,
+    centres, and the same statistics. Three dancers walking in and out of three sensors'
+    range, on the native core (persons on the Python path until it takes them) and on the
+    Python path alone."""
+    from stage.clock import ManualClock
+    from stage.engine.engine import Engine
+    from stage.engine.forecast import Forecaster
+    from stage.rig import Rig, set_calibration
+    poses, data = three_dancers(seconds=4.0, timetags=True)
+    rig = Rig(reference="s0")
+    rig.fusion = dataclasses.replace(rig.fusion, native=native)
+    rig.stage_frame = poses[0].to_stage
+    inverse = np.linalg.inv(poses[0].to_stage)
+    for k, p in enumerate(poses):
+        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "test")
+    clock = ManualClock(0.0)
+    engine = Engine(rig, clock)
+    people = engine.people
+    people.want_forecast(0.05)
+    reference = Forecaster(people.forecaster.smoothing, people.forecaster.settings)
+    batches = []
+    many = people.forecaster.predict_many
+
+    def counted(*args):
+        batches.append(len(args[0]))
+        return many(*args)
+
+    people.forecaster.predict_many = counted
+    compared = [0, 0]
+
+    def check(frame):
+        got = frame.forecasts[0.05]
+        persons = [p for p in people.persons.values() if p.announced and p.centre is not None]
+        batched, people.forecaster = people.forecaster, reference
+        try:
+            want = people._forecast_each(persons, 0.05)
+        finally:
+            people.forecaster = batched
+            people._forecasts.clear()
+        assert got.keys() == want.keys()
+        for pid, body in got.items():
+            ref = want[pid]
+            for name in ("joints", "velocity", "sd", "conf", "position"):
+                np.testing.assert_array_equal(getattr(body, name), getattr(ref, name),
+                                              err_msg=name)
+            assert (body.t, body.horizon, body.hands, body.sensors) == \
+                (ref.t, ref.horizon, ref.hands, ref.sensors)
+        compared[0] += 1
+        compared[1] += len(got) > 1
+
+    engine.listeners.append(check)
+    for t, d in data:
+        clock.set(t)
+        engine.handle_datagram(d)
+        engine.tick()
+    assert compared[1] > 100 and sum(batches) >= 2 * len(batches) > 200
+    if native:
+        assert people.core is not None and people.core.slot_of
+    mine, theirs = people.forecaster.stats(), reference.stats()
+    assert mine == theirs and mine["made"] >= sum(batches)
+    assert people.forecaster.last_sd == reference.last_sd
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_views_stepped_in_one_call_are_the_steps_in_turn(compiled):
     """``kalman.step_views`` (a replay's views of one person, in one compiled call) against

@@ -201,6 +201,28 @@ class Forecaster:
             self.last_sd[horizon] = float(counts[2] / counts[3])
         return Forecast(t, horizon, out, vel, sd, n_over, fixed)
 
+    def predict_many(self, blocks: np.ndarray, row_t: np.ndarray, t: np.ndarray,
+                     joints: np.ndarray, seen: np.ndarray, horizon: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``predict_block`` of B bodies in one compiled call (``jit.forecast_many``):
+        blocks (B, 6, 2, N, 3), row_t (B, N), capture times t (B,), joints (B, N, 3), seen
+        (B, N); returns (joints (B, N, 3), velocity (B, N, 3), s.d. (B, N)), each body's the
+        floats ``predict_block`` gives it, and counts them as it would, in order. Needs the
+        kernels (``jit.ready()``)."""
+        out, vel, sd, counts = jit.forecast_many(
+            blocks, row_t, t + horizon, horizon, self._q, self._rates, self.memory,
+            self.limits, joints, seen, self.settings.bone_tolerance, self._bones)
+        last = None
+        for capped, fixed, total, n in counts.tolist():
+            self.speed_capped += int(capped)
+            self.bones_fixed += int(fixed)
+            if n > 0:
+                last = total / n     # (the last body with a predicted joint's, as one by one)
+        self.made += len(counts)
+        if last is not None:
+            self.last_sd[horizon] = last
+        return out, vel, sd
+
     def stats(self) -> dict:
         return {"made": self.made, "speed_capped": self.speed_capped,
                 "bones_fixed": self.bones_fixed,

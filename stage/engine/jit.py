@@ -735,6 +735,16 @@ def _forecast(S, st, target, horizon, q, rates, memory, limits, joints, seen, to
     counts[3] = count
 
 
+def _forecast_many(S, st, target, horizon, q, rates, memory, limits, joints, seen, tol, bones,
+                   out, vel, sd, counts):  # pragma: no cover (compiled)
+    """``_forecast`` of B bodies in one call: body b's state S[b] (6, 2, N, 3), row times
+    st[b], predicted to target[b], from joints[b] and seen[b]; writes out[b], vel[b], sd[b]
+    and counts[b] as ``_forecast`` writes them (one dispatch for a frame's bodies instead of
+    one each)."""
+    for b in range(S.shape[0]):
+        _forecast(S[b], st[b], target[b], horizon, q, rates, memory, limits, joints[b], seen[b],
+                  tol, bones, out[b], vel[b], sd[b], counts[b])
+
 def _div(a, b):  # pragma: no cover (compiled)
     """a / b as numpy divides (a zero divisor gives inf or NaN, no exception)."""
     if b == 0.0:
@@ -1752,6 +1762,10 @@ _SIGNATURES = {
     "_forecast": "void(float64[:, :, :, :], float64[:], float64, float64, float64[::1], "
                  "float64[::1], float64[::1], float64[::1], float64[:, :], boolean[:], float64, "
                  "int64[:, ::1], float64[:, ::1], float64[:, ::1], float64[::1], float64[::1])",
+    "_forecast_many": "void(float64[:, :, :, :, ::1], float64[:, ::1], float64[::1], float64, "
+                      "float64[::1], float64[::1], float64[::1], float64[::1], float64[:, :, ::1], "
+                      "boolean[:, ::1], float64, int64[:, ::1], float64[:, :, ::1], "
+                      "float64[:, :, ::1], float64[:, ::1], float64[:, ::1])",
     "_consistent": "void(float64[:, :, ::1], float64[:, ::1], float64[:, ::1], float64[::1], "
                    "float64, float64, boolean[:, ::1], boolean, boolean[:, ::1])",
     "_distance": "float64(float64[:, ::1], float64[::1], float64[:, ::1], float64[:, ::1], "
@@ -2130,6 +2144,20 @@ def forecast(S: np.ndarray, st: np.ndarray, target: float, horizon: float, q: np
                            joints, seen, float(tol), bones, out, vel, sd, counts)
     return out, vel, sd, counts
 
+
+def forecast_many(S: np.ndarray, st: np.ndarray, target: np.ndarray, horizon: float,
+                  q: np.ndarray, rates: np.ndarray, memory: np.ndarray, limits: np.ndarray,
+                  joints: np.ndarray, seen: np.ndarray, tol: float, bones: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled ``_forecast_many``: ``forecast`` of B bodies at once, S (B, 6, 2, N, 3),
+    st (B, N), target (B,), joints (B, N, 3), seen (B, N); (out (B, N, 3), vel (B, N, 3),
+    s.d. (B, N), counts (B, 4)), each body's the floats ``forecast`` gives it."""
+    b, n = st.shape
+    out, vel, sd, counts = (np.empty((b, n, 3)), np.empty((b, n, 3)), np.empty((b, n)),
+                            np.empty((b, 4)))
+    _compiled["_forecast_many"](S, st, target, float(horizon), q, rates, memory, limits,
+                                joints, seen, float(tol), bones, out, vel, sd, counts)
+    return out, vel, sd, counts
 
 def consistent(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
                bias_var: float, chi2: float, tracked: np.ndarray | None) -> np.ndarray:
