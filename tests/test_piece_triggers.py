@@ -573,3 +573,21 @@ def test_a_persons_joints_read_as_floats_whatever_the_order_they_are_asked_in():
         assert p.joint(j) is p.joint(j)            # made once
         assert p.xyz(j) == (None if j in (4, 11) else joints[j].tolist())
     assert p.xyz(BODY) == body.position.tolist()
+
+
+def test_a_persons_velocities_read_as_floats_whatever_the_order_they_are_asked_in():
+    """The same for a joint's velocity and speed, made when first asked for: every joint's
+    as the body has it, and the torso centre's (``BODY``) that of SpineMid."""
+    from stage.frames import Body
+    from stage.joints import JOINT_INDEX
+    from stage.piece.model import BODY
+    from stage.piece.triggers import Person
+    rng = np.random.default_rng(4)
+    joints, vel = rng.normal(0.0, 1.0, (25, 3)), rng.normal(0.0, 2.0, (25, 3))
+    body = Body(1, joints, np.ones(25), vel, (HandState.OPEN, HandState.OPEN),
+                joints[:3].mean(axis=0), ("s0",))
+    p = Person(body, 0.5, 0.0)
+    assert p.vel(BODY) == vel[JOINT_INDEX["SpineMid"]].tolist()
+    for j in rng.permutation(25):
+        assert p.vel(j) == vel[j].tolist() and p.vel(j) is p.vel(j)
+        assert p.speed(j) == pytest.approx(float(np.linalg.norm(vel[j])), rel=1e-12)

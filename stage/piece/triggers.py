@@ -43,10 +43,11 @@ class Person:
     ``xyz(j)``: (x, y, z) metres of joint j, or None when its confidence is below
     the piece's minimum this frame (unseen joints keep stale positions in the
     engine; they must not move triggers). ``BODY`` is the torso centre.
-    ``joint(j)``: the same whatever the confidence. A joint becomes a list of floats
-    when first asked for: a piece reads a few joints of each body a frame, and making
-    all 25 (25 lists, 75 floats, a dozen bodies a frame with forecasts) and freeing them
-    a frame later was about a quarter of the runtime's time (issue 10, stop 53).
+    ``joint(j)``: the same whatever the confidence. A joint (and its velocity, ``vel``)
+    becomes a list of floats when first asked for: a piece reads a few joints of each body
+    a frame, and making all 25 (25 lists, 75 floats, a dozen bodies a frame with
+    forecasts) and freeing them a frame later was about a quarter of the runtime's time
+    (issue 10, stop 53).
     """
 
     __slots__ = ("id", "body", "_joints", "_rows", "conf", "min_conf", "_vel", "position",
@@ -82,9 +83,16 @@ class Person:
         return self.joint(j)
 
     def vel(self, j: int):
-        if self._vel is None:
-            self._vel = self.body.velocity.tolist()
-        return self._vel[1 if j == BODY else j]  # the torso centre moves like SpineMid
+        """[vx, vy, vz] m/s of joint ``j`` (``BODY``: SpineMid's, as the torso centre moves),
+        made when first asked for, as ``joint``."""
+        k = 1 if j == BODY else j
+        vels = self._vel
+        if vels is None:
+            vels = self._vel = [None] * len(self.conf)
+        v = vels[k]
+        if v is None:
+            v = vels[k] = self.body.velocity[k].tolist()
+        return v
 
     def speed(self, j: int) -> float:
         v = self.vel(j)
