@@ -8,6 +8,7 @@ module, never the engine.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,8 +56,46 @@ class FusedFrame:
     new: tuple[int, ...]
     lost: tuple[int, ...]
     #: horizon (s) -> every body of ``bodies`` predicted that far past its capture time,
-    #: for the horizons pieces and views asked the engine for (docs/anticipation.md)
-    forecasts: dict[float, dict[int, Body]] = field(default_factory=dict)
+    #: for the horizons pieces and views asked the engine for (docs/anticipation.md); a
+    #: ``Forecasts`` where some were asked for only when read
+    forecasts: Mapping[float, dict[int, Body]] = field(default_factory=dict)
+
+
+class Forecasts(Mapping):
+    """A frame's forecasts where some horizons are made only when read (``lazy``): the
+    piece asks for its anticipating triggers' horizons so, and reads them on the engine
+    thread while the engine calls it, only in the sections where such a trigger is active.
+    ``seal`` (the engine, once its listeners have returned) forgets how to make them: a
+    horizon nobody read is then not in the mapping, so a view thread holding the frame
+    later never predicts from a filter that has moved on."""
+
+    __slots__ = ("_made", "_lazy", "_make")
+
+    def __init__(self, made: dict[float, dict[int, Body]], lazy: tuple[float, ...],
+                 make: Callable[[float], dict[int, Body]]) -> None:
+        self._made, self._lazy, self._make = made, lazy, make
+
+    def __getitem__(self, horizon: float) -> dict[int, Body]:
+        got = self._made.get(horizon)
+        if got is None:
+            if self._make is None or horizon not in self._lazy:
+                raise KeyError(horizon)
+            got = self._made[horizon] = self._make(horizon)
+        return got
+
+    def __contains__(self, horizon: object) -> bool:
+        return horizon in self._made or (self._make is not None and horizon in self._lazy)
+
+    def __iter__(self) -> Iterator[float]:
+        if self._make is None:
+            return iter(list(self._made))
+        return iter(list(self._made) + [h for h in self._lazy if h not in self._made])
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def seal(self) -> None:
+        self._make, self._lazy = None, ()
 
 
 def fused_json(frame) -> dict:

@@ -281,6 +281,57 @@ def test_the_engine_sends_listeners_bodies_forecast_from_their_filter_on_a_manua
         engine.people.want_forecast(0.5)
 
 
+def test_forecasts_asked_for_lazily_are_made_when_read_and_are_the_same_bodies():
+    """A horizon asked for lazily (what ``stage play`` asks for a piece's anticipation) is
+    predicted only for the frames whose listener reads it while the engine calls it: the
+    same floats as asked for as they are, nothing made for frames nobody read, and once the
+    listeners have returned a frame holds only what was read (a view thread holding it
+    later predicts nothing from a filter that has moved on). A horizon also asked for as
+    it is (a view's) is made for every frame."""
+    from stage.app.offline import feed
+    from stage.clock import ManualClock
+    from stage.engine import Engine
+
+    def run(lazy, read, also_eager=False):
+        clock, sim = ManualClock(0.0), walker_sim()
+        engine = Engine(sim.rig(), clock)
+        engine.people.want_forecast(0.05, lazy=lazy)
+        if also_eager:
+            engine.people.want_forecast(0.05)
+        frames, seen = [], []
+
+        def listener(frame):
+            n = len(frames)
+            frames.append(frame)
+            assert (0.05 in frame.forecasts) and list(frame.forecasts) == [0.05]
+            seen.append(frame.forecasts.get(0.05) if read(n) else None)
+
+        engine.listeners.append(listener)
+        feed(engine, clock, sim.stream(1.5), end=1.5)
+        return frames, seen, engine.people.forecaster.stats()["made"]
+
+    every = lambda n: True                                          # noqa: E731
+    odd = lambda n: n % 2 == 1                                      # noqa: E731
+    frames, want, made = run(False, every)
+    lazy_frames, got, lazy_made = run(True, odd)
+    assert len(frames) == len(lazy_frames) > 20 and made == len(frames)
+    read = 0
+    for n, (frame, b_want, b_got) in enumerate(zip(lazy_frames, want, got)):
+        if odd(n):
+            assert b_got.keys() == b_want.keys()
+            for pid, body in b_got.items():
+                for name in ("joints", "velocity", "sd", "conf", "position"):
+                    np.testing.assert_array_equal(getattr(body, name),
+                                                  getattr(b_want[pid], name))
+            assert list(frame.forecasts) == [0.05] and frame.forecasts[0.05] is b_got
+            read += len(b_got)
+        else:
+            assert b_got is None and 0.05 not in frame.forecasts   # sealed, never made
+            assert frame.forecasts.get(0.05) is None and len(frame.forecasts) == 0
+    assert lazy_made == read > 10
+    _, both, both_made = run(True, odd, also_eager=True)
+    assert both_made == made and all(b is not None for b in both[1::2])
+
 def test_a_view_registers_for_a_forecast_over_osc():
     from pythonosc.osc_message_builder import OscMessageBuilder
     b = OscMessageBuilder("/registerView")

@@ -243,8 +243,10 @@ class Show:
             self.narrator = Narrator(self.out, origin=self._started_at, direct=not threaded)
             sink = FanoutSink(self.host, self.events_file, self.recorded, self.score)
             self.runtime = PieceRuntime(self.piece, sink, seed=self.seed, narrator=self.narrator)
+            # (lazily: the runtime reads them on the engine thread, while the engine calls
+            # it, and only where a section's trigger anticipates or the piece forecasts)
             for horizon in sorted(self.piece.horizons()):   # forecast_s, anticipate
-                engine.people.want_forecast(horizon)
+                engine.people.want_forecast(horizon, lazy=True)
             engine.listeners.append(self.runtime)
         if o.status_line:
             self.status = StatusLine(engine, out=self.out)

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..clock import Clock
 from ..errors import ConfigError
-from ..frames import Body, FusedFrame
+from ..frames import Body, Forecasts, FusedFrame
 from ..joints import INFERRED, JOINT_INDEX, N_JOINTS, TORSO, HandState
 from ..rig import Rig
 from ..stats import DropCounter, LatencyWindow
@@ -127,6 +127,7 @@ class People:
         #: horizons listeners asked for (horizon -> how many asked), and the views'
         self.forecaster = Forecaster(smoothing, rig.forecast)
         self.horizons: dict[float, int] = {}
+        self._eager: dict[float, int] = {}        # (those asked for not lazily)
         self._forecasts: dict[tuple[int, float], Forecast] = {}   # this emission's
         #: the batch's views, each with its sensor's transform (whose translation is where
         #: the sensor is: the variances without the kernels, ``_variances``)
@@ -622,19 +623,25 @@ class People:
         return np.maximum.reduce(person.recent_conf[live], axis=0)
 
     # ------------------------------------------------------------ forecasts
-    def want_forecast(self, horizon: float) -> None:
+    def want_forecast(self, horizon: float, lazy: bool = False) -> None:
         """From now on every ``FusedFrame`` carries its bodies predicted ``horizon`` s ahead
-        (``frame.forecasts[horizon]``); engine thread. 0 asks for nothing."""
+        (``frame.forecasts[horizon]``); engine thread. 0 asks for nothing. ``lazy``: made
+        only when a listener reads them while the engine calls it (``frames.Forecasts``; a
+        listener that reads them later, from another thread, must not ask so), unless
+        someone else asked for them as they are."""
         horizon = self.check_horizon(horizon)
         if horizon > 0:
             self.horizons[horizon] = self.horizons.get(horizon, 0) + 1
+            if not lazy:
+                self._eager[horizon] = self._eager.get(horizon, 0) + 1
 
-    def drop_forecast(self, horizon: float) -> None:
-        n = self.horizons.get(horizon, 0) - 1
-        if n > 0:
-            self.horizons[horizon] = n
-        else:
-            self.horizons.pop(horizon, None)
+    def drop_forecast(self, horizon: float, lazy: bool = False) -> None:
+        for counts in (self.horizons,) if lazy else (self.horizons, self._eager):
+            n = counts.get(horizon, 0) - 1
+            if n > 0:
+                counts[horizon] = n
+            else:
+                counts.pop(horizon, None)
 
     def check_horizon(self, horizon: float) -> float:
         """``horizon`` as a float, or a ConfigError naming the rig's limit."""
@@ -733,9 +740,15 @@ class People:
         self._dirty, self._lost = {}, []
         self._hands_dirty.clear()
         if self.listeners and (updated or lost):
-            forecasts = {h: self._forecast_bodies(h) for h in self.horizons}
+            eager = self._eager
+            forecasts = {h: self._forecast_bodies(h) for h in self.horizons if h in eager}
+            lazy = tuple(h for h in self.horizons if h not in eager)
+            if lazy:
+                forecasts = Forecasts(forecasts, lazy, self._forecast_bodies)
             self.listeners.call(FusedFrame(now, self.bodies(), tuple(updated), tuple(new),
                                            tuple(lost), forecasts))
+            if lazy:
+                forecasts.seal()
         self._forecasts.clear()
 
     def _send_joints(self, new: list[int]) -> list[Person]:
