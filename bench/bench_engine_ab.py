@@ -21,6 +21,12 @@ does for a piece that anticipates: Liminal Space asks for 0.05) and gives them a
 that digests each frame's forecasts (``forecasts identical``); ``--forecast-b H`` asks B's
 only: with the same tree as A and B, it measures what the forecasts cost.
 
+``--piece YAML`` gives each engine its own tree's piece runtime of YAML as a listener, the
+piece's horizons asked for as that tree's ``stage play`` asks (lazily where the tree can):
+the performer's case in process, the piece's calls inside each datagram's CPU; the events
+of both are compared (``events identical``). To measure one section, start the piece there
+(a copy of the YAML with another ``start:``).
+
 ``--paced`` sleeps the datagrams' real spacing (spread: 1 / (30 x sensors)) before each
 engine's datagram, so each finds its caches cold as the live engine thread does after waiting
 (issue 10, stop 37: that doubles a datagram's CPU here); a change that saves calls at the cost
@@ -35,7 +41,7 @@ sensors do; the simulated Kinects' errors make those views disagree, and replays
 
 Run: python bench/bench_engine_ab.py TREE_A TREE_B [--configs 1x1,3x3,6x6] [--seconds 6]
      [--quick] [--timetags] [--aligned] [--paced] [--native | --native-b]
-     [--forecast H | --forecast-b H]
+     [--forecast H | --forecast-b H | --piece YAML]
      (TREE: a directory holding stage/, e.g. a `git archive main` and `.`)
 """
 
@@ -45,6 +51,7 @@ import argparse
 import dataclasses
 import hashlib
 import importlib
+import inspect
 import shutil
 import sys
 import tempfile
@@ -90,7 +97,8 @@ def load(tree: str, name: str, root: Path) -> dict:
     """``tree``'s stage package imported as ``name`` (a copy under ``root``)."""
     shutil.copytree(Path(tree) / "stage", root / name)
     return {m: importlib.import_module(f"{name}.{m}")
-            for m in ("engine.engine", "clock", "rig", "sensors.protocol", "sensors.sim")}
+            for m in ("engine.engine", "clock", "rig", "sensors.protocol", "sensors.sim",
+                      "piece")}
 
 
 #: a Unix time for the bundles' timetags (--timetags): the engine's clock starts at 0
@@ -121,6 +129,19 @@ def datagrams(mods: dict, n_sensors: int, n_people: int, seconds: float, seed: i
     return poses, out
 
 
+def listen(mods: dict, e, piece: str) -> None:
+    """``piece`` played on ``e`` as the tree's ``stage play`` plays it: the tree's runtime
+    listening, its horizons asked for lazily where the tree can (``e.piece_sink``: the
+    events)."""
+    pm = mods["piece"]
+    model = pm.load_piece(piece)
+    e.piece_sink = pm.RecordingSink()
+    lazy = "lazy" in inspect.signature(e.people.want_forecast).parameters
+    for h in sorted(model.horizons()):
+        e.people.want_forecast(h, lazy=True) if lazy else e.people.want_forecast(h)
+    e.listeners.append(pm.PieceRuntime(model, e.piece_sink, seed=1))
+
+
 def engine(mods: dict, poses, native: bool = False, forecast: float = 0.0):
     rig_mod = mods["rig"]
     rig = rig_mod.Rig(reference="s0", views=[("127.0.0.1", 9)])
@@ -142,10 +163,14 @@ def engine(mods: dict, poses, native: bool = False, forecast: float = 0.0):
 
 def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
         timetags: bool = False, aligned: bool = False, paced: bool = False,
-        native_b: bool = False, native_a: bool = False, forecast: tuple = (-1.0, -1.0)) -> dict:
+        native_b: bool = False, native_a: bool = False, forecast: tuple = (-1.0, -1.0),
+        piece: str | None = None) -> dict:
     poses, data = datagrams(a, n_sensors, n_people, seconds, timetags=timetags, aligned=aligned)
     (ea, ca) = engine(a, poses, native_a, forecast[0])
     (eb, cb) = engine(b, poses, native_b or native_a, forecast[1])
+    if piece:
+        listen(a, ea, piece)
+        listen(b, eb, piece)
     ta: list[float] = []
     tb: list[float] = []
     gap = 1.0 / (30 * n_sensors)       # --paced: the datagrams' real spacing, spread
@@ -169,6 +194,9 @@ def run(a: dict, b: dict, n_sensors: int, n_people: int, seconds: float,
             "b_p50": float(np.percentile(us_b, 50)), "b_p90": float(np.percentile(us_b, 90)),
             "a_mean": float(us_a.mean()), "b_mean": float(us_b.mean()),
             "ratio": float(np.median(us_b / us_a)), "identical": same,
+            "events": (len(ea.piece_sink.events), len(eb.piece_sink.events)) if piece else None,
+            "events_same": piece is not None and ([repr(e) for e in ea.piece_sink.events]
+                                                  == [repr(e) for e in eb.piece_sink.events]),
             "forecasts": eb.forecast_digest.count,
             "forecast_max_diff_m": _max_diff(ea.forecast_digest.joints, eb.forecast_digest.joints),
             "forecasts_same": (ea.forecast_digest.digest.digest()
@@ -214,9 +242,11 @@ def main() -> int:
                         help="both engines asked for bodies H s ahead, with a listener")
     parser.add_argument("--forecast-b", type=float, default=0.0, metavar="H",
                         help="B's engine only asked for bodies H s ahead (both with a listener)")
+    parser.add_argument("--piece", metavar="YAML",
+                        help="each engine plays YAML with its own tree's piece runtime")
     args = parser.parse_args()
-    if args.forecast and args.forecast_b:
-        parser.error("--forecast (both) or --forecast-b (B only)")
+    if sum(map(bool, (args.forecast, args.forecast_b, args.piece))) > 1:
+        parser.error("--forecast (both), --forecast-b (B only) or --piece")
     forecast = ((args.forecast, args.forecast) if args.forecast else
                 (0.0, args.forecast_b) if args.forecast_b else (-1.0, -1.0))
     seconds = 1.0 if args.quick else args.seconds
@@ -225,7 +255,8 @@ def main() -> int:
         a = load(args.tree_a, "stage_a", Path(tmp))
         b = load(args.tree_b, "stage_b", Path(tmp))
         asked = (f"; forecast {args.forecast:g} s, both" if args.forecast else
-                 f"; forecast {args.forecast_b:g} s, B only" if args.forecast_b else "")
+                 f"; forecast {args.forecast_b:g} s, B only" if args.forecast_b else
+                 f"; playing {args.piece}" if args.piece else "")
         print(f"A = {args.tree_a}, B = {args.tree_b}{' with fusion.native' if args.native_b else ''}{'; both with fusion.native' if args.native else ''}{asked}; CPU per datagram (thread_time), us; "
               f"{seconds:g} s of show per config; "
               f"{'capture-time timetags' if args.timetags else 'no timetags'}; "
@@ -235,14 +266,16 @@ def main() -> int:
               f"final joints identical, every datagram sent identical")
         for config in args.configs.split(","):
             r = run(a, b, *map(int, config.split("x")), seconds, args.timetags, args.aligned,
-                    args.paced, args.native_b, args.native, forecast)
+                    args.paced, args.native_b, args.native, forecast, args.piece)
             print(f"{r['config']:>7} {r['datagrams']:>9} {r['a_p50']:>7.0f} {r['a_p90']:>7.0f} "
                   f"{r['a_mean']:>7.0f} {r['b_p50']:>7.0f} {r['b_p90']:>7.0f} {r['b_mean']:>7.0f} "
                   f"{r['ratio']:>10.2f} {r['b_mean'] / r['a_mean']:>8.2f}  {r['identical']}, "
                   f"{r['sent_same']}"
                   + (f"; {r['forecasts']} forecasts, identical {r['forecasts_same']} (max "
                      f"difference {r['forecast_max_diff_m']:.1e} m)" if forecast[0] > 0 else
-                     f"; {r['forecasts']} forecasts, B's only" if forecast[1] > 0 else ""),
+                     f"; {r['forecasts']} forecasts, B's only" if forecast[1] > 0 else
+                     f"; events {r['events'][0]}/{r['events'][1]}, identical "
+                     f"{r['events_same']}" if args.piece else ""),
                   flush=True)
     return 0
 
