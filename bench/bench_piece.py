@@ -57,8 +57,13 @@ class CountingSink:
         self.events += len(events)
 
 
-def frames(people: int, seconds: float, seed: int = 1) -> list[FusedFrame]:
-    """Precomputed frames of ``people`` moving performers (velocities by finite difference)."""
+def frames(people: int, seconds: float, seed: int = 1,
+           horizons: tuple[float, ...] = ()) -> list[FusedFrame]:
+    """Precomputed frames of ``people`` moving performers (velocities by finite difference),
+    with each body predicted every horizon in ``horizons`` ahead (the piece's: ``forecast_s``
+    and its triggers' ``anticipate``) at its velocity, a stand-in for the engine's forecast,
+    so that a piece's anticipation runs here as it does live (without them it found no
+    forecast and did nothing: issue 10, stop 53)."""
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0, 2 * math.pi, size=(people, 4))
     out: list[FusedFrame] = []
@@ -86,7 +91,11 @@ def frames(people: int, seconds: float, seed: int = 1) -> list[FusedFrame]:
             bodies[pid] = Body(pid, joints, np.ones(25), velocity, hands,
                                joints[list(TORSO)].mean(axis=0), ("bench",))
         new = tuple(range(1, people + 1)) if k == 0 else ()
-        out.append(FusedFrame(t, bodies, tuple(bodies), new, ()))
+        ahead = {h: {pid: Body(pid, b.joints + b.velocity * h, b.conf, b.velocity, b.hands,
+                               b.position + b.velocity[list(TORSO)].mean(axis=0) * h, b.sensors,
+                               t, h, np.full(25, 0.01 + 0.2 * h))
+                     for pid, b in bodies.items()} for h in horizons}
+        out.append(FusedFrame(t, bodies, tuple(bodies), new, (), ahead))
     return out
 
 
@@ -119,7 +128,7 @@ def one_pass(piece, stream: list[FusedFrame], section: str | None, seed: int) ->
 def measure(piece_path: str, people: int, seconds: float, section: str | None,
             seed: int = 1, repeat: int = 3) -> dict:
     piece = load_piece(piece_path)
-    stream = frames(people, seconds, seed)
+    stream = frames(people, seconds, seed, tuple(sorted(piece.horizons())))
     busy0, own0 = others_cpu()
     wall0 = time.monotonic()
     passes = [one_pass(piece, stream, section, seed) for _ in range(repeat)]
@@ -134,7 +143,9 @@ def measure(piece_path: str, people: int, seconds: float, section: str | None,
             "p99_best_ms": min(p99), "max_ms": float(max(m.max() for m, _, _ in passes)),
             "others_cpu_pct": others, "fired": runtime.counts["fired"],
             "notes": runtime.counts["notes"], "events": sink.events,
-            "errors": runtime.counts["errors"]}
+            "errors": runtime.counts["errors"],
+            "forecast_missing": runtime.counts["forecast_missing"],
+            "anticipated": runtime.counts["anticipated"]}
 
 
 def main() -> int:
