@@ -745,6 +745,7 @@ def _forecast_many(S, st, target, horizon, q, rates, memory, limits, joints, see
         _forecast(S[b], st[b], target[b], horizon, q, rates, memory, limits, joints[b], seen[b],
                   tol, bones, out[b], vel[b], sd[b], counts[b])
 
+
 def _div(a, b):  # pragma: no cover (compiled)
     """a / b as numpy divides (a zero divisor gives inf or NaN, no exception)."""
     if b == 0.0:
@@ -2158,6 +2159,7 @@ def forecast_many(S: np.ndarray, st: np.ndarray, target: np.ndarray, horizon: fl
     _compiled["_forecast_many"](S, st, target, float(horizon), q, rates, memory, limits,
                                 joints, seen, float(tol), bones, out, vel, sd, counts)
     return out, vel, sd, counts
+
 
 def consistent(z: np.ndarray, r: np.ndarray, prior: np.ndarray, prior_var: np.ndarray,
                bias_var: float, chi2: float, tracked: np.ndarray | None) -> np.ndarray:
