@@ -227,20 +227,25 @@ def test_stage_jit_0_turns_the_kernels_off():
     assert out.startswith("False") and "STAGE_JIT=0" in out
 
 
-def _run_engine(poses, data, snapshots: list) -> None:
+def _show_engine(poses, native: bool):
+    """(engine, its manual clock) with the rig of ``three_dancers``' sensors (``poses``)."""
     from stage.clock import ManualClock
     from stage.engine.engine import Engine
     from stage.rig import Rig, set_calibration
     rig = Rig(reference="s0")
-    # the Python path's kernels are what these tests compare (the native core is held to
-    # that path in tests/test_native.py)
-    rig.fusion = dataclasses.replace(rig.fusion, native=False)
+    rig.fusion = dataclasses.replace(rig.fusion, native=native)
     rig.stage_frame = poses[0].to_stage
     inverse = np.linalg.inv(poses[0].to_stage)
     for k, p in enumerate(poses):
         set_calibration(rig, f"s{k}", inverse @ p.to_stage, "test")
     clock = ManualClock(0.0)
-    engine = Engine(rig, clock)
+    return Engine(rig, clock), clock
+
+
+def _run_engine(poses, data, snapshots: list) -> None:
+    # the Python path's kernels are what these tests compare (the native core is held to
+    # that path in tests/test_native.py)
+    engine, clock = _show_engine(poses, native=False)
     for t, d in data:
         clock.set(t)
         engine.handle_datagram(d)
@@ -890,19 +895,9 @@ def test_a_frames_forecasts_in_one_call_are_each_bodys_own(native):
     centres, and the same statistics. Three dancers walking in and out of three sensors'
     range, on the native core (persons on the Python path until it takes them) and on the
     Python path alone."""
-    from stage.clock import ManualClock
-    from stage.engine.engine import Engine
     from stage.engine.forecast import Forecaster
-    from stage.rig import Rig, set_calibration
     poses, data = three_dancers(seconds=4.0, timetags=True)
-    rig = Rig(reference="s0")
-    rig.fusion = dataclasses.replace(rig.fusion, native=native)
-    rig.stage_frame = poses[0].to_stage
-    inverse = np.linalg.inv(poses[0].to_stage)
-    for k, p in enumerate(poses):
-        set_calibration(rig, f"s{k}", inverse @ p.to_stage, "test")
-    clock = ManualClock(0.0)
-    engine = Engine(rig, clock)
+    engine, clock = _show_engine(poses, native)
     people = engine.people
     people.want_forecast(0.05)
     reference = Forecaster(people.forecaster.smoothing, people.forecaster.settings)
