@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import importlib
 import sys
 import tempfile
 import time
@@ -52,14 +51,6 @@ class DigestSink:
             self.digest.update(repr(event).replace(self.package, "").encode())
 
 
-def load(tree: str, name: str, root: Path) -> dict:
-    """``bench_engine_ab.load``'s modules of ``tree`` imported as ``name``, and its piece's."""
-    mods = ab.load(tree, name, root)
-    mods.update({m: importlib.import_module(f"{name}.{m}")
-                 for m in ("piece.loader", "piece.runtime")})
-    return mods
-
-
 def run(mods: list[dict], names: list[str], piece_path: str, sensors: int, people: int,
         seconds: float, aligned: bool, section: str | None = None) -> dict:
     poses, data = ab.datagrams(mods[0], sensors, people, seconds, timetags=True,
@@ -67,17 +58,17 @@ def run(mods: list[dict], names: list[str], piece_path: str, sensors: int, peopl
     engine, clock = ab.engine(mods[0], poses, native=True, forecast=-1.0)
     sides = []
     for m, name in zip(mods, names):
-        piece = m["piece.loader"].load_piece(piece_path)
+        piece = m["piece"].load_piece(piece_path)
         sink = DigestSink(name)
-        runtime = m["piece.runtime"].PieceRuntime(piece, sink, seed=1)
+        runtime = m["piece"].PieceRuntime(piece, sink, seed=1)
         if section is not None:      # (as bench_piece.py: forced there, and kept there)
             runtime.start(0.0)
             if section != piece.start:
                 runtime.goto(section, 0.0, "bench")
             runtime._change_section = lambda *a, **k: False
         sides.append((runtime, sink, []))
-    for horizon in sorted(piece.horizons()):
-        engine.people.want_forecast(horizon)
+    for horizon in sorted(piece.horizons()):      # (not lazily: neither timed runtime
+        engine.people.want_forecast(horizon)      # pays for making them)
     turn = [0]
 
     def both(frame) -> None:
@@ -121,8 +112,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         sys.path.insert(0, tmp)
         names = ["piece_a", "piece_b"]
-        mods = [load(tree, name, Path(tmp)) for tree, name in zip((args.tree_a, args.tree_b),
-                                                                  names)]
+        mods = [ab.load(tree, name, Path(tmp))
+                for tree, name in zip((args.tree_a, args.tree_b), names)]
         print(f"A = {args.tree_a}, B = {args.tree_b}; {Path(args.piece).name}; CPU per frame "
               f"(thread_time), us; {args.seconds:g} s of show; "
               f"{'aligned' if args.aligned else 'spread'}; load "
@@ -131,7 +122,7 @@ def main() -> int:
               f"{'B mean':>6} {'mean B/A':>8} {'median B/A':>10}  events A/B, identical, section")
         sections = [None]
         if args.sections:
-            sections += [sec.name for sec in mods[0]["piece.loader"].load_piece(
+            sections += [sec.name for sec in mods[0]["piece"].load_piece(
                 args.piece).sections]
         for config, section in [(c, sec) for c in args.configs.split(",") for sec in sections]:
             s, p = map(int, config.split("x"))
