@@ -64,9 +64,13 @@ PARTS = (
 )
 
 
-def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
+def _wrap(acc: collections.Counter, calls: collections.Counter, parts=PARTS, key=None,
+          when=None) -> None:
+    """Each of ``parts`` timed: its CPU ns into ``acc`` and its calls into ``calls`` under
+    ``key(label)`` (the label itself by default); where ``when()`` is false (another thread:
+    live_parts.py), the call runs untimed."""
     import importlib
-    for module, owner, name, label in PARTS:
+    for module, owner, name, label in parts:
         try:
             mod = importlib.import_module(module)
         except ImportError:     # an older tree without this module: its parts not shown
@@ -83,12 +87,15 @@ def _wrap(acc: collections.Counter, calls: collections.Counter) -> None:
             continue
 
         def timed(*a, _fn=fn, _label=label, **k):
+            if when is not None and not when():
+                return _fn(*a, **k)
+            at = _label if key is None else key(_label)
             c = time.thread_time_ns()
             try:
                 return _fn(*a, **k)
             finally:
-                acc[_label] += time.thread_time_ns() - c
-                calls[_label] += 1
+                acc[at] += time.thread_time_ns() - c
+                calls[at] += 1
         if table:
             obj[name] = timed
             continue

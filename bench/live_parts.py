@@ -25,8 +25,6 @@ unwrapped: compare the parts with each other, not the totals with another run.
 from __future__ import annotations
 
 import collections
-import functools
-import importlib
 import os
 import sys
 import threading
@@ -55,34 +53,6 @@ class Parts:
         self.thread: threading.Thread | None = None
         self.place = 2
         self.k = 0
-        self.lock = threading.Lock()
-
-    def wrap(self, obj, name: str, label: str) -> None:
-        """``obj.name`` timed under ``label`` when called on the engine thread."""
-        table = isinstance(obj, dict)
-        fn = obj.get(name) if table else getattr(obj, name, None)
-        if fn is None:                  # a tree without this part
-            return
-
-        def timed(*a, _fn=fn, _label=label, **kw):
-            if threading.current_thread() is not self.thread:
-                return _fn(*a, **kw)
-            place = self.place
-            c = time.thread_time_ns()
-            try:
-                return _fn(*a, **kw)
-            finally:
-                self.cpu[(_label, place)] += time.thread_time_ns() - c
-                self.calls[(_label, place)] += 1
-        if table:
-            obj[name] = timed
-            return
-        setattr(obj, name, functools.wraps(fn)(timed))
-        if not isinstance(obj, type):   # a module's function: where others imported it too
-            for other in list(sys.modules.values()):
-                if (getattr(other, "__name__", "").startswith("stage.")
-                        and getattr(other, name, None) is fn):
-                    setattr(other, name, getattr(obj, name))
 
     def table(self) -> str:
         n = [self.datagrams[p] or 1 for p in range(3)]
@@ -105,7 +75,6 @@ class Parts:
 def install(parts: Parts) -> None:
     from stage.engine import engine as engine_mod
     from stage.engine import jit
-    from stage.sensors import receiver
 
     process_taken, process = engine_mod.Engine.process_taken, engine_mod.Engine.process
 
@@ -113,17 +82,13 @@ def install(parts: Parts) -> None:
         if parts.thread is None:        # the first take: this is the engine thread
             parts.thread = threading.current_thread()
             jit.ready()
-            for module, owner, name, label in bench_engine_parts.PARTS + EXTRA:
-                if (module, owner, name) == ("stage.engine.engine", "Engine", "process"):
-                    continue            # (timed below, by place)
-                try:
-                    mod = importlib.import_module(module)
-                except ImportError:
-                    continue
-                obj = getattr(mod, owner, None) if owner else mod
-                if obj is not None:
-                    parts.wrap(obj, name, label)
-            parts.wrap(receiver.UdpTransport, "send", SEND)
+            timed = [p for p in bench_engine_parts.PARTS + EXTRA
+                     if p[:3] != ("stage.engine.engine", "Engine", "process")]  # (below)
+            bench_engine_parts._wrap(
+                parts.cpu, parts.calls, timed + [("stage.sensors.receiver", "UdpTransport",
+                                                  "send", SEND)],
+                key=lambda label: (label, parts.place),
+                when=lambda: threading.current_thread() is parts.thread)
         parts.k = 0
         return process_taken(self, batch)
 
