@@ -8,7 +8,8 @@ plus the engine thread's ``sendto`` calls, on the engine thread only, and splits
 CPU by where its datagram was in what the engine thread took from the queue at once
 (``Engine.process_taken``): the first of several (it meets caches the 33 ms since the last
 burst left cold), one in the middle, and the last or only one (which votes the hands and
-calls the listeners). Each ``Engine.process`` is also timed on the wall clock: the
+calls the listeners); what the engine thread does between datagrams (the tick) has a column
+of its own, per datagram. Each ``Engine.process`` is also timed on the wall clock: the
 difference from its CPU is what the thread waited (the GIL, mostly, given up at each send).
 
 Run (sensors in step, the server `stage serve`; the table is written every 3 s)::
@@ -34,7 +35,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_engine_parts  # noqa: E402
 
-PLACES = ("first of several", "middle", "last or alone")
+PLACES = ("first of several", "middle", "last or alone", "between (tick)")
+#: the place of work done outside any datagram (the tick), shown per datagram of all places
+BETWEEN = 3
 SEND = "sendto (each view's datagram)"
 #: what ``stage play`` adds on the engine thread, timed beside bench_engine_parts' parts
 EXTRA = (("stage.engine.callbacks", "Callbacks", "call", "callbacks (listeners, observers)"),
@@ -51,22 +54,25 @@ class Parts:
         self.datagrams: collections.Counter = collections.Counter()
         self.wall: collections.Counter = collections.Counter()
         self.thread: threading.Thread | None = None
-        self.place = 2
+        self.place = BETWEEN
         self.k = 0
 
     def table(self) -> str:
         n = [self.datagrams[p] or 1 for p in range(3)]
+        n.append(sum(self.datagrams[p] for p in range(3)) or 1)
+        places = range(len(PLACES))
         lines = [f"{'part, us a datagram':34s}" + "".join(f"{p:>18s}" for p in PLACES)]
-        lines.append(f"{'datagrams':34s}" + "".join(f"{self.datagrams[p]:18d}" for p in range(3)))
+        lines.append(f"{'datagrams':34s}"
+                     + "".join(f"{self.datagrams[p]:18d}" for p in range(3)) + f"{'(all)':>18s}")
         lines.append(f"{'process, wall clock':34s}"
                      + "".join(f"{self.wall[p] / n[p] / 1e3:18.1f}" for p in range(3)))
         labels = [label for *_, label in bench_engine_parts.PARTS + EXTRA] + [SEND]
         for label in labels:
-            if not any(self.calls[(label, p)] for p in range(3)):
+            if not any(self.calls[(label, p)] for p in places):
                 continue
             lines.append(f"{label:34s}" + "".join(
                 f"{self.cpu[(label, p)] / n[p] / 1e3:11.1f} ({self.calls[(label, p)] / n[p]:4.1f})"
-                for p in range(3)))
+                for p in places))
         lines.append("(CPU us a datagram, calls a datagram in brackets; nested parts are included"
                      " in their callers)")
         return "\n".join(lines) + "\n"
@@ -105,7 +111,7 @@ def install(parts: Parts) -> None:
             parts.wall[place] += time.perf_counter_ns() - w
             parts.datagrams[place] += 1
             parts.k += 1
-            parts.place = 2
+            parts.place = BETWEEN
 
     engine_mod.Engine.process_taken = taken
     engine_mod.Engine.process = one
