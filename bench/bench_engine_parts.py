@@ -16,10 +16,13 @@ path, taken on a quarter of the datagrams (docs/reports/issue-10.md).
 ``--paced`` replays the timed datagrams at their real spacing, sleeping between them as the
 engine thread does live: each part then also pays for what it finds cold after the sleep
 (issue 10, stop 37: a 6x6 datagram then costs 2.0-2.2 times its back-to-back CPU here,
-2.4 times in bench_wakeup.py), and the table shows where that goes.
+2.4 times in bench_wakeup.py), and the table shows where that goes. ``--spin`` waits for
+each datagram's time in a busy loop instead of asleep: what is left of the difference from
+back to back is not the CPU's idle state (stop 56: spread 6x6, asleep 358-375 us a datagram,
+spinning 296-313, back to back 222; in step, spinning gave nothing back).
 
 Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR] [--paced]
-     [--aligned]
+     [--spin] [--aligned]
      (DIR: a directory holding stage/, e.g. a `git archive` of another commit)
 """
 
@@ -115,6 +118,8 @@ def main() -> None:
     parser.add_argument("--tree", help="a directory holding stage/ (default: this checkout)")
     parser.add_argument("--paced", action="store_true",
                         help="the timed datagrams at their real spacing, asleep in between")
+    parser.add_argument("--spin", action="store_true",
+                        help="with --paced: wait in a busy loop instead of asleep")
     parser.add_argument("--aligned", action="store_true",
                         help="sensors in step: a frame's S datagrams at one instant (a burst)")
     opt = parser.parse_args()
@@ -137,7 +142,10 @@ def main() -> None:
         spent = 0
         start = time.perf_counter() - data[skip][0]
         for t, d in data[skip:]:
-            if opt.paced:
+            if opt.paced and opt.spin:
+                while time.perf_counter() < start + t:
+                    pass
+            elif opt.paced:
                 inproc.sleep_until(start, t)
             clock.set(t)
             c = time.thread_time_ns()
@@ -154,7 +162,8 @@ def main() -> None:
     wrapped = replay()
     n = len(data) - skip
     print(f"{opt.config} {'aligned' if opt.aligned else 'spread'}, {opt.seconds:g} s of show, {n} datagrams timed "
-          f"{'at their real spacing' if opt.paced else 'back to back'}; stage from "
+          f"{'at their real spacing' if opt.paced else 'back to back'}"
+          f"{' (spinning)' if opt.paced and opt.spin else ''}; stage from "
           f"{Path(stage.__file__).parent}")
     print(f"CPU a datagram: {plain:.0f} us unwrapped (the reference), {wrapped:.0f} us wrapped")
     print(f"{'part':28s} {'us/datagram':>12s} {'calls/datagram':>15s}")
