@@ -1,0 +1,279 @@
+"""A change to the live server's path measured inside one running server, burst by burst.
+
+On this project's shared VMs the same tree reads +1.04 to +1.53 ms over the relay at in-step
+6x6 from one ``bench_engine.py`` run to the next (issue 10, stop 56): a change worth a tenth
+of a millisecond cannot be told from the noise by A/B runs minutes apart. Here one server
+runs both ways at once: a wrapper around the real CLI for ``bench_engine.py --server-cmd``
+(as ``live_parts.py``) switches the change on and off at each burst (a datagram read more
+than 4 ms after the one before begins a burst: with sensors in step, one frame's datagrams;
+spread, each datagram), and splits the engine's own per-skeleton latency (arrival of the
+datagram -> its person's skeleton sent, what ``bench_engine.py`` reports) by the state the
+switch had when the datagram arrived. Both halves share the machine's state to the second;
+the relay ``bench_engine.py`` measures in the same run stays the outside reference.
+
+The changes (``--switch``; each is built here, by wrapping the engine's methods, so that
+it can be measured before it is written properly):
+
+- ``decode-on-engine``: the receiver hands a datagram over undecoded once its source has
+  named its client, and the engine thread decodes it when it comes to it, instead of the
+  receiver decoding every datagram before it queues it.
+- ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
+  (``People.prepare_frames``: transform, swapped limbs, variances; one compiled call) before
+  it queues it; the engine takes them where the sensor's transform is still the one used,
+  and computes them itself otherwise.
+
+Run (the table is written every 3 s; the first 4 s of the server's emissions are left out)::
+
+    STAGE_LIVE_SWITCH=/tmp/switch.txt python bench/bench_engine.py --configs 6x6 \\
+        --modes aligned --no-offline --duration 20 --live \\
+        --server-cmd "python bench/live_switch.py decode-on-engine serve"
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+
+#: a datagram read this long after the one before begins a burst (in step: 33 ms apart)
+BURST_GAP_S = 0.004
+#: the server's first emissions left out (compiling, persons being found)
+SETTLE_S = 4.0
+SWITCHES = ("decode-on-engine", "receiver-prepares")
+
+
+class Switch:
+    """The switch's state per burst, the state each arrival saw, and the latency samples."""
+
+    def __init__(self) -> None:
+        self.on = False
+        self.last = 0.0
+        self.seen: dict[float, bool] = {}
+        self.samples: dict[bool, list[float]] = {False: [], True: []}
+        self.started: float | None = None
+        self.taken = [0, 0]          # receiver-prepares: frames taken from the receiver / not
+
+    def arrival(self, t: float) -> bool:
+        if t - self.last > BURST_GAP_S:
+            self.on = not self.on
+        self.last = t
+        if len(self.seen) > 200_000:
+            self.seen.clear()
+        self.seen[t] = self.on
+        return self.on
+
+    def table(self, name: str) -> str:
+        lines = [f"switch {name}; engine latency per skeleton (arrival -> skeleton sent), ms"]
+        for state in (False, True):
+            s = np.array(self.samples[state]) * 1e3
+            if len(s):
+                lines.append(f"  {'on ' if state else 'off'}: n {len(s)}  p50 "
+                             f"{np.percentile(s, 50):.3f}  p90 {np.percentile(s, 90):.3f}  "
+                             f"p99 {np.percentile(s, 99):.3f}  mean {s.mean():.3f}")
+        if name == "receiver-prepares":
+            lines.append(f"  datagrams whose frames the engine took from the receiver: "
+                         f"{self.taken[0]}; computed itself while on: {self.taken[1]}")
+        return "\n".join(lines) + "\n"
+
+
+def _split_latency(sw: Switch) -> None:
+    """Each latency sample the engine records, also under the switch state of its arrival."""
+    from stage.engine import people as people_mod
+    send_joints = people_mod.People._send_joints
+
+    def timed(self, new):
+        order = []      # the arrivals whose latency the call records, in its order
+        for pid, arrivals in self._dirty.items():
+            person = self.persons.get(pid)
+            if person is not None and person.centre is not None:
+                order.extend(arrivals)
+        got: list[float] = []
+        window = self.latency
+        add = window.add
+        window.add = got.append
+        try:
+            return send_joints(self, new)
+        finally:
+            del window.add
+            now = time.perf_counter()
+            if sw.started is None:
+                sw.started = now
+            if now - sw.started > SETTLE_S and len(got) == len(order):
+                for arrival, value in zip(order, got):
+                    state = sw.seen.get(arrival)
+                    if state is not None:
+                        sw.samples[state].append(value)
+            for value in got:
+                add(value)
+
+    people_mod.People._send_joints = timed
+
+
+def _decode_on_engine(sw: Switch) -> None:
+    from stage.engine import engine as engine_mod
+    from stage.sensors import receiver as receiver_mod
+    from stage.sensors.protocol import decode_datagram
+    from stage.sensors.messages import Inbound
+
+    class Raw:
+        __slots__ = ("data", "source", "arrival", "named")
+
+        def __init__(self, data, source, arrival, named):
+            self.data, self.source, self.arrival, self.named = data, source, arrival, named
+
+    handle = receiver_mod.Receiver.handle
+
+    def receive(self, data, source, arrival):
+        on = sw.arrival(arrival)
+        entry, host = self._sources.get(source), self._hosts.get(source[0])
+        engine = self.submit.__self__
+        if on and entry is not None and entry[1] is not None and host is not None and (
+                self.allow is None or self.allow.allows(source[0])):
+            # (the receiver's checks, as ``handle`` makes them, then the datagram as it came)
+            if not (entry[0].take(arrival) and host.take(arrival)):
+                self.drops.add(entry[1], "flood")
+                return
+            engine.queue.put_nowait(Raw(data, source, arrival, entry))
+            engine.idle.clear()
+            return
+        handle(self, data, source, arrival)
+
+    def decode(engine, raw):
+        decoded = decode_datagram(raw.data, f"{raw.source[0]}:{raw.source[1]}")
+        for client, reason in decoded.drops:
+            engine.drops.add(client, reason)
+        return [Inbound(m, raw.arrival, raw.source, tt) for m, tt in decoded.messages]
+
+    process_taken = engine_mod.Engine.process_taken
+
+    def taken(self, batch):
+        if not any(type(item) is Raw for item in batch):
+            return process_taken(self, batch)
+        chunks, run = [], []
+        for item in batch:           # a raw datagram is a chunk alone
+            if type(item) is Raw:
+                if run:
+                    chunks.extend(engine_mod._by_datagram(run))
+                    run = []
+                chunks.append(item)
+            else:
+                run.append(item)
+        if run:
+            chunks.extend(engine_mod._by_datagram(run))
+        if len(chunks) > engine_mod.BACKLOG_DATAGRAMS:
+            chunks = [[x for c in chunks for x in (decode(self, c) if type(c) is Raw else c)]]
+        last = len(chunks) - 1
+        for k, chunk in enumerate(chunks):
+            self.process(decode(self, chunk) if type(chunk) is Raw else chunk, votes=k == last)
+
+    receiver_mod.Receiver.handle = receive
+    engine_mod.Engine.process_taken = taken
+
+
+def _receiver_prepares(sw: Switch) -> None:
+    from stage.engine import engine as engine_mod
+    from stage.engine import jit
+    from stage.engine import people as people_mod
+    from stage.sensors import receiver as receiver_mod
+    from stage.sensors.messages import JointCoordinates
+
+    prepared: dict[int, tuple] = {}   # id of a datagram's first joints -> its frames, computed
+
+    def prepare(engine, items) -> None:
+        frames = [i.message for i in items if type(i.message) is JointCoordinates]
+        if len(frames) < 2 or not jit.ready() or any(m.client != frames[0].client
+                                                     for m in frames):
+            return
+        client = engine.registry.clients.get(frames[0].client)
+        if client is None or client.transform is None:
+            return
+        transform, people = client.transform, engine.people
+        try:
+            out = jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
+                                   np.array([m.conf for m in frames], dtype=float),
+                                   people.rig.fusion.unswap_limbs, people_mod._LOOK,
+                                   people_mod._TRADED, people_mod.SWAP_MARGIN_M,
+                                   people.smoothing, people_mod.INFERRED)
+        except (TypeError, ValueError):
+            return
+        if len(prepared) > 4096:
+            prepared.clear()
+        prepared[id(frames[0].joints)] = (frames, transform, out)
+
+    handle = receiver_mod.Receiver.handle
+
+    def receive(self, data, source, arrival):
+        on = sw.arrival(arrival)
+        if on and not hasattr(self, "_plain_submit_batch"):
+            self._plain_submit_batch = self.submit_batch
+
+            def submit_batch(items, _self=self):
+                if sw.on:
+                    prepare(_self.submit.__self__, items)
+                return _self._plain_submit_batch(items)
+            self.submit_batch = submit_batch
+        handle(self, data, source, arrival)
+
+    def install(people, transform, frames, out) -> None:     # People.prepare_frames' tail
+        j_out, c_out, bits, r_out, sizes = out
+        js, cs, rs = list(j_out), list(c_out), list(r_out)
+        for k, (m, j, c, b, r, size, n) in enumerate(zip(
+                frames, js, cs, bits.tolist(), rs, sizes[:, 0].tolist(),
+                sizes[:, 1].tolist())):
+            people._framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size,
+                                            int(n), k)
+        if people.core is not None:
+            people._batch = (j_out, c_out, r_out, js, cs, rs)
+
+    prepare_frames = engine_mod.Engine._prepare_frames
+
+    def engine_prepares(self, timed):
+        if not prepared:
+            return prepare_frames(self, timed)
+        groups: dict[str, list] = {}
+        for _, _, item in timed:
+            if type(item.message) is JointCoordinates:
+                groups.setdefault(item.message.client, []).append(item.message)
+        for cid, frames in groups.items():
+            client = self.registry.clients.get(cid)
+            got = prepared.pop(id(frames[0].joints), None)
+            if (got is not None and client is not None and got[1] is client.transform
+                    and len(got[0]) == len(frames)
+                    and all(a is b for a, b in zip(got[0], frames))):
+                install(self.people, got[1], frames, got[2])
+                sw.taken[0] += 1
+            elif len(frames) > 1 and client is not None and client.transform is not None:
+                self.people.prepare_frames(client.transform, frames)
+                sw.taken[1] += 1
+
+    receiver_mod.Receiver.handle = receive
+    engine_mod.Engine._prepare_frames = engine_prepares
+
+
+def main() -> int:
+    if len(sys.argv) < 2 or sys.argv[1] not in SWITCHES:
+        print(f"usage: live_switch.py {{{','.join(SWITCHES)}}} serve|play ...", file=sys.stderr)
+        return 2
+    name = sys.argv[1]
+    out = os.environ.get("STAGE_LIVE_SWITCH", "/tmp/stage-live-switch.txt")
+    sw = Switch()
+    _split_latency(sw)
+    {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares}[name](sw)
+
+    def write() -> None:
+        while True:
+            time.sleep(3.0)
+            tmp = out + ".tmp"
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.write(sw.table(name))
+            os.replace(tmp, out)
+    threading.Thread(target=write, name="live-switch", daemon=True).start()
+    from stage.cli.main import main as cli
+    return cli(["--quiet", *sys.argv[2:]])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
