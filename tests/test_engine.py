@@ -393,6 +393,8 @@ def test_two_persons_created_apart_then_seen_as_one_are_merged():
     send(engine, frame("s0", 0, poses[0].observe(truth)))
     send(engine, frame("s1", 0, poses[1].observe(shifted)))
     assert fused_ids(out) == {1, 2}
+    # (each person's sensors, read once here, are made again when its views change)
+    assert engine.persons[1].sensors() == ("s0",) and engine.persons[2].sensors() == ("s1",)
     # ...then both agree; after merge_s the younger id is folded into the older
     for _ in range(20):
         clock.advance(1 / FPS)
@@ -405,6 +407,28 @@ def test_two_persons_created_apart_then_seen_as_one_are_merged():
     send(engine, frame("s0", 0, poses[0].observe(truth)))
     assert fused_ids(out) == {1}
     assert {t.client for t in engine.persons[1].tracks} == {"s0", "s1"}
+    assert engine.persons[1].sensors() == ("s0", "s1")
+    assert engine.bodies()[1].sensors == ("s0", "s1")
+
+
+def test_a_view_that_leaves_its_person_leaves_its_sensors():
+    """A view farther than release_m from its person for release_frames frames is unbound
+    and starts a person of its own: both persons' sensors say so."""
+    poses = ring_poses(2)
+    engine, clock, out = make_engine(poses)
+    here, there = standing_pose((0.0, 0.0), 0.0), standing_pose((2.5, 0.0), 0.0)
+    for f in range(3):
+        send(engine, frame("s0", 0, poses[0].observe(here)))
+        send(engine, frame("s1", 0, poses[1].observe(here)))
+        clock.advance(1 / FPS)
+    assert list(engine.persons) == [1] and engine.persons[1].sensors() == ("s0", "s1")
+    for f in range(engine.rig.fusion.release_frames + 2):
+        send(engine, frame("s0", 0, poses[0].observe(here)))
+        send(engine, frame("s1", 0, poses[1].observe(there)))
+        clock.advance(1 / FPS)
+    assert engine.persons[1].sensors() == ("s0",)
+    (other,) = [p for pid, p in engine.persons.items() if pid != 1]
+    assert other.sensors() == ("s1",)
 
 
 def test_hand_votes_can_be_weighted_by_hand_confidence():

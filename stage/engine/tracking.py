@@ -126,6 +126,9 @@ class Person:
     size: float | None = None               # trunk length, m (mean of the frames seen)
     size_n: int = 0
     merged: bool = False                    # folded into another person: never comes back
+    #: ``sensors()`` as last made (None: to be made again; ``Tracker`` resets it when it
+    #: changes ``tracks``)
+    _sensors: tuple | None = field(default=None, repr=False)
     #: (client, user) -> its row of ``recent_conf``/``recent_t``: each view's latest frame's
     #: (25,) confidence and capture time (-inf: a free row)
     recent: dict = field(default_factory=dict)
@@ -230,7 +233,12 @@ class Person:
         return float(np.sqrt(d2, out=d2).sum() / len(idx))
 
     def sensors(self) -> tuple[str, ...]:
-        return tuple(sorted({tr.client for tr in self.tracks}))
+        """The ids of the sensors that see it, sorted (made again after ``tracks`` changed:
+        ``Tracker`` is the one that changes them, and says so)."""
+        made = self._sensors
+        if made is None:
+            made = self._sensors = tuple(sorted({tr.client for tr in self.tracks}))
+        return made
 
 
 class Tracker:
@@ -289,6 +297,7 @@ class Tracker:
         elif best.orphan_since is not None:
             self._say_picked_up(best.id, track.client, t)
         best.tracks.add(track)
+        best._sensors = None
         best.orphan_since = None
         track.person, track.far_frames = best.id, 0
         return best
@@ -335,6 +344,7 @@ class Tracker:
         track.person = None
         if person is not None:
             person.tracks.discard(track)
+            person._sensors = None
             if not person.tracks:
                 person.orphan_since = t
         return pid
@@ -378,6 +388,7 @@ class Tracker:
                         track.person = keep.id
                         keep.tracks.add(track)
                     gone.tracks.clear()
+                    keep._sensors = gone._sensors = None
                     gone.merged = True
                     gone.orphan_since = now - fs.lost_grace_s  # lost at once
                     close_now.discard(key)
