@@ -17,6 +17,10 @@ it can be measured before it is written properly):
 - ``decode-on-engine``: the receiver hands a datagram over undecoded once its source has
   named its client, and the engine thread decodes it when it comes to it, instead of the
   receiver decoding every datagram before it queues it.
+- ``observers-after-burst``: the frame observers (the live calibrator's) are called for a
+  burst's frames after its last datagram, as its hand votes are, instead of as each frame
+  is applied (what they read of the engine's state then is the burst's end's: a measure of
+  their cost to the skeletons, not a change ready to ship).
 - ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
   (``People.prepare_frames``: transform, swapped limbs, variances; one compiled call) before
   it queues it; the engine takes them where the sensor's transform is still the one used,
@@ -42,7 +46,7 @@ import numpy as np
 BURST_GAP_S = 0.004
 #: the server's first emissions left out (compiling, persons being found)
 SETTLE_S = 4.0
-SWITCHES = ("decode-on-engine", "receiver-prepares")
+SWITCHES = ("decode-on-engine", "receiver-prepares", "observers-after-burst")
 
 
 class Switch:
@@ -253,6 +257,35 @@ def _receiver_prepares(sw: Switch) -> None:
     engine_mod.Engine._prepare_frames = engine_prepares
 
 
+def _observers_after_burst(sw: Switch) -> None:
+    from stage.engine import engine as engine_mod
+    from stage.sensors import receiver as receiver_mod
+
+    handle = receiver_mod.Receiver.handle
+
+    def receive(self, data, source, arrival):
+        sw.arrival(arrival)
+        handle(self, data, source, arrival)
+
+    process_taken = engine_mod.Engine.process_taken
+
+    def taken(self, batch):
+        if not sw.on or not self.frame_observers:
+            return process_taken(self, batch)
+        observers, held = self.frame_observers, []
+        call = observers.call
+        observers.call = held.append
+        try:
+            process_taken(self, batch)
+        finally:
+            del observers.call
+            for frame in held:
+                call(frame)
+
+    receiver_mod.Receiver.handle = receive
+    engine_mod.Engine.process_taken = taken
+
+
 def main() -> int:
     if len(sys.argv) < 2 or sys.argv[1] not in SWITCHES:
         print(f"usage: live_switch.py {{{','.join(SWITCHES)}}} serve|play ...", file=sys.stderr)
@@ -261,7 +294,8 @@ def main() -> int:
     out = os.environ.get("STAGE_LIVE_SWITCH", "/tmp/stage-live-switch.txt")
     sw = Switch()
     _split_latency(sw)
-    {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares}[name](sw)
+    {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares,
+     "observers-after-burst": _observers_after_burst}[name](sw)
 
     def write() -> None:
         while True:
