@@ -179,8 +179,6 @@ def _decode_on_engine(sw: Switch) -> None:
 
 def _receiver_prepares(sw: Switch) -> None:
     from stage.engine import engine as engine_mod
-    from stage.engine import jit
-    from stage.engine import people as people_mod
     from stage.sensors import receiver as receiver_mod
     from stage.sensors.messages import JointCoordinates
 
@@ -188,24 +186,17 @@ def _receiver_prepares(sw: Switch) -> None:
 
     def prepare(engine, items) -> None:
         frames = [i.message for i in items if type(i.message) is JointCoordinates]
-        if len(frames) < 2 or not jit.ready() or any(m.client != frames[0].client
-                                                     for m in frames):
+        if len(frames) < 2 or any(m.client != frames[0].client for m in frames):
             return
         client = engine.registry.clients.get(frames[0].client)
         if client is None or client.transform is None:
             return
-        transform, people = client.transform, engine.people
-        try:
-            out = jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
-                                   np.array([m.conf for m in frames], dtype=float),
-                                   people.rig.fusion.unswap_limbs, people_mod._LOOK,
-                                   people_mod._TRADED, people_mod.SWAP_MARGIN_M,
-                                   people.smoothing, people_mod.INFERRED)
-        except (TypeError, ValueError):
+        out = engine.people.computed_frames(client.transform, frames)
+        if out is None:
             return
         if len(prepared) > 4096:
             prepared.clear()
-        prepared[id(frames[0].joints)] = (frames, transform, out)
+        prepared[id(frames[0].joints)] = (frames, client.transform, out)
 
     handle = receiver_mod.Receiver.handle
 
@@ -220,17 +211,6 @@ def _receiver_prepares(sw: Switch) -> None:
                 return _self._plain_submit_batch(items)
             self.submit_batch = submit_batch
         handle(self, data, source, arrival)
-
-    def install(people, transform, frames, out) -> None:     # People.prepare_frames' tail
-        j_out, c_out, bits, r_out, sizes = out
-        js, cs, rs = list(j_out), list(c_out), list(r_out)
-        for k, (m, j, c, b, r, size, n) in enumerate(zip(
-                frames, js, cs, bits.tolist(), rs, sizes[:, 0].tolist(),
-                sizes[:, 1].tolist())):
-            people._framed[id(m.joints)] = (m.joints, m.conf, transform, j, c, b, r, size,
-                                            int(n), k)
-        if people.core is not None:
-            people._batch = (j_out, c_out, r_out, js, cs, rs)
 
     prepare_frames = engine_mod.Engine._prepare_frames
 
@@ -247,7 +227,7 @@ def _receiver_prepares(sw: Switch) -> None:
             if (got is not None and client is not None and got[1] is client.transform
                     and len(got[0]) == len(frames)
                     and all(a is b for a, b in zip(got[0], frames))):
-                install(self.people, got[1], frames, got[2])
+                self.people.take_frames(got[1], frames, got[2])
                 sw.taken[0] += 1
             elif len(frames) > 1 and client is not None and client.transform is not None:
                 self.people.prepare_frames(client.transform, frames)

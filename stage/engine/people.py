@@ -282,15 +282,27 @@ class People:
         (``jit.frame_r_many``): a datagram's frames, before they are applied. ``frame``
         takes a frame's results from here when it is given these very arrays and
         transform; they are forgotten at the end of the batch (``flush``)."""
+        out = self.computed_frames(transform, frames)
+        if out is not None:
+            self.take_frames(transform, frames, out)
+
+    def computed_frames(self, transform: np.ndarray, frames: list) -> tuple | None:
+        """``jit.frame_r_many`` of ``frames`` (``prepare_frames``), or None where the kernels
+        are off, there are fewer than two frames or the kernel does not take them. Reads
+        only the rig's fusion settings: another thread may call it (bench/live_switch.py)."""
         if len(frames) < 2 or not jit.ready():
-            return
+            return None
         try:
-            out = jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
-                                   np.array([m.conf for m in frames], dtype=float),
-                                   self.rig.fusion.unswap_limbs, _LOOK, _TRADED, SWAP_MARGIN_M,
-                                   self.smoothing, INFERRED)
+            return jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
+                                    np.array([m.conf for m in frames], dtype=float),
+                                    self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
+                                    SWAP_MARGIN_M, self.smoothing, INFERRED)
         except (TypeError, ValueError):   # frames the kernel does not take: one by one
-            return
+            return None
+
+    def take_frames(self, transform: np.ndarray, frames: list, out: tuple) -> None:
+        """``computed_frames``' ``out`` for ``frames`` kept for ``frame`` until the batch
+        ends (``prepare_frames``)."""
         # each frame's results as Python objects now, for the whole datagram in C (rows of
         # the arrays by iterating them, the small ones as lists), not indexed per frame
         j_out, c_out, bits, r_out, sizes = out
