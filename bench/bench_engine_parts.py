@@ -18,8 +18,8 @@ engine thread does live: each part then also pays for what it finds cold after t
 (issue 10, stop 37: a 6x6 datagram then costs 2.0-2.2 times its back-to-back CPU here,
 2.4 times in bench_wakeup.py), and the table shows where that goes. ``--spin`` waits for
 each datagram's time in a busy loop instead of asleep: what is left of the difference from
-back to back is not the CPU's idle state (stop 56: spread 6x6, asleep 358-375 us a datagram,
-spinning 296-313, back to back 222; in step, spinning gave nothing back).
+back to back is not the CPU's idle state (stop 56: spread 6x6, asleep 288-375 us a datagram,
+spinning 276-313, back to back 222; in step, spinning gave nothing back).
 
 Run: python bench/bench_engine_parts.py [--config 6x6] [--seconds 60] [--tree DIR] [--paced]
      [--spin] [--aligned]

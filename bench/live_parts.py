@@ -117,21 +117,26 @@ def install(parts: Parts) -> None:
     engine_mod.Engine.process = one
 
 
-def main() -> int:
-    out = os.environ.get("STAGE_LIVE_PARTS", "/tmp/stage-live-parts.txt")
-    parts = Parts()
-    install(parts)
-
+def run_cli(table, out: str, name: str, argv: list[str]) -> int:
+    """The real CLI (``argv``: ``serve ...`` or ``play ...``) with ``table()`` written to
+    ``out`` every 3 s on a thread of its own (live_parts.py, live_switch.py)."""
     def write() -> None:
         while True:
             time.sleep(3.0)
             tmp = out + ".tmp"
             with open(tmp, "w", encoding="utf-8") as f:
-                f.write(parts.table())
+                f.write(table())
             os.replace(tmp, out)
-    threading.Thread(target=write, name="live-parts", daemon=True).start()
+    threading.Thread(target=write, name=name, daemon=True).start()
     from stage.cli.main import main as cli
-    return cli(["--quiet", *sys.argv[1:]])
+    return cli(["--quiet", *argv])
+
+
+def main() -> int:
+    parts = Parts()
+    install(parts)
+    return run_cli(parts.table, os.environ.get("STAGE_LIVE_PARTS", "/tmp/stage-live-parts.txt"),
+                   "live-parts", sys.argv[1:])
 
 
 if __name__ == "__main__":

@@ -37,16 +37,17 @@ from __future__ import annotations
 
 import os
 import sys
-import threading
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import live_parts  # noqa: E402
 
 #: a datagram read this long after the one before begins a burst (in step: 33 ms apart)
 BURST_GAP_S = 0.004
 #: the server's first emissions left out (compiling, persons being found)
 SETTLE_S = 4.0
-SWITCHES = ("decode-on-engine", "receiver-prepares", "observers-after-burst")
 
 
 class Switch:
@@ -116,6 +117,19 @@ def _split_latency(sw: Switch) -> None:
     people_mod.People._send_joints = timed
 
 
+def _mark_bursts(sw: Switch) -> None:
+    """Every datagram the receiver reads tells the switch its arrival (``Switch.arrival``)
+    before anything else sees it."""
+    from stage.sensors import receiver as receiver_mod
+    handle = receiver_mod.Receiver.handle
+
+    def receive(self, data, source, arrival):
+        sw.arrival(arrival)
+        handle(self, data, source, arrival)
+
+    receiver_mod.Receiver.handle = receive
+
+
 def _decode_on_engine(sw: Switch) -> None:
     from stage.engine import engine as engine_mod
     from stage.sensors import receiver as receiver_mod
@@ -131,10 +145,9 @@ def _decode_on_engine(sw: Switch) -> None:
     handle = receiver_mod.Receiver.handle
 
     def receive(self, data, source, arrival):
-        on = sw.arrival(arrival)
         entry, host = self._sources.get(source), self._hosts.get(source[0])
         engine = self.submit.__self__
-        if on and entry is not None and entry[1] is not None and host is not None and (
+        if sw.on and entry is not None and entry[1] is not None and host is not None and (
                 self.allow is None or self.allow.allows(source[0])):
             # (the receiver's checks, as ``handle`` makes them, then the datagram as it came)
             if not (entry[0].take(arrival) and host.take(arrival)):
@@ -201,8 +214,7 @@ def _receiver_prepares(sw: Switch) -> None:
     handle = receiver_mod.Receiver.handle
 
     def receive(self, data, source, arrival):
-        on = sw.arrival(arrival)
-        if on and not hasattr(self, "_plain_submit_batch"):
+        if sw.on and not hasattr(self, "_plain_submit_batch"):
             self._plain_submit_batch = self.submit_batch
 
             def submit_batch(items, _self=self):
@@ -239,13 +251,6 @@ def _receiver_prepares(sw: Switch) -> None:
 
 def _observers_after_burst(sw: Switch) -> None:
     from stage.engine import engine as engine_mod
-    from stage.sensors import receiver as receiver_mod
-
-    handle = receiver_mod.Receiver.handle
-
-    def receive(self, data, source, arrival):
-        sw.arrival(arrival)
-        handle(self, data, source, arrival)
 
     process_taken = engine_mod.Engine.process_taken
 
@@ -262,8 +267,12 @@ def _observers_after_burst(sw: Switch) -> None:
             for frame in held:
                 call(frame)
 
-    receiver_mod.Receiver.handle = receive
     engine_mod.Engine.process_taken = taken
+
+
+#: the changes by name: each installs its wrappers, reading the burst's state from ``sw.on``
+SWITCHES = {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares,
+            "observers-after-burst": _observers_after_burst}
 
 
 def main() -> int:
@@ -271,22 +280,13 @@ def main() -> int:
         print(f"usage: live_switch.py {{{','.join(SWITCHES)}}} serve|play ...", file=sys.stderr)
         return 2
     name = sys.argv[1]
-    out = os.environ.get("STAGE_LIVE_SWITCH", "/tmp/stage-live-switch.txt")
     sw = Switch()
     _split_latency(sw)
-    {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares,
-     "observers-after-burst": _observers_after_burst}[name](sw)
-
-    def write() -> None:
-        while True:
-            time.sleep(3.0)
-            tmp = out + ".tmp"
-            with open(tmp, "w", encoding="utf-8") as f:
-                f.write(sw.table(name))
-            os.replace(tmp, out)
-    threading.Thread(target=write, name="live-switch", daemon=True).start()
-    from stage.cli.main import main as cli
-    return cli(["--quiet", *sys.argv[2:]])
+    SWITCHES[name](sw)
+    _mark_bursts(sw)       # (last: its wrapper runs first, before the change's own)
+    return live_parts.run_cli(lambda: sw.table(name),
+                              os.environ.get("STAGE_LIVE_SWITCH", "/tmp/stage-live-switch.txt"),
+                              "live-switch", sys.argv[2:])
 
 
 if __name__ == "__main__":
