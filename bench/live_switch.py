@@ -17,10 +17,9 @@ it can be measured before it is written properly):
 - ``decode-on-engine``: the receiver hands a datagram over undecoded once its source has
   named its client, and the engine thread decodes it when it comes to it, instead of the
   receiver decoding every datagram before it queues it.
-- ``observers-after-burst``: the frame observers (the live calibrator's) are called for a
-  burst's frames after its last datagram, as its hand votes are, instead of as each frame
-  is applied (what they read of the engine's state then is the burst's end's: a measure of
-  their cost to the skeletons, not a change ready to ship).
+- ``observers-after-burst``: the live calibrator's frame observer is called for a burst's
+  frames after its last datagram, as its hand votes are, instead of as each frame is
+  applied (built since: ``Engine.late_frame_observers``; off moves it back).
 - ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
   (``People.prepare_frames``: transform, swapped limbs, variances; one compiled call) before
   it queues it; the engine takes them where the sensor's transform is still the one used,
@@ -250,22 +249,24 @@ def _receiver_prepares(sw: Switch) -> None:
 
 
 def _observers_after_burst(sw: Switch) -> None:
+    """Built into the engine since stop 57 (``Engine.late_frame_observers``): off, the
+    threaded calibrator's observer is moved back among the plain frame observers, called as
+    each frame comes, as before."""
     from stage.engine import engine as engine_mod
 
     process_taken = engine_mod.Engine.process_taken
+    moved: list = []
 
     def taken(self, batch):
-        if not sw.on or not self.frame_observers:
-            return process_taken(self, batch)
-        observers, held = self.frame_observers, []
-        call = observers.call
-        observers.call = held.append
-        try:
-            process_taken(self, batch)
-        finally:
-            del observers.call
-            for frame in held:
-                call(frame)
+        late, plain = self.late_frame_observers, self.frame_observers
+        if not moved:
+            moved.extend(late)
+        for fn in moved:
+            src, dst = (plain, late) if sw.on else (late, plain)
+            if fn in src:
+                src.remove(fn)
+                dst.append(fn)
+        return process_taken(self, batch)
 
     engine_mod.Engine.process_taken = taken
 

@@ -346,6 +346,9 @@ def test_the_worker_thread_calibrates_without_blocking_the_engine(tmp_path):
         r.cal.flush()
         r.engine.drain()
 
+    # the engine hands it each frame once the frame's batch is sent (it only queues them)
+    assert run.engine.late_frame_observers == [run.cal._observe]
+    assert run.engine.frame_observers == []
     try:
         run.run_until(6.0, hook=sync)
     finally:
@@ -356,7 +359,7 @@ def test_the_worker_thread_calibrates_without_blocking_the_engine(tmp_path):
     err = transform_error(done[0].matrix, run.truth_to_stage("s1"))
     assert err["rot_deg"] < 1.0 and err["trans_mm"] < 50, err
     assert not worker[0].is_alive()
-    assert run.engine.frame_observers == []
+    assert run.engine.frame_observers == [] and run.engine.late_frame_observers == []
 
 
 def test_request_recalibrates_on_demand_while_still_fused(tmp_path):

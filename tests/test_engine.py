@@ -472,6 +472,46 @@ def test_call_soon_runs_on_the_engine_in_order_with_data():
     assert out.sent == [] and len(seen) == 2 and seen[1].transform is None
 
 
+def test_late_frame_observers_see_a_burst_after_its_skeletons_are_sent():
+    """Sensors in step: a late observer (the threaded live calibrator's) gets every frame of
+    the datagrams taken together, in the order they came, with what each came with, but
+    only once all of them are fused and sent, so that it delays none of their skeletons; a
+    plain frame observer still gets each frame as it comes."""
+    poses = ring_poses(3, radius=3.0)
+    engine, clock, out = make_engine(poses)
+    truth = standing_pose((0.0, 0.0), 0.0)
+    now, late = [], []
+    engine.frame_observers.append(lambda f: now.append((f.sensor, len(out.sent))))
+    engine.late_frame_observers.append(lambda f: late.append((f, len(out.sent))))
+    for b in range(3):
+        clock.set(100.0 + b / FPS)
+        items = []
+        for k, pose in enumerate(poses):
+            data = frame(f"s{k}", 0, pose.observe(truth))
+            decoded = decode_datagram(data, f"10.0.0.{k + 1}:5000")
+            items += [Inbound(m, clock.now(), (f"10.0.0.{k + 1}", 5000), tt)
+                      for m, tt in decoded.messages]
+        before = len(out.sent)
+        engine.process_taken(items)
+        sent = out.of("/jointCoordinates")
+        assert len(sent) == 3 * (b + 1)            # one skeleton a datagram, each at once
+        mine = late[3 * b:]
+        assert [f.sensor for f, _ in mine] == ["s0", "s1", "s2"]
+        assert all(n == len(out.sent) for _, n in mine)      # after the burst's last send
+        assert all(f.t == clock.now() and f.transform is not None for f, _ in mine)
+        np.testing.assert_allclose(mine[1][0].joints, poses[1].observe(truth), atol=1e-6)
+        # the plain observer saw each frame before its own skeleton went out
+        assert [n for _, n in now[3 * b:]] != [len(out.sent)] * 3
+        assert now[3 * b][1] == before
+    assert len(late) == len(now) == 9
+    # one that raises is logged, removed, and the engine goes on
+    engine.late_frame_observers.append(lambda f: 1 / 0)
+    clock.set(100.0 + 3 / FPS)
+    send(engine, frame("s0", 0, poses[0].observe(truth)))
+    assert len(engine.late_frame_observers) == 1 and len(late) == 10
+    assert len(out.of("/jointCoordinates")) == 10
+
+
 def test_every_frame_is_sent_at_once_however_soon_after_another():
     """Issue 10: no frame waits for a later fusion (the engine used to fuse a person at most
     every 25 ms, so a frame 4 ms after another waited up to a frame period)."""

@@ -126,7 +126,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "LiveCalibrator":
-        self.engine.frame_observers.append(self._observe)
+        self._observers().append(self._observe)
         self.engine.stats_sections["calibrator"] = self.stats
         self._start_worker()
         return self
@@ -134,12 +134,19 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
     def stop(self) -> None:
         """Detach from the engine and end the worker (waits for a running job)."""
         try:
-            self.engine.frame_observers.remove(self._observe)
+            self._observers().remove(self._observe)
         except ValueError:
             pass
         if self.engine.stats_sections.get("calibrator") == self.stats:
             del self.engine.stats_sections["calibrator"]
         self._stop_worker()
+
+    def _observers(self):
+        """Where the engine calls ``_observe``: threaded, once the frame's batch is fused and
+        sent (the observer only queues it for the worker, and the skeletons queued behind
+        it need not wait); inline, as each frame comes, so that a bump the jump gate catches
+        leaves the sensor out of the very next frame."""
+        return self.engine.late_frame_observers if self.threaded else self.engine.frame_observers
 
     def stats(self) -> dict:
         """The ``calibrator`` section of ``/stage/stats`` (any thread; counters only):
@@ -243,13 +250,14 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             self._crashed(f"frame of {frame.sensor[:64]}", exc)
 
     def _observe_frame(self, frame: SensorFrame) -> None:
-        """Engine thread, every frame: what the engine knows of it now (its track, the
-        person it is bound to, the reference), then -- threaded -- a reference appended to
-        the inbox and nothing more: the buffers, the copy and jump checks run on the worker
-        at its next poll (every ``poll_s``), in the engine's order. They cost the engine
-        thread 30-40 us a frame (a fifth of its time at 6 sensors x 6 people), and a bump
-        caught 0.1 s later is still left out long before anyone hears it. Inline
-        (``threaded=False``) they run at once, as before, so offline runs are unchanged."""
+        """Engine thread, every frame (threaded: once its batch is fused, ``_observers``):
+        what the engine knows of it then (its track, the person it is bound to, the
+        reference), then -- threaded -- a reference appended to the inbox and nothing more:
+        the buffers, the copy and jump checks run on the worker at its next poll (every
+        ``poll_s``), in the engine's order. They cost the engine thread 30-40 us a frame (a
+        fifth of its time at 6 sensors x 6 people), and a bump caught 0.1 s later is still
+        left out long before anyone hears it. Inline (``threaded=False``) they run at once,
+        as before, so offline runs are unchanged."""
         self._engine_thread = threading.current_thread()
         client = self.engine.clients.get(frame.sensor)
         track = client.tracks.get(frame.user) if client is not None else None

@@ -83,8 +83,14 @@ class Engine:
         #: called on the engine thread with every fused frame (copy-on-write: add and
         #: remove from any thread)
         self.listeners = Callbacks("listener")
-        #: called on the engine thread with every valid sensor frame, calibrated or not
+        #: called on the engine thread with every valid sensor frame, calibrated or not, as
+        #: it comes (what they do to the engine applies to the frames after it)
         self.frame_observers = Callbacks("frame observer")
+        #: the same, once the datagrams taken with the frame are fused and sent (``_observe``):
+        #: for observers that only hand frames to another thread (the live calibrator's)
+        self.late_frame_observers = Callbacks("late frame observer")
+        #: the batch's frames for ``late_frame_observers``, built as each came
+        self._observed: list[SensorFrame] = []
         #: writes the rig file off the engine thread (see ``apply_calibration``)
         self.rig_store = RigStore()
         #: per input frame: its datagram's arrival -> the first datagram out that includes it
@@ -243,6 +249,8 @@ class Engine:
             self.people.flush(votes)
         except Exception:  # a bug must not end the show: log it, lose this batch's frames
             log.exception("error while fusing a batch; its frames are dropped")
+        if votes and self._observed:
+            self._observe()
         if self._stats_replies:
             stats = self.stats()
             for address in self._stats_replies:
@@ -262,6 +270,19 @@ class Engine:
                     self.output.send(data, address)
             self._health_replies.clear()
         self.batch_time.add(time.perf_counter() - started)
+
+    def _observe(self) -> None:
+        """The late frame observers, with the frames of the batch (and of the datagrams taken
+        with it, ``process_taken``) in the order they came, once those frames are fused and
+        sent: such an observer (the threaded live calibrator's, some 1.5 us a frame and a
+        wake-up of its worker every 0.1 s) does not delay the skeletons of the datagrams
+        queued behind. The frame holds what it came with (its sensor's transform and floor
+        as they were); what an observer looks up in the engine (the frame's track, its
+        person) it finds as the batch left it. One that raises is logged and removed."""
+        frames, self._observed = self._observed, []
+        call = self.late_frame_observers.call
+        for frame in frames:
+            call(frame)
 
     def _prepare_frames(self, timed: list[tuple[float, int, Inbound]]) -> None:
         """Each known, calibrated sensor's frames of the batch computed together, in one
@@ -403,9 +424,13 @@ class Engine:
         """Whether the frame reached its person with ``hands`` (``_apply_frame``)."""
         client.frames += 1
         self.counts["frames"] += 1
-        if self.frame_observers:
-            self.frame_observers.call(SensorFrame(client.id, msg.user, t, msg.joints, msg.conf,
-                                                  client.transform, client.floor))
+        if self.frame_observers or self.late_frame_observers:
+            frame = SensorFrame(client.id, msg.user, t, msg.joints, msg.conf, client.transform,
+                                client.floor)
+            if self.frame_observers:
+                self.frame_observers.call(frame)
+            if self.late_frame_observers:
+                self._observed.append(frame)
         if client.transform is None:
             if not client.warned_uncalibrated:
                 log.warning("sensor %s has no calibration in use: its frames are not fused "
