@@ -21,9 +21,9 @@ it can be measured before it is written properly):
   frames after its last datagram, as its hand votes are, instead of as each frame is
   applied (built since: ``Engine.late_frame_observers``; off moves it back).
 - ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
-  (``People.prepare_frames``: transform, swapped limbs, variances; one compiled call) before
+  (``People.computed_frames``: transform, swapped limbs, variances; one compiled call) before
   it queues it; the engine takes them where the sensor's transform is still the one used,
-  and computes them itself otherwise.
+  and computes them itself otherwise (built since: ``Engine.prepare_on_receipt``).
 
 Run (the table is written every 3 s; the first 4 s of the server's emissions are left out)::
 
@@ -58,7 +58,7 @@ class Switch:
         self.seen: dict[float, bool] = {}
         self.samples: dict[bool, list[float]] = {False: [], True: []}
         self.started: float | None = None
-        self.taken = [0, 0]          # receiver-prepares: frames taken from the receiver / not
+        self.engine = None           # receiver-prepares: the engine, for its counts
 
     def arrival(self, t: float) -> bool:
         if t - self.last > BURST_GAP_S:
@@ -77,9 +77,11 @@ class Switch:
                 lines.append(f"  {'on ' if state else 'off'}: n {len(s)}  p50 "
                              f"{np.percentile(s, 50):.3f}  p90 {np.percentile(s, 90):.3f}  "
                              f"p99 {np.percentile(s, 99):.3f}  mean {s.mean():.3f}")
-        if name == "receiver-prepares":
+        if name == "receiver-prepares" and self.engine is not None:
+            counts = self.engine.counts
             lines.append(f"  datagrams whose frames the engine took from the receiver: "
-                         f"{self.taken[0]}; computed itself while on: {self.taken[1]}")
+                         f"{counts['prepared']}; computed again (stale): "
+                         f"{counts['prepared_stale']}")
         return "\n".join(lines) + "\n"
 
 
@@ -190,62 +192,18 @@ def _decode_on_engine(sw: Switch) -> None:
 
 
 def _receiver_prepares(sw: Switch) -> None:
-    from stage.engine import engine as engine_mod
+    """Built into the engine since stop 57 (``Engine.prepare_on_receipt``, on by default):
+    the switch sets it at each datagram's arrival."""
     from stage.sensors import receiver as receiver_mod
-    from stage.sensors.messages import JointCoordinates
-
-    prepared: dict[int, tuple] = {}   # id of a datagram's first joints -> its frames, computed
-
-    def prepare(engine, items) -> None:
-        frames = [i.message for i in items if type(i.message) is JointCoordinates]
-        if len(frames) < 2 or any(m.client != frames[0].client for m in frames):
-            return
-        client = engine.registry.clients.get(frames[0].client)
-        if client is None or client.transform is None:
-            return
-        out = engine.people.computed_frames(client.transform, frames)
-        if out is None:
-            return
-        if len(prepared) > 4096:
-            prepared.clear()
-        prepared[id(frames[0].joints)] = (frames, client.transform, out)
-
     handle = receiver_mod.Receiver.handle
 
     def receive(self, data, source, arrival):
-        if sw.on and not hasattr(self, "_plain_submit_batch"):
-            self._plain_submit_batch = self.submit_batch
-
-            def submit_batch(items, _self=self):
-                if sw.on:
-                    prepare(_self.submit.__self__, items)
-                return _self._plain_submit_batch(items)
-            self.submit_batch = submit_batch
+        engine = self.submit_batch.__self__
+        engine.prepare_on_receipt = sw.on
+        sw.engine = engine
         handle(self, data, source, arrival)
 
-    prepare_frames = engine_mod.Engine._prepare_frames
-
-    def engine_prepares(self, timed):
-        if not prepared:
-            return prepare_frames(self, timed)
-        groups: dict[str, list] = {}
-        for _, _, item in timed:
-            if type(item.message) is JointCoordinates:
-                groups.setdefault(item.message.client, []).append(item.message)
-        for cid, frames in groups.items():
-            client = self.registry.clients.get(cid)
-            got = prepared.pop(id(frames[0].joints), None)
-            if (got is not None and client is not None and got[1] is client.transform
-                    and len(got[0]) == len(frames)
-                    and all(a is b for a, b in zip(got[0], frames))):
-                self.people.take_frames(got[1], frames, got[2])
-                sw.taken[0] += 1
-            elif len(frames) > 1 and client is not None and client.transform is not None:
-                self.people.prepare_frames(client.transform, frames)
-                sw.taken[1] += 1
-
     receiver_mod.Receiver.handle = receive
-    engine_mod.Engine._prepare_frames = engine_prepares
 
 
 def _observers_after_burst(sw: Switch) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -510,6 +511,104 @@ def test_late_frame_observers_see_a_burst_after_its_skeletons_are_sent():
     send(engine, frame("s0", 0, poses[0].observe(truth)))
     assert len(engine.late_frame_observers) == 1 and len(late) == 10
     assert len(out.of("/jointCoordinates")) == 10
+
+
+def _three_sensor_bursts(poses, frames_n=20, users=3):
+    """Per frame, each sensor's datagram of ``users`` skeletons, as a receiver decodes it."""
+    rng = np.random.default_rng(11)
+    kinects = [VirtualKinect(p, rng=rng) for p in poses]
+    bursts = []
+    for f in range(frames_n):
+        burst = []
+        for k, kin in enumerate(kinects):
+            msgs = []
+            for u in range(users):          # a skeleton and its two hand states, as a Kinect
+                msgs += [encode_client_joints(f"s{k}", u, *kin.observe(
+                    standing_pose((1.2 * u - 1.2, 0.02 * f), 0.1 * u), user=u)),
+                    encode_message("/handState", f"s{k}", u, "left", "open"),
+                    encode_message("/handState", f"s{k}", u, "right", "closed")]
+            decoded = decode_datagram(encode_bundle(msgs), f"10.0.0.{k + 1}:5000")
+            burst.append(decoded.messages)
+        bursts.append(burst)
+    return bursts
+
+
+def _submitted(engine, clock, burst, between=None):
+    """One frame's datagrams queued as the receiver queues them (``submit_batch``), then
+    taken together (``between`` runs in between, on the engine's thread)."""
+    for k, messages in enumerate(burst):
+        engine.submit_batch([Inbound(m, clock.now(), (f"10.0.0.{k + 1}", 5000), tt)
+                             for m, tt in messages])
+    if between is not None:
+        between(engine)
+    engine.process_taken(engine._take([]))
+
+
+def test_frames_computed_on_receipt_give_what_the_engine_computes():
+    """The receiver's thread puts a datagram's skeletons in stage space as it queues them
+    (``Engine.submit_batch``); the engine takes those results instead of computing them, and
+    what the views get is the same to the bit."""
+    poses = ring_poses(3, radius=3.0)
+    bursts = _three_sensor_bursts(poses)
+    runs = []
+    for on in (True, False):
+        engine, clock, out = make_engine(poses)
+        engine.prepare_on_receipt = on
+        for b, burst in enumerate(bursts):
+            clock.set(100.0 + b / FPS)
+            _submitted(engine, clock, burst)
+        runs.append((engine, out))
+    (a, out_a), (b, out_b) = runs
+    # (each sensor's first datagram: not known yet when the receiver queues it)
+    assert a.counts["prepared"] == 3 * (len(bursts) - 1) and a.counts["prepared_stale"] == 0
+    assert b.counts["prepared"] == 0
+    assert len(out_a.of("/jointCoordinates")) >= 3 * (len(bursts) - 1)
+    assert [m.address for _, m in out_a.sent] == [m.address for _, m in out_b.sent]
+    for (_, ma), (_, mb) in zip(out_a.sent, out_b.sent):
+        assert ma.params == mb.params
+    assert not a._ready                      # nothing kept past its batch
+    # an engine waiting idle starts on a datagram at once: it gets it as it came
+    clock.set(100.0 + len(bursts) / FPS)
+    a.idle.set()
+    a.submit_batch([Inbound(m, clock.now(), ("10.0.0.1", 5000), tt) for m, tt in bursts[0][0]])
+    entry = a.queue.get_nowait()
+    assert type(entry) is list and a.counts["prepared"] == 3 * (len(bursts) - 1)
+    a.submit_batch([Inbound(m, clock.now(), ("10.0.0.2", 5000), tt) for m, tt in bursts[0][1]])
+    assert type(a.queue.get_nowait()) is not list               # busy: computed on receipt
+
+
+@pytest.mark.parametrize("change", ["transform", "settings"])
+def test_frames_computed_on_receipt_for_a_replaced_transform_are_computed_again(change):
+    """A sensor recalibrated (or the smoothing settings replaced) between the receiver's
+    computing a datagram's frames and the engine's coming to them: the engine computes them
+    again with what is in use, and the views get what they get without the head start."""
+    poses = ring_poses(3, radius=3.0)
+    bursts = _three_sensor_bursts(poses, frames_n=12)
+    moved = poses[1].to_stage.copy()
+    moved[:3, 3] += (0.0, 0.0, 0.3)
+    inv = np.linalg.inv(poses[0].to_stage)
+
+    def replace(engine):
+        if change == "transform":
+            engine.set_calibration("s1", inv @ moved)
+        else:
+            engine.people.smoothing = dataclasses.replace(engine.people.smoothing,
+                                                          measurement_noise=4e-4)
+
+    runs = []
+    for on in (True, False):
+        engine, clock, out = make_engine(poses)
+        engine.prepare_on_receipt = on
+        for b, burst in enumerate(bursts):
+            clock.set(100.0 + b / FPS)
+            _submitted(engine, clock, burst, replace if b == 6 else None)
+        runs.append((engine, out))
+    (a, out_a), (_, out_b) = runs
+    stale = 1 if change == "transform" else 3
+    assert a.counts["prepared_stale"] == stale
+    assert a.counts["prepared"] == 3 * (len(bursts) - 1) - stale
+    assert [(m.address, m.params) for _, m in out_a.sent] == \
+        [(m.address, m.params) for _, m in out_b.sent]
 
 
 def test_every_frame_is_sent_at_once_however_soon_after_another():

@@ -55,6 +55,14 @@ TICK_S = 0.02
 BACKLOG_DATAGRAMS = 12
 
 
+class _Prepared(list):
+    """One datagram's messages as ``submit_batch`` queues them, with its sensor's frames
+    already computed in stage space on the receiver's thread (``Engine._prepared``): the
+    frames, the transform and settings they were computed with, the kernel's results."""
+
+    __slots__ = ("frames", "transform", "settings", "out")
+
+
 @dataclass(slots=True)
 class Call:
     """A function to run on the engine thread (see ``Engine.call_soon``)."""
@@ -91,6 +99,12 @@ class Engine:
         self.late_frame_observers = Callbacks("late frame observer")
         #: the batch's frames for ``late_frame_observers``, built as each came
         self._observed: list[SensorFrame] = []
+        #: a datagram's frames are computed in stage space by the receiver's thread as it
+        #: queues them (``submit_batch``), while the engine thread fuses those ahead
+        self.prepare_on_receipt = True
+        #: the datagrams taken with their frames computed, by their first frame (``_take``)
+        self._ready: dict[int, _Prepared] = {}
+        self._prepare_failed = False
         #: writes the rig file off the engine thread (see ``apply_calibration``)
         self.rig_store = RigStore()
         #: per input frame: its datagram's arrival -> the first datagram out that includes it
@@ -99,7 +113,10 @@ class Engine:
         self.batch_time = LatencyWindow(1024)
         #: the app's health messages for ``/stage/health`` (set by the app; engine thread)
         self.health_messages: Callable[[], list[bytes]] | None = None
-        self.counts = {"messages": 0, "frames": 0, "fused_frames": 0}
+        #: (prepared: datagrams whose frames the receiver computed and the engine took; stale:
+        #: computed for a transform or settings no longer in use when the engine came to them)
+        self.counts = {"messages": 0, "frames": 0, "fused_frames": 0, "prepared": 0,
+                       "prepared_stale": 0}
         #: the fusion path: persons, their filters and hand votes, emission to views
         self.people = People(self.rig, self.clock, self.output, self.listeners, self.drops,
                              self.latency, self.counts)
@@ -172,6 +189,9 @@ class Engine:
         a drop per message."""
         if not items:
             return True
+        # (only while the engine thread is busy: an idle one starts on them at once)
+        if self.prepare_on_receipt and len(items) > 3 and not self.idle.is_set():
+            items = self._prepared(items)
         self.idle.clear()
         try:
             self.queue.put_nowait(items)
@@ -180,6 +200,40 @@ class Engine:
             for item in items:
                 self.drops.add(_client_key(item), "queue_full")
             return False
+
+    def _prepared(self, items: list[Inbound]) -> list[Inbound]:
+        """Receiver thread (``submit_batch``): the datagram with its skeletons computed in
+        stage space (``People.computed_frames``: transform, swapped limbs, variances; one
+        compiled call) when they are two or more of one known, calibrated sensor; else as it
+        came. What the engine would do first with them, done while the engine thread fuses
+        the datagrams queued ahead (sensors in step send theirs together); ``submit_batch``
+        does not call it while the engine waits idle (done here, the work would only come
+        between the datagram and the engine). It reads the sensor's transform and the
+        fusion settings as they are now, each one Python object read once; the engine takes
+        the results only where its own are still those very objects (``_prepare_frames``),
+        and computes them itself otherwise."""
+        frames = [i.message for i in items if type(i.message) is JointCoordinates]
+        if len(frames) < 2:
+            return items
+        cid = frames[0].client
+        client = self.registry.clients.get(cid)
+        transform = None if client is None else client.transform
+        if transform is None or any(m.client != cid for m in frames):
+            return items
+        settings = (self.rig.fusion.unswap_limbs, self.people.smoothing)
+        try:
+            out = self.people.computed_frames(transform, frames, *settings)
+        except Exception:  # only a head start: the engine computes them itself
+            if not self._prepare_failed:
+                self._prepare_failed = True
+                log.exception("error while preparing a datagram's frames on receipt (logged "
+                              "once; the engine thread computes them)")
+            return items
+        if out is None:
+            return items
+        entry = _Prepared(items)
+        entry.frames, entry.transform, entry.settings, entry.out = frames, transform, settings, out
+        return entry
 
     def call_soon(self, fn: Callable[["Engine"], None]) -> None:
         """Run ``fn(engine)`` on the engine thread, in order with the data (thread-safe).
@@ -192,20 +246,31 @@ class Engine:
     def drain(self) -> None:
         """Process everything queued so far, on the calling thread (tests, offline replay)."""
         batch = self._take([])
-        if batch:
-            self.process(batch)
+        try:
+            if batch:
+                self.process(batch)
+        finally:
+            self._ready.clear()
 
-    def _take(self, batch: list[Inbound], limit: int | None = None) -> list[Inbound]:
-        """``batch`` with what is queued now appended, up to ``limit`` items in all."""
-        while limit is None or len(batch) < limit:
+    def _take(self, batch: list[Inbound], limit: int | None = None,
+              first: Inbound | list[Inbound] | None = None) -> list[Inbound]:
+        """``batch`` with ``first`` and what is queued now appended, up to ``limit`` items in
+        all (a datagram's frames computed on receipt noted for ``_prepare_frames``)."""
+        entry = first
+        while True:
+            if entry is not None:
+                if isinstance(entry, list):
+                    if type(entry) is _Prepared:
+                        self._ready[id(entry.frames[0])] = entry
+                    batch.extend(entry)
+                else:
+                    batch.append(entry)
+            if limit is not None and len(batch) >= limit:
+                break
             try:
                 entry = self.queue.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(entry, list):
-                batch.extend(entry)
-            else:
-                batch.append(entry)
         return batch
 
     def handle_datagram(self, data: bytes, source: tuple[str, int] = ("127.0.0.1", 0),
@@ -299,10 +364,20 @@ class Engine:
                     groups[msg.client] = [msg]
                 else:
                     frames.append(msg)
-        clients = self.registry.clients
+        clients, ready = self.registry.clients, self._ready
         for cid, frames in groups.items():
             client = clients.get(cid)
             if len(frames) > 1 and client is not None and client.transform is not None:
+                got = ready.pop(id(frames[0]), None) if ready else None
+                if got is not None:
+                    if (got.transform is client.transform and len(got.frames) == len(frames)
+                            and got.settings[0] == self.rig.fusion.unswap_limbs
+                            and got.settings[1] is self.people.smoothing
+                            and all(a is b for a, b in zip(got.frames, frames))):
+                        self.people.take_frames(got.transform, frames, got.out)
+                        self.counts["prepared"] += 1
+                        continue
+                    self.counts["prepared_stale"] += 1
                 self.people.prepare_frames(client.transform, frames)
 
     def _apply(self, item: Inbound, t: float) -> None:
@@ -523,8 +598,7 @@ class Engine:
                     self.idle.set()   # nothing to do: the calibrator may run
                     first = self.queue.get(timeout=timeout)
                 self.idle.clear()
-                batch = self._take(list(first) if isinstance(first, list) else [first],
-                                   limit=512)
+                batch = self._take([], limit=512, first=first)
             except queue.Empty:
                 batch = []
             self.process_taken(batch)
@@ -545,8 +619,11 @@ class Engine:
         if len(chunks) > BACKLOG_DATAGRAMS:
             chunks = [batch]
         last = len(chunks) - 1
-        for k, chunk in enumerate(chunks):
-            self.process(chunk, votes=k == last)
+        try:
+            for k, chunk in enumerate(chunks):
+                self.process(chunk, votes=k == last)
+        finally:
+            self._ready.clear()
 
     def stats(self) -> dict:
         now = self.clock.now()

@@ -286,17 +286,21 @@ class People:
         if out is not None:
             self.take_frames(transform, frames, out)
 
-    def computed_frames(self, transform: np.ndarray, frames: list) -> tuple | None:
+    def computed_frames(self, transform: np.ndarray, frames: list, unswap: bool | None = None,
+                        smoothing: KalmanSettings | None = None) -> tuple | None:
         """``jit.frame_r_many`` of ``frames`` (``prepare_frames``), or None where the kernels
-        are off, there are fewer than two frames or the kernel does not take them. Reads
-        only the rig's fusion settings: another thread may call it (bench/live_switch.py)."""
+        are off, there are fewer than two frames or the kernel does not take them; with the
+        rig's ``unswap_limbs`` and the smoothing settings unless given. Reads nothing else
+        of the engine's state: the receiver's thread calls it (``Engine._prepared``)."""
         if len(frames) < 2 or not jit.ready():
             return None
         try:
             return jit.frame_r_many(transform, np.array([m.joints for m in frames], dtype=float),
                                     np.array([m.conf for m in frames], dtype=float),
-                                    self.rig.fusion.unswap_limbs, _LOOK, _TRADED,
-                                    SWAP_MARGIN_M, self.smoothing, INFERRED)
+                                    self.rig.fusion.unswap_limbs if unswap is None else unswap,
+                                    _LOOK, _TRADED, SWAP_MARGIN_M,
+                                    self.smoothing if smoothing is None else smoothing,
+                                    INFERRED)
         except (TypeError, ValueError):   # frames the kernel does not take: one by one
             return None
 
