@@ -20,6 +20,8 @@ it can be measured before it is written properly):
 - ``observers-after-burst``: the live calibrator's frame observer is called for a burst's
   frames after its last datagram, as its hand votes are, instead of as each frame is
   applied (built since: ``Engine.late_frame_observers``; off moves it back).
+- ``fold-nogil``: the native core's fold kernel (some 45 us of a 6x6 datagram) lets the GIL
+  go while it runs, so that the receiver can decode the next datagrams meanwhile.
 - ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
   (``People.computed_frames``: transform, swapped limbs, variances; one compiled call) before
   it queues it; the engine takes them where the sensor's transform is still the one used,
@@ -229,9 +231,29 @@ def _observers_after_burst(sw: Switch) -> None:
     engine_mod.Engine.process_taken = taken
 
 
+def _fold_nogil(sw: Switch) -> None:
+    """The native core's fold kernel compiled a second time, letting the GIL go while it
+    runs (``jit._NOGIL`` keeps it: see there why), used while the switch is on."""
+    import numba
+    from stage.engine import jit, native
+    if not jit.warm_native():
+        raise SystemExit("live_switch: the native core's kernel is unavailable here")
+    name = "_native_fold"
+    held = jit._compiled[name]
+    free = numba.njit(jit._NATIVE_SIGNATURES[name], cache=False, nogil=True)(
+        jit._PYTHON_NATIVE[name])
+    fold = native.NativeCore.fold
+
+    def switched(self, *args, **kwargs):
+        jit._compiled[name] = free if sw.on else held
+        return fold(self, *args, **kwargs)
+
+    native.NativeCore.fold = switched
+
+
 #: the changes by name: each installs its wrappers, reading the burst's state from ``sw.on``
 SWITCHES = {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares,
-            "observers-after-burst": _observers_after_burst}
+            "observers-after-burst": _observers_after_burst, "fold-nogil": _fold_nogil}
 
 
 def main() -> int:

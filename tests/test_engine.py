@@ -577,6 +577,29 @@ def test_frames_computed_on_receipt_give_what_the_engine_computes():
     assert type(a.queue.get_nowait()) is not list               # busy: computed on receipt
 
 
+def test_a_failure_computing_frames_on_receipt_is_logged_once_and_loses_nothing(caplog):
+    """A bug in the receiver's head start must not cost a frame: the datagram is queued as
+    it came, one line is logged for all such failures, and the engine computes the frames."""
+    poses = ring_poses(3, radius=3.0)
+    bursts = _three_sensor_bursts(poses, frames_n=6)
+    engine, clock, out = make_engine(poses)
+    plain = engine.people.computed_frames
+
+    def failing(*args):
+        raise RuntimeError("a bug")
+    for b, burst in enumerate(bursts):
+        clock.set(100.0 + b / FPS)
+        if b == 2:
+            engine.people.computed_frames = failing
+        with caplog.at_level(logging.ERROR, logger="stage.engine"):
+            _submitted(engine, clock, burst)
+    engine.people.computed_frames = plain
+    assert engine.counts["prepared"] == 3          # burst 1's: before the failures
+    assert caplog.text.count("preparing a datagram's frames on receipt") == 1
+    assert engine.counts["fused_frames"] > 0 and engine.drops.total() == 0
+    assert len(out.of("/jointCoordinates")) >= 3 * (len(bursts) - 1)
+
+
 @pytest.mark.parametrize("change", ["transform", "settings"])
 def test_frames_computed_on_receipt_for_a_replaced_transform_are_computed_again(change):
     """A sensor recalibrated (or the smoothing settings replaced) between the receiver's
