@@ -22,6 +22,8 @@ it can be measured before it is written properly):
   applied (built since: ``Engine.late_frame_observers``; off moves it back).
 - ``fold-nogil``: the native core's fold kernel (some 45 us of a 6x6 datagram) lets the GIL
   go while it runs, so that the receiver can decode the next datagrams meanwhile.
+- ``send-keeps-gil``: the engine's sends keep the GIL (libc ``sendto`` through
+  ``ctypes.PyDLL``), so the receiver cannot take it at each of a datagram's six sends.
 - ``receiver-prepares``: the receiver also computes a datagram's frames in stage space
   (``People.computed_frames``: transform, swapped limbs, variances; one compiled call) before
   it queues it; the engine takes them where the sensor's transform is still the one used,
@@ -251,9 +253,41 @@ def _fold_nogil(sw: Switch) -> None:
     native.NativeCore.fold = switched
 
 
+def _send_keeps_gil(sw: Switch) -> None:
+    """The engine's sends through libc's ``sendto`` called with the GIL held (``ctypes.PyDLL``,
+    ``MSG_DONTWAIT``; the socket's own ``sendto`` where it fails), so that the receiver does
+    not take the GIL at each send and hold it while the engine waits to go on."""
+    import ctypes
+    import socket
+    import struct
+    from stage.sensors import receiver as receiver_mod
+
+    libc = ctypes.PyDLL(None)
+    sendto = libc.sendto
+    sendto.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_size_t, ctypes.c_int,
+                       ctypes.c_char_p, ctypes.c_uint32]
+    sendto.restype = ctypes.c_ssize_t
+    dontwait = getattr(socket, "MSG_DONTWAIT", 0x40)
+    addresses: dict = {}
+    plain = receiver_mod.UdpTransport.send
+
+    def send(self, data, address):
+        if not sw.on:
+            return plain(self, data, address)
+        raw = addresses.get(address)
+        if raw is None:
+            raw = addresses[address] = struct.pack("=H", socket.AF_INET) + struct.pack(
+                "!H", address[1]) + socket.inet_aton(address[0]) + bytes(8)
+        if sendto(self.sock.fileno(), data, len(data), dontwait, raw, len(raw)) < 0:
+            return plain(self, data, address)   # (it raises what a send raises)
+
+    receiver_mod.UdpTransport.send = send
+
+
 #: the changes by name: each installs its wrappers, reading the burst's state from ``sw.on``
 SWITCHES = {"decode-on-engine": _decode_on_engine, "receiver-prepares": _receiver_prepares,
-            "observers-after-burst": _observers_after_burst, "fold-nogil": _fold_nogil}
+            "observers-after-burst": _observers_after_burst, "fold-nogil": _fold_nogil,
+            "send-keeps-gil": _send_keeps_gil}
 
 
 def main() -> int:
