@@ -544,29 +544,35 @@ def _submitted(engine, clock, burst, between=None):
     engine.process_taken(engine._take([]))
 
 
-def test_frames_computed_on_receipt_give_what_the_engine_computes():
-    """The receiver's thread puts a datagram's skeletons in stage space as it queues them
-    (``Engine.submit_batch``); the engine takes those results instead of computing them, and
-    what the views get is the same to the bit."""
-    poses = ring_poses(3, radius=3.0)
-    bursts = _three_sensor_bursts(poses)
+def _with_and_without_receipt(poses, bursts, between=None, at=None):
+    """The bursts through an engine whose receiver computes frames on receipt and through
+    one whose does not (``between`` run before burst ``at`` is taken): (engine, what its
+    views got as (address, params)) for each."""
     runs = []
     for on in (True, False):
         engine, clock, out = make_engine(poses)
         engine.prepare_on_receipt = on
         for b, burst in enumerate(bursts):
             clock.set(100.0 + b / FPS)
-            _submitted(engine, clock, burst)
-        runs.append((engine, out))
-    (a, out_a), (b, out_b) = runs
+            _submitted(engine, clock, burst, between if b == at else None)
+        runs.append((engine, [(m.address, m.params) for _, m in out.sent]))
+    return runs
+
+
+def test_frames_computed_on_receipt_give_what_the_engine_computes():
+    """The receiver's thread puts a datagram's skeletons in stage space as it queues them
+    (``Engine.submit_batch``); the engine takes those results instead of computing them, and
+    what the views get is the same to the bit."""
+    poses = ring_poses(3, radius=3.0)
+    bursts = _three_sensor_bursts(poses)
+    (a, sent_a), (b, sent_b) = _with_and_without_receipt(poses, bursts)
     # (each sensor's first datagram: not known yet when the receiver queues it)
     assert a.counts["prepared"] == 3 * (len(bursts) - 1) and a.counts["prepared_stale"] == 0
     assert b.counts["prepared"] == 0
-    assert len(out_a.of("/jointCoordinates")) >= 3 * (len(bursts) - 1)
-    assert [m.address for _, m in out_a.sent] == [m.address for _, m in out_b.sent]
-    for (_, ma), (_, mb) in zip(out_a.sent, out_b.sent):
-        assert ma.params == mb.params
+    assert sum(address == "/jointCoordinates" for address, _ in sent_a) >= 3 * (len(bursts) - 1)
+    assert sent_a == sent_b
     assert not a._ready                      # nothing kept past its batch
+    clock = a.clock
     # an engine waiting idle starts on a datagram at once: it gets it as it came
     clock.set(100.0 + len(bursts) / FPS)
     a.idle.set()
@@ -618,20 +624,11 @@ def test_frames_computed_on_receipt_for_a_replaced_transform_are_computed_again(
             engine.people.smoothing = dataclasses.replace(engine.people.smoothing,
                                                           measurement_noise=4e-4)
 
-    runs = []
-    for on in (True, False):
-        engine, clock, out = make_engine(poses)
-        engine.prepare_on_receipt = on
-        for b, burst in enumerate(bursts):
-            clock.set(100.0 + b / FPS)
-            _submitted(engine, clock, burst, replace if b == 6 else None)
-        runs.append((engine, out))
-    (a, out_a), (_, out_b) = runs
+    (a, sent_a), (_, sent_b) = _with_and_without_receipt(poses, bursts, replace, at=6)
     stale = 1 if change == "transform" else 3
     assert a.counts["prepared_stale"] == stale
     assert a.counts["prepared"] == 3 * (len(bursts) - 1) - stale
-    assert [(m.address, m.params) for _, m in out_a.sent] == \
-        [(m.address, m.params) for _, m in out_b.sent]
+    assert sent_a == sent_b
 
 
 def test_every_frame_is_sent_at_once_however_soon_after_another():

@@ -39,6 +39,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..engine.callbacks import Callbacks
 from ..engine.engine import Engine
 from ..frames import SensorFrame
 from .checks import FrameChecks
@@ -141,7 +142,7 @@ class LiveCalibrator(Monitor, Collector, FrameChecks, EngineWorker):
             del self.engine.stats_sections["calibrator"]
         self._stop_worker()
 
-    def _observers(self):
+    def _observers(self) -> Callbacks:
         """Where the engine calls ``_observe``: threaded, once the frame's batch is fused and
         sent (the observer only queues it for the worker, and the skeletons queued behind
         it need not wait); inline, as each frame comes, so that a bump the jump gate catches
