@@ -62,6 +62,13 @@ class _Prepared(list):
 
     __slots__ = ("frames", "transform", "settings", "out")
 
+    def fits(self, frames: list, transform: np.ndarray, settings: tuple) -> bool:
+        """Whether these results are the engine's own for ``frames``: the very messages, the
+        transform and the settings (``Engine._frame_settings``) it would compute them with."""
+        return (transform is self.transform and settings[0] == self.settings[0]
+                and settings[1] is self.settings[1] and len(frames) == len(self.frames)
+                and all(a is b for a, b in zip(frames, self.frames)))
+
 
 @dataclass(slots=True)
 class Call:
@@ -220,7 +227,7 @@ class Engine:
         transform = None if client is None else client.transform
         if transform is None or any(m.client != cid for m in frames):
             return items
-        settings = (self.rig.fusion.unswap_limbs, self.people.smoothing)
+        settings = self._frame_settings()
         try:
             out = self.people.computed_frames(transform, frames, *settings)
         except Exception:  # only a head start: the engine computes them itself
@@ -234,6 +241,11 @@ class Engine:
         entry = _Prepared(items)
         entry.frames, entry.transform, entry.settings, entry.out = frames, transform, settings, out
         return entry
+
+    def _frame_settings(self) -> tuple:
+        """What a frame's stage-space computation reads besides its transform: the rig's
+        ``unswap_limbs`` and the smoothing settings (each read once: any thread)."""
+        return self.rig.fusion.unswap_limbs, self.people.smoothing
 
     def call_soon(self, fn: Callable[["Engine"], None]) -> None:
         """Run ``fn(engine)`` on the engine thread, in order with the data (thread-safe).
@@ -370,10 +382,7 @@ class Engine:
             if len(frames) > 1 and client is not None and client.transform is not None:
                 got = ready.pop(id(frames[0]), None) if ready else None
                 if got is not None:
-                    if (got.transform is client.transform and len(got.frames) == len(frames)
-                            and got.settings[0] == self.rig.fusion.unswap_limbs
-                            and got.settings[1] is self.people.smoothing
-                            and all(a is b for a, b in zip(got.frames, frames))):
+                    if got.fits(frames, client.transform, self._frame_settings()):
                         self.people.take_frames(got.transform, frames, got.out)
                         self.counts["prepared"] += 1
                         continue
