@@ -606,6 +606,29 @@ def test_a_failure_computing_frames_on_receipt_is_logged_once_and_loses_nothing(
     assert len(out.of("/jointCoordinates")) >= 3 * (len(bursts) - 1)
 
 
+def test_a_backlog_taken_in_one_go_counts_no_frames_computed_on_receipt_as_stale():
+    """A backlog (more than ``BACKLOG_DATAGRAMS`` datagrams taken together) is fused as one
+    batch, so each sensor's frames of several datagrams are computed together again: what
+    the receiver computed for one datagram is not used, and is not counted as stale either
+    (its transform and settings are still the ones in use)."""
+    poses = ring_poses(3, radius=3.0)
+    bursts = _three_sensor_bursts(poses, frames_n=8)
+    engine, clock, out = make_engine(poses)
+    for b, burst in enumerate(bursts[:2]):           # every sensor known and calibrated
+        clock.set(100.0 + b / FPS)
+        _submitted(engine, clock, burst)
+    prepared = engine.counts["prepared"]
+    for b, burst in enumerate(bursts[2:], start=2):  # 18 datagrams queued, then taken
+        clock.set(100.0 + b / FPS)
+        for k, messages in enumerate(burst):
+            engine.submit_batch([Inbound(m, clock.now(), (f"10.0.0.{k + 1}", 5000), tt)
+                                 for m, tt in messages])
+    engine.process_taken(engine._take([]))
+    assert engine.counts["prepared"] == prepared and engine.counts["prepared_stale"] == 0
+    assert not engine._ready
+    assert len(out.of("/jointCoordinates")) >= 3 * (len(bursts) - 1)
+
+
 @pytest.mark.parametrize("change", ["transform", "settings"])
 def test_frames_computed_on_receipt_for_a_replaced_transform_are_computed_again(change):
     """A sensor recalibrated (or the smoothing settings replaced) between the receiver's

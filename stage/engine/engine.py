@@ -62,12 +62,17 @@ class _Prepared(list):
 
     __slots__ = ("frames", "transform", "settings", "out")
 
-    def fits(self, frames: list, transform: np.ndarray, settings: tuple) -> bool:
-        """Whether these results are the engine's own for ``frames``: the very messages, the
-        transform and the settings (``Engine._frame_settings``) it would compute them with."""
+    def holds(self, frames: list) -> bool:
+        """Whether these are results for ``frames``, the very messages (a backlog fused as one
+        batch computes several datagrams' frames of a sensor together: not these)."""
+        return len(frames) == len(self.frames) and all(a is b for a, b in
+                                                       zip(frames, self.frames))
+
+    def current(self, transform: np.ndarray, settings: tuple) -> bool:
+        """Whether they were computed with the transform and the settings
+        (``Engine._frame_settings``) the engine would compute them with now."""
         return (transform is self.transform and settings[0] == self.settings[0]
-                and settings[1] is self.settings[1] and len(frames) == len(self.frames)
-                and all(a is b for a, b in zip(frames, self.frames)))
+                and settings[1] is self.settings[1])
 
 
 @dataclass(slots=True)
@@ -381,8 +386,8 @@ class Engine:
             client = clients.get(cid)
             if len(frames) > 1 and client is not None and client.transform is not None:
                 got = ready.pop(id(frames[0]), None) if ready else None
-                if got is not None:
-                    if got.fits(frames, client.transform, self._frame_settings()):
+                if got is not None and got.holds(frames):
+                    if got.current(client.transform, self._frame_settings()):
                         self.people.take_frames(got.transform, frames, got.out)
                         self.counts["prepared"] += 1
                         continue
